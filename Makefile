@@ -1,0 +1,43 @@
+# facecap: `make demo` and `make test` set everything up from nothing, then run.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+# The ICT Face Model copy beside the repository, when there is one (tests and demo use it).
+ICT_MODEL ?= $(abspath ../shared/data/ict_face_model/ict_face_model.npz)
+export FACECAP_ICT_MODEL ?= $(if $(wildcard $(ICT_MODEL)),$(ICT_MODEL),)
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+# Shared libraries the wheels need but do not ship (open3d: libusb, libgomp).
+SYSTEM_LIBS := libusb-1.0.so.0:libusb-1.0-0 libgomp.so.1:libgomp1
+
+.PHONY: demo test install system-libs bench clean
+
+demo: install
+	$(PY) -m flows.cli demo --out out/demo
+
+test: install
+	$(PY) -m pytest -q
+
+install: system-libs $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip setuptools wheel
+	$(PY) -m pip install -q -e '.[test]'
+	@touch $@
+
+system-libs:
+	@missing=""; for pair in $(SYSTEM_LIBS); do \
+	  lib=$${pair%%:*}; pkg=$${pair##*:}; \
+	  /sbin/ldconfig -p 2>/dev/null | grep -q "$$lib" || missing="$$missing $$pkg"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq $$missing; \
+	fi
+
+bench: install
+	$(PY) benchmarks/bench_baseline.py
+
+clean:
+	rm -rf out .pytest_cache

@@ -1,0 +1,1 @@
+"""Deployments of facecap's flows (served on demand and on a nightly schedule)."""

@@ -1,0 +1,124 @@
+"""Assets from the package registry: the default face template and a sample real head scan.
+
+Both come from the source distribution of ``menpo3d==0.8.6`` (BSD-3-Clause, Imperial
+College London), fetched with pip from whatever package index pip is configured to use, checked
+against a pinned sha256 and unpacked under ``$FACECAP_HOME/assets`` (default
+``~/.cache/facecap/assets``). Nothing else is ever downloaded.
+
+* ``template.ply`` + ``template.ljson``: a 53,349-vertex face-and-ears template in the Basel
+  Face Model topology, in micrometres, with 68 landmarks (converted to mm on load).
+* ``james.obj`` / ``james.jpg`` / ``james.ljson``: a real textured head scan in mm with 68 3D
+  landmarks.
+
+A sdist that is already downloaded can be placed in ``$FACECAP_HOME/downloads`` to work
+offline; it is verified the same way.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+from pathlib import Path
+
+from facecap_core.errors import FacecapError
+
+MENPO3D_REQUIREMENT = "menpo3d==0.8.6"
+MENPO3D_SDIST = "menpo3d-0.8.6.tar.gz"
+MENPO3D_SHA256 = "96ad2c8b55b74e026cdc190cf6b1564ad7c8e6c53976cf897d6a1bf4940f084a"
+MENPO3D_FILES = (
+    "template.ply", "template.ljson", "james.obj", "james.obj.mtl", "james.jpg", "james.ljson",
+)
+
+
+def facecap_home() -> Path:
+    """The user cache folder: ``$FACECAP_HOME`` or ``~/.cache/facecap``."""
+    return Path(os.environ.get("FACECAP_HOME") or Path.home() / ".cache" / "facecap").expanduser()
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _download_sdist(dest: Path) -> Path:
+    """Fetch the menpo3d sdist with pip (the configured index, no dependencies)."""
+    cached = facecap_home() / "downloads" / MENPO3D_SDIST
+    if cached.is_file():
+        return cached
+    # pip prepares the sdist's metadata, which imports numpy/setuptools from this interpreter;
+    # both are installed with facecap, so no isolated build environment is needed.
+    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:",
+           "--no-build-isolation", "--disable-pip-version-check", "-q", "-d", str(dest),
+           MENPO3D_REQUIREMENT]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    sdist = dest / MENPO3D_SDIST
+    if proc.returncode != 0 or not sdist.is_file():
+        detail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+        raise FacecapError(
+            f"could not fetch {MENPO3D_REQUIREMENT} from the package index (pip: {detail}); "
+            f"check pip's index settings, or put {MENPO3D_SDIST} into {cached.parent}")
+    return sdist
+
+
+def menpo3d_data() -> Path:
+    """Folder holding the menpo3d data files (fetched and verified on first use)."""
+    target = facecap_home() / "assets" / "menpo3d-0.8.6"
+    if all((target / name).is_file() for name in MENPO3D_FILES):
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+        tmp = Path(tmp)
+        sdist = _download_sdist(tmp)
+        digest = _sha256(sdist)
+        if digest != MENPO3D_SHA256:
+            raise FacecapError(
+                f"{sdist} has sha256 {digest}, expected {MENPO3D_SHA256}: the package index "
+                "served a different file; delete it and check the index")
+        unpacked = tmp / "unpacked"
+        unpacked.mkdir()
+        with tarfile.open(sdist) as tar:
+            for name in MENPO3D_FILES + ("LICENSE.txt",):
+                member = tar.getmember(
+                    f"menpo3d-0.8.6/{'' if name == 'LICENSE.txt' else 'menpo3d/data/'}{name}")
+                with tar.extractfile(member) as src, open(unpacked / name, "wb") as dst:
+                    shutil.copyfileobj(src, dst)
+        # Rename into place last, so a crash never leaves a half-unpacked asset folder.
+        try:
+            unpacked.rename(target)
+        except OSError:
+            if not all((target / name).is_file() for name in MENPO3D_FILES):
+                raise
+    return target
+
+
+def default_template_files() -> tuple[Path, Path]:
+    """(mesh in µm, 68-landmark LJSON) of the default template."""
+    d = menpo3d_data()
+    return d / "template.ply", d / "template.ljson"
+
+
+def james_files() -> tuple[Path, Path]:
+    """(textured OBJ in mm, 68-landmark LJSON) of the sample real head scan."""
+    d = menpo3d_data()
+    return d / "james.obj", d / "james.ljson"
+
+
+PROVENANCE = """\
+Assets used by facecap
+- menpo3d==0.8.6 sdist from the package index, sha256 {sha}
+  (BSD-3-Clause, Copyright (c) 2014 Imperial College London and others):
+    template.ply/.ljson  default template, face + ears, Basel Face Model topology, 68 landmarks
+    james.obj/.jpg/.ljson  real textured head scan (mm) with 68 3D landmarks
+- 68-point landmark model (dlib's shape_predictor_68_face_landmarks, via the
+  face-recognition-models package): trained on iBUG 300-W, whose licence excludes
+  commercial use. Use a model of your own for commercial work.
+- ICT Face Model Light (MIT, USC ICT) when given with --ict-model: synthetic identities.
+"""

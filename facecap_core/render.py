@@ -1,0 +1,125 @@
+"""Ray casting of triangle meshes through a (distorted) camera, with open3d's BVH.
+
+One :class:`RaycastScene` holds several meshes; :meth:`RaycastScene.cast_camera` returns, per
+pixel, the depth, the mesh hit, the triangle and its barycentric coordinates. From these the
+synthetic renderer shades pixels, the evaluation paints heat maps, and later stages get
+visibility and ground-truth depth. Everything is in the world frame the meshes are given in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from facecap_core.camera import Intrinsics, pixel_rays
+
+NO_HIT = np.uint32(o3d.t.geometry.RaycastingScene.INVALID_ID)
+
+
+@dataclass
+class Hits:
+    """Per-pixel ray-cast result, arrays shaped like the image (H, W[, k])."""
+
+    depth: np.ndarray  # float32, camera z (inf where nothing is hit)
+    mesh: np.ndarray  # int32 index of the mesh hit, -1 for none
+    triangle: np.ndarray  # int64 triangle index within that mesh, -1 for none
+    bary: np.ndarray  # float32 (H, W, 3) barycentric weights of the triangle's corners
+    points: np.ndarray  # float64 (H, W, 3) world position of the hit
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.mesh >= 0
+
+
+class RaycastScene:
+    """A set of triangle meshes to cast rays against."""
+
+    def __init__(self):
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._ids: list[int] = []
+
+    def add(self, vertices: np.ndarray, faces: np.ndarray) -> int:
+        """Add a mesh; returns its index in :attr:`Hits.mesh`."""
+        gid = self._scene.add_triangles(
+            o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
+            o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)),
+        )
+        self._ids.append(int(gid))
+        return len(self._ids) - 1
+
+    def cast(self, origins: np.ndarray, directions: np.ndarray) -> dict:
+        """Cast rays (N, 3) + (N, 3); ``t_hit`` is in units of the direction's length."""
+        rays = np.concatenate([origins, directions], axis=-1).astype(np.float32)
+        ans = self._scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
+        return {k: v.numpy() for k, v in ans.items()}
+
+    def cast_camera(self, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
+                    rays_cam: np.ndarray | None = None) -> Hits:
+        """Cast one ray through every pixel of a (distorted) camera with pose (R, t)."""
+        if rays_cam is None:
+            rays_cam = pixel_rays(intr)
+        h, w = rays_cam.shape[:2]
+        d_cam = rays_cam.reshape(-1, 3)
+        d_world = d_cam @ np.asarray(R)  # R.T @ d for each row
+        centre = -np.asarray(R).T @ np.asarray(t).reshape(3)
+        ans = self.cast(np.broadcast_to(centre, d_world.shape), d_world)
+        depth = ans["t_hit"].astype(np.float32)
+        gid = ans["geometry_ids"]
+        hit = gid != NO_HIT
+        lookup = {g: i for i, g in enumerate(self._ids)}
+        mesh = np.full(gid.shape, -1, np.int32)
+        for g, i in lookup.items():
+            mesh[gid == g] = i
+        tri = np.where(hit, ans["primitive_ids"].astype(np.int64), -1)
+        uv = ans["primitive_uvs"]
+        bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1).astype(np.float32)
+        # Positions from depth along the z=1 rays keep float64 precision for the hit point.
+        points = centre + d_world * np.where(hit, depth, np.nan)[:, None].astype(np.float64)
+        return Hits(
+            depth=np.where(hit, depth, np.inf).reshape(h, w),
+            mesh=mesh.reshape(h, w),
+            triangle=tri.reshape(h, w),
+            bary=bary.reshape(h, w, 3),
+            points=points.reshape(h, w, 3),
+        )
+
+
+def interpolate(values: np.ndarray, faces: np.ndarray, triangle: np.ndarray,
+                bary: np.ndarray) -> np.ndarray:
+    """Interpolate per-vertex values (V, ...) at hits (triangle ids + barycentrics)."""
+    corners = values[faces[triangle]]  # (..., 3, k)
+    return np.einsum("...c,...ck->...k", bary, corners.reshape(corners.shape[:-1] + (-1,)))
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals."""
+    fn = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                  vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    vn = np.zeros_like(vertices, dtype=float)
+    for c in range(3):
+        np.add.at(vn, faces[:, c], fn)
+    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
+
+
+def shade_lambert(albedo: np.ndarray, normals: np.ndarray, view_dirs: np.ndarray,
+                  lights: list[tuple[np.ndarray, float]], ambient: float,
+                  specular: float = 0.0, shininess: float = 30.0) -> np.ndarray:
+    """Lambert + Blinn–Phong shading; ``view_dirs`` point from the surface to the camera.
+
+    ``lights`` are (unit direction towards the light, intensity) pairs in the world frame.
+    """
+    n = normals
+    # Normals may face away from the camera on open meshes; light the visible side.
+    n = np.where((np.sum(n * view_dirs, -1, keepdims=True) < 0), -n, n)
+    diffuse = np.full(n.shape[:-1] + (1,), ambient)
+    spec = np.zeros_like(diffuse)
+    for direction, intensity in lights:
+        ndl = np.clip(np.sum(n * direction, -1, keepdims=True), 0.0, None)
+        diffuse = diffuse + intensity * ndl
+        if specular > 0:
+            h = direction + view_dirs
+            h /= np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
+            spec = spec + intensity * specular * np.clip(np.sum(n * h, -1, keepdims=True), 0, None) ** shininess * (ndl > 0)
+    return albedo * diffuse + spec

@@ -1,0 +1,1 @@
+"""Prefect flows of facecap and the ``facecap`` command line that starts them."""

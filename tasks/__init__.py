@@ -1,0 +1,1 @@
+"""Prefect tasks: thin, cached, retried wrappers of facecap_core calls over the artifact store."""

@@ -1,0 +1,92 @@
+"""The command line: results as JSON, and one clear line (no traceback) for bad input."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from facecap_core.meshio import save_landmarks
+from facecap_core.template import Template
+
+
+def facecap(*args, cwd=None):
+    proc = subprocess.run([sys.executable, "-m", "flows.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=cwd, timeout=600)
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory, ict_model):
+    """An ICT head as the 'scan', its landmarks, and the same head 2 % larger as a 'mesh'."""
+    d = tmp_path_factory.mktemp("cli")
+    t = Template.from_ict(ict_model)
+    t.to_trimesh().export(d / "scan.ply")
+    save_landmarks(d / "scan_landmarks.json", t.landmark_points)
+    trimesh.Trimesh(t.vertices * 1.02, t.faces, process=False).export(d / "big.ply")
+    save_landmarks(d / "big_landmarks.json", t.landmark_points * 1.02)
+    return d
+
+
+def test_evaluate_json(scan):
+    code, out, err = facecap("evaluate", scan / "big.ply", "--scan", scan / "scan.ply",
+                             "--scan-landmarks", scan / "scan_landmarks.json",
+                             "--mesh-landmarks", scan / "big_landmarks.json", "--json")
+    assert code == 0, err
+    doc = json.loads(out)
+    sim, met = doc["similarity"], doc["metric"]
+    assert set(sim) >= {"accuracy", "completion", "scale"}
+    assert set(sim["accuracy"]) == {"mean", "std", "median", "under_1mm", "under_2mm"}
+    assert abs(sim["scale"] - 1 / 1.02) < 1e-3 and sim["accuracy"]["mean"] < 0.05
+    assert met["scale"] == 1.0 and met["accuracy"]["mean"] > 0.3  # 2 % too big is seen
+
+
+def test_evaluate_one_protocol_prints_one_object(scan, tmp_path):
+    code, out, err = facecap("evaluate", scan / "scan.ply", "--scan", scan / "scan.ply",
+                             "--scan-landmarks", scan / "scan_landmarks.json",
+                             "--protocol", "metric", "--json", "--heatmap", tmp_path / "h.png")
+    assert code == 0, err
+    assert json.loads(out)["accuracy"]["mean"] < 1e-3
+    assert (tmp_path / "h_metric.png").stat().st_size > 1000
+
+
+BAD = {
+    "missing mesh": (["evaluate", "{d}/nope.ply", "--scan", "{s}/scan.ply",
+                      "--scan-landmarks", "{s}/scan_landmarks.json"], "not found"),
+    "non-mesh file": (["evaluate", "{d}/notes.txt", "--scan", "{s}/scan.ply",
+                       "--scan-landmarks", "{s}/scan_landmarks.json"], "not a mesh"),
+    "garbage ply": (["evaluate", "{d}/garbage.ply", "--scan", "{s}/scan.ply",
+                     "--scan-landmarks", "{s}/scan_landmarks.json"], "mesh"),
+    "scan without landmarks": (["evaluate", "{s}/big.ply", "--scan", "{s}/scan.ply"],
+                               "landmarks"),
+    "landmarks of the wrong size": (["evaluate", "{s}/big.ply", "--scan", "{s}/scan.ply",
+                                     "--scan-landmarks", "{d}/five.json"], "5 points"),
+    "synth: missing subject mesh": (["synth", "--out", "{d}/o", "--subject", "{d}/head.obj",
+                                     "--subject-landmarks", "{s}/scan_landmarks.json"],
+                                    "not found"),
+    "synth: non-mesh subject": (["synth", "--out", "{d}/o", "--subject", "{d}/notes.txt",
+                                 "--subject-landmarks", "{s}/scan_landmarks.json"], "not a mesh"),
+    "synth: mesh without landmarks": (["synth", "--out", "{d}/o", "--subject",
+                                       "{s}/scan.ply"], "landmarks"),
+    "synth: bad value": (["synth", "--out", "{d}/o", "--fps", "-3"], "fps"),
+    "synth: missing config": (["synth", "--out", "{d}/o", "--config", "{d}/c.yaml"],
+                              "not found"),
+    "synth: unknown config key": (["synth", "--out", "{d}/o", "--config", "{d}/typo.yaml"],
+                                  "colour"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_input_is_one_clear_line(case, scan, tmp_path):
+    (tmp_path / "notes.txt").write_text("not a mesh")
+    (tmp_path / "garbage.ply").write_bytes(b"ply\nformat nonsense\n\x00\xff" * 10)
+    (tmp_path / "five.json").write_text(json.dumps(np.zeros((5, 3)).tolist()))
+    (tmp_path / "typo.yaml").write_text("colour: red\n")
+    args, expected = BAD[case]
+    code, out, err = facecap(*[a.format(d=tmp_path, s=scan) for a in args])
+    assert code == 2, (out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("facecap: error: "), err
+    assert expected in lines[0] and "Traceback" not in err

@@ -1,0 +1,330 @@
+"""Known-answer tests of the evaluation protocol (facecap_core.evaluation).
+
+The ground truth is a smooth synthetic "head": an ellipsoid (75, 100, 90) mm with a nose,
+brows and chin raised on its front (+z), so that alignment has a unique answer, and 68
+landmarks placed on it by casting rays along -z from a frontal layout (iBUG order: 30 nose
+tip, 36/45 outer eye corners at x = -45/+45, 27 nasion and 33 nose base on the midline).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+import trimesh
+from pydantic import ValidationError
+
+from facecap_core.camera import rotation_matrix
+from facecap_core.errors import InputError
+from facecap_core.evaluation import (
+    COLORBAR_HEIGHT, EvaluationConfig, align, distances, error_heatmap, evaluate, face_region,
+    paper_table, region_sphere, score, score_json, umeyama,
+)
+from facecap_core.meshio import save_landmarks
+from facecap_core.render import vertex_normals
+
+
+def _landmark_layout() -> np.ndarray:
+    """Frontal (x, y) positions in mm of the 68 iBUG landmarks; +x is the subject's left."""
+    xy = np.zeros((68, 2))
+    a = np.linspace(-np.pi / 2, np.pi / 2, 17)
+    xy[0:17] = np.stack([65 * np.sin(a), -40 - 40 * np.cos(a)], 1)  # jaw, right to left
+    xy[17:22] = np.stack([np.linspace(-50, -15, 5), np.full(5, 48.0)], 1)
+    xy[22:27] = np.stack([np.linspace(15, 50, 5), np.full(5, 48.0)], 1)
+    xy[27:31] = np.stack([np.zeros(4), np.linspace(35, 2, 4)], 1)  # 27 nasion .. 30 tip
+    xy[31:36] = np.stack([np.linspace(-14, 14, 5), np.full(5, -13.0)], 1)  # 33 nose base
+    b = np.linspace(np.pi, -np.pi, 7)[:6]
+    for start, cx in ((36, -33.0), (42, 33.0)):  # 36 / 45: outer corners at x = -45 / +45
+        xy[start:start + 6] = np.stack([cx + 12 * np.cos(b), 35 + 4 * np.sin(b)], 1)
+    c = np.linspace(0, 2 * np.pi, 13)[:12]
+    xy[48:60] = np.stack([-25 * np.cos(c), -40 + 8 * np.sin(c)], 1)
+    d = np.linspace(0, 2 * np.pi, 9)[:8]
+    xy[60:68] = np.stack([-18 * np.cos(d), -40 + 3 * np.sin(d)], 1)
+    return xy
+
+
+def make_head() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Synthetic head scan: vertices (10242, 3) mm, faces, and 68 landmarks on its surface."""
+    sphere = trimesh.creation.icosphere(subdivisions=5)
+    u = np.asarray(sphere.vertices)
+    v = u * np.array([75.0, 100.0, 90.0])
+    x, y = v[:, 0], v[:, 1]
+    bumps = (22.0 * np.exp(-(x / 11.0) ** 2 - ((y - 5.0) / 22.0) ** 2)  # nose
+             + 8.0 * np.exp(-(x / 25.0) ** 2 - ((y + 70.0) / 15.0) ** 2)  # chin
+             + 6.0 * np.exp(-(np.abs(x) - 30.0) ** 2 / 15.0 ** 2 - ((y - 45.0) / 8.0) ** 2))
+    v = v + (bumps * np.clip(u[:, 2], 0, None) ** 2)[:, None] * u  # front half only
+    f = np.asarray(sphere.faces)
+
+    xy = _landmark_layout()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    rays = np.concatenate([np.c_[xy, np.full(68, 500.0)], np.tile([0.0, 0.0, -1.0], (68, 1))], 1)
+    t_hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
+    assert np.all(np.isfinite(t_hit))
+    return v, f, np.c_[xy, 500.0 - t_hit]
+
+
+@pytest.fixture(scope="module")
+def head():
+    return make_head()
+
+
+def similarity(seed: int, max_deg: float = 30.0, max_t: float = 20.0, scales=(0.9, 1.1)):
+    """A seeded random similarity transform x -> s R x + t, returned with its parts."""
+    rng = np.random.default_rng(seed)
+    R = rotation_matrix(rng.normal(size=3), math.radians(rng.uniform(0.3, 1.0) * max_deg))
+    t = rng.uniform(-max_t, max_t, 3)
+    s = rng.uniform(*scales)
+    return (lambda x: s * np.asarray(x) @ R.T + t), s, R, t
+
+
+def crop(v, f, keep):
+    """The sub-mesh of the kept vertices (triangles with all corners kept)."""
+    new_index = np.cumsum(keep) - 1
+    return v[keep], new_index[f[keep[f].all(axis=1)]]
+
+
+# --------------------------------------------------------------------------- building blocks
+
+
+def test_umeyama_recovers_similarity_and_never_reflects():
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(50, 3)) * 30
+    T, s, R, t = similarity(3)
+    s_hat, R_hat, t_hat = umeyama(src, T(src))
+    assert s_hat == pytest.approx(s, rel=1e-12)
+    np.testing.assert_allclose(R_hat, R, atol=1e-12)
+    np.testing.assert_allclose(t_hat, t, atol=1e-10)
+    s_rigid, R_rigid, _ = umeyama(src, src @ R.T + t, with_scale=False)
+    assert s_rigid == 1.0 and np.allclose(R_rigid, R, atol=1e-12)
+    # A mirror image is fitted by a proper rotation, not by the reflection.
+    _, R_m, _ = umeyama(src, src * np.array([-1.0, 1.0, 1.0]))
+    assert np.linalg.det(R_m) == pytest.approx(1.0)
+
+
+def test_distances_are_point_to_triangle_not_point_to_vertex():
+    v = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0]])
+    f = np.array([[0, 1, 2]])
+    pts = np.array([[2.0, 2, 3],  # above the interior: the height
+                    [-3, -4, 0],  # beyond corner 0: distance to the corner
+                    [5, -2, 1],  # beyond edge 0-1: distance to the edge
+                    [6, 6, 0]])  # beyond the hypotenuse, in plane
+    expected = [3.0, 5.0, math.sqrt(5.0), math.sqrt(2.0)]
+    np.testing.assert_allclose(distances(pts, v, f), expected, atol=1e-5)
+
+
+def test_region_sphere_is_nose_tip_and_scaled_face_size():
+    lm = np.zeros((68, 3))
+    lm[30] = [1.0, 2.0, 3.0]
+    lm[36], lm[45] = [-45.0, 30, 0], [45.0, 30, 0]  # 90 mm
+    lm[27], lm[33] = [0.0, 35, 0], [0.0, -15, 0]  # 50 mm
+    centre, radius = region_sphere(lm, 1.4)
+    np.testing.assert_array_equal(centre, [1.0, 2.0, 3.0])
+    assert radius == pytest.approx(1.4 * 70.0)
+    pts = np.array([[1.0, 2.0, 3.0 + 97.9], [1.0, 2.0, 3.0 + 98.1]])
+    assert face_region(pts, lm).tolist() == [True, False]
+    with pytest.raises(InputError):
+        region_sphere(lm[:, :2], 1.4)
+
+
+def test_synthetic_head_has_adult_face_proportions(head):
+    v, f, lm = head
+    centre, radius = region_sphere(lm, 1.4)
+    assert np.linalg.norm(lm[36] - lm[45]) == pytest.approx(90.0, abs=1e-6)
+    assert 90.0 < radius < 105.0  # about 95 mm, as on an adult face
+    assert lm[30, 2] == pytest.approx(v[:, 2].max(), abs=1.0)  # landmark 30 on the nose tip
+    assert 1500 < face_region(v, lm).sum() < 4000
+
+
+# --------------------------------------------------------------------------- known answers
+
+
+@pytest.mark.parametrize("protocol", ["similarity", "metric"])
+@pytest.mark.parametrize("with_landmarks", [True, False])
+def test_scan_against_itself_scores_zero(head, protocol, with_landmarks):
+    v, f, lm = head
+    sc = score(v, f, v, f, lm, lm if with_landmarks else None, protocol=protocol)
+    for side in (sc.accuracy, sc.completion):
+        assert side.mean < 1e-3 and side.under_1mm == 1.0 and side.count > 1500
+    assert sc.scale == pytest.approx(1.0, abs=1e-6)
+    np.testing.assert_allclose(sc.matrix, np.eye(4), atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_similarity_transform_is_recovered(head, seed):
+    v, f, lm = head
+    T, s, R, t = similarity(seed)
+    sc = score(T(v), f, v, f, lm, T(lm), protocol="similarity")
+    assert abs(sc.scale * s - 1.0) < 1e-3  # the inverse scale is recovered
+    assert sc.accuracy.mean < 0.01 and sc.completion.mean < 0.01
+    np.testing.assert_allclose(sc.alignment.apply(T(v)), v, atol=1e-3)
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_icp_refines_noisy_landmark_alignment(head, seed):
+    # Landmarks off by 1.5 mm (a detector's error) only start the fit; ICP must finish it.
+    v, f, lm = head
+    T, s, _, _ = similarity(seed)
+    noisy_lm = lm + np.random.default_rng(seed).normal(scale=1.5, size=lm.shape)
+    sc = score(T(v), f, v, f, lm, T(noisy_lm), protocol="similarity")
+    assert abs(sc.scale * s - 1.0) < 1e-3
+    assert sc.accuracy.mean < 0.02
+    assert sc.alignment.iterations > 1
+
+
+def test_icp_without_landmarks_recovers_small_misalignment(head):
+    v, f, lm = head
+    T, s, _, _ = similarity(4, max_deg=5.0, max_t=4.0, scales=(0.97, 1.03))
+    config = EvaluationConfig(max_iterations=300)
+    sc = score(T(v), f, v, f, lm, None, protocol="similarity", config=config)
+    assert abs(sc.scale * s - 1.0) < 1e-3
+    assert sc.accuracy.mean < 0.01
+    al = align(T(v), f, v, f, lm, None, with_scale=True, config=config)
+    np.testing.assert_allclose(al.matrix, sc.matrix, atol=1e-9)
+    assert al.rms < 0.01
+
+
+def test_normal_noise_gives_half_normal_errors(head):
+    # |N(0, 1)| has mean sqrt(2/pi) = 0.798 and median 0.674.
+    v, f, lm = head
+    rng = np.random.default_rng(7)
+    noisy = v + rng.normal(size=len(v))[:, None] * vertex_normals(v, f)
+    sc = score(noisy, f, v, f, lm, lm, protocol="similarity")
+    assert 0.7 < sc.accuracy.mean < 0.9
+    assert 0.6 < sc.accuracy.median < 0.75
+    assert abs(sc.scale - 1.0) < 0.01
+
+
+def test_cropped_mesh_is_accurate_but_incomplete(head):
+    v, f, lm = head
+    cv, cf = crop(v, f, np.linalg.norm(v - lm[30], axis=1) < 50.0)
+    for protocol in ("similarity", "metric"):
+        sc = score(cv, cf, v, f, lm, lm, protocol=protocol)
+        assert sc.accuracy.mean < 0.05
+        assert sc.completion.mean > 5.0 and sc.completion.under_2mm < 0.7
+        # per-vertex arrays: every mesh vertex / scan vertex, nan outside the face sphere
+        assert sc.accuracy_per_vertex.shape == (len(cv),)
+        assert sc.completion_per_vertex.shape == (len(v),)
+        assert np.isnan(sc.completion_per_vertex).sum() == len(v) - sc.completion.count
+
+
+def test_wrongly_scaled_mesh_passes_similarity_and_fails_metric(head):
+    v, f, lm = head
+    big_v, big_lm = 1.05 * v, 1.05 * lm
+    sim = score(big_v, f, v, f, lm, big_lm, protocol="similarity")
+    assert sim.scale == pytest.approx(1 / 1.05, rel=1e-3)
+    assert sim.accuracy.mean < 0.01 and sim.completion.mean < 0.01
+    met = score(big_v, f, v, f, lm, big_lm, protocol="metric")
+    assert met.scale == 1.0
+    # On this smooth head the best rigid fit of a 5 % larger face leaves ~0.6 mm on average.
+    assert met.accuracy.mean > 0.4 and met.completion.mean > 0.4
+    assert met.accuracy.under_1mm < 0.95
+
+
+# --------------------------------------------------------------------------- files
+
+
+@pytest.fixture()
+def head_files(head, tmp_path):
+    v, f, lm = head
+    scan = tmp_path / "scan.ply"
+    trimesh.Trimesh(v, f, process=False).export(scan)
+    scan_lm = save_landmarks(tmp_path / "scan_landmarks.json", lm)
+    T, _, _, _ = similarity(5)
+    mesh = tmp_path / "mesh.obj"
+    trimesh.Trimesh(T(v), f, process=False).export(mesh)
+    mesh_lm = save_landmarks(tmp_path / "mesh_landmarks.json", T(lm))
+    return mesh, scan, scan_lm, mesh_lm
+
+
+def test_evaluate_files(head_files):
+    mesh, scan, scan_lm, mesh_lm = head_files
+    result = evaluate(mesh, scan, scan_lm, mesh_lm)
+    assert set(result) == {"similarity", "metric"}
+    assert result["similarity"].accuracy.mean < 0.01
+    assert result["metric"].scale == 1.0
+    json.dumps(result["metric"].to_dict())  # JSON-ready
+
+
+def test_missing_scan_landmarks_is_a_one_line_input_error(head_files):
+    mesh, scan, _, mesh_lm = head_files
+    with pytest.raises(InputError, match="landmarks") as exc:
+        evaluate(mesh, scan, None, mesh_lm)
+    assert str(scan) in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_bad_files_are_input_errors(head_files, tmp_path):
+    mesh, scan, scan_lm, _ = head_files
+    with pytest.raises(InputError, match="not found"):
+        evaluate(tmp_path / "missing.ply", scan, scan_lm)
+    text = tmp_path / "mesh.txt"
+    text.write_text("not a mesh\n")
+    with pytest.raises(InputError):
+        evaluate(text, scan, scan_lm)
+    garbage = tmp_path / "garbage.ply"
+    garbage.write_bytes(bytes(range(256)) * 8)
+    with pytest.raises(InputError):
+        evaluate(mesh, garbage, scan_lm)
+    with pytest.raises(InputError, match="protocol"):
+        evaluate(mesh, scan, scan_lm, protocols=("affine",))
+
+
+# --------------------------------------------------------------------------- reports
+
+
+def test_score_json_has_the_reported_keys(head):
+    v, f, lm = head
+    doc = score_json(score(v, f, v, f, lm, lm, protocol="metric"))
+    assert set(doc) - {"protocol"} == {"accuracy", "completion", "scale"}
+    for side in ("accuracy", "completion"):
+        assert set(doc[side]) == {"mean", "std", "median", "under_1mm", "under_2mm"}
+        assert all(isinstance(x, float) for x in doc[side].values())
+    assert doc["scale"] == 1.0
+    json.dumps(doc)
+
+
+def test_error_heatmap_png(head, tmp_path):
+    v, f, lm = head
+    errors = np.where(face_region(v, lm), np.abs(v[:, 0]) / 15.0, np.nan)  # 0..5 mm, nan outside
+    out = error_heatmap(v, f, errors, tmp_path / "figs" / "heat.png", max_mm=5.0)
+    img = cv2.imread(str(out))
+    assert img.shape == (480 + COLORBAR_HEIGHT, 3 * 480, 3)
+    views = img[:480].astype(int)
+    spread = views.max(axis=2) - views.min(axis=2)
+    coloured = spread > 40
+    grey = (spread == 0) & (views[..., 0] > 30) & (views[..., 0] < 230)
+    assert coloured.sum() > 20000 and grey.sum() > 5000
+    # The front view sees the coloured face; the profiles see coloured and grey parts.
+    assert coloured[:, :480].sum() > coloured[:, 480:].sum() / 2
+    bar = img[480:].astype(int)
+    assert (bar.max(axis=2) - bar.min(axis=2) > 40).sum() > 1000  # the colour ramp
+
+
+def test_paper_table_conventions():
+    def rec(acc_mean, acc_median, comp_mean, comp_median):
+        side = lambda m, md: {"mean": m, "std": 0.5, "median": md, "under_1mm": 0.5,
+                              "under_2mm": 0.8}
+        return {"accuracy": side(acc_mean, acc_median),
+                "completion": side(comp_mean, comp_median), "scale": 1.0}
+
+    table = paper_table([("Ours", [rec(1.0, 0.8, 2.0, 1.5), rec(2.0, 1.6, 4.0, 2.5)]),
+                         ("Single", [rec(1.234, 1.111, 3.0, 2.0)])])
+    lines = table.splitlines()
+    assert lines[0] == ("| Method | Captures | Accuracy mean | std | median "
+                        "| Completion mean | std | median |")
+    # mean of means 1.5, std of means 0.5, mean of medians 1.2; completion 3.0, 1.0, 2.0
+    assert "| Ours | 2 | 1.50 | 0.50 | 1.20 | 3.00 | 1.00 | 2.00 |" in lines
+    assert "| Single | 1 | 1.23 | 0.00 | 1.11 | 3.00 | 0.00 | 2.00 |" in lines
+    assert "median: mean over captures of the per-capture median" in table
+
+
+def test_config_is_validated_and_documented():
+    with pytest.raises(ValidationError):
+        EvaluationConfig(trim=0.0)
+    with pytest.raises(ValidationError):
+        EvaluationConfig(radius_factr=1.2)
+    assert all(fi.description for fi in EvaluationConfig.model_fields.values())

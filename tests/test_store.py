@@ -1,0 +1,386 @@
+"""Behaviour of the content-addressed artifact store on a local folder and on memory://."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import threading
+import uuid
+from pathlib import Path
+
+import fsspec
+import pytest
+from pydantic import BaseModel
+
+from facecap_core.errors import FacecapError, InputError
+from facecap_core.store import (
+    ArtifactNotFoundError,
+    ArtifactStore,
+    CorruptArtifactError,
+    Manifest,
+    StoreWriteError,
+    artifact_key,
+    file_digest,
+    input_key,
+)
+
+INPUTS = {"video": "input-" + "0" * 32}
+CONFIG = {"resolution": 256, "smoothing": 0.5}
+VERSION = "1"
+
+
+class MeshConfig(BaseModel):
+    resolution: int = 256
+    smoothing: float = 0.5
+
+
+def mesh_key() -> str:
+    return artifact_key("mesh", INPUTS, CONFIG, VERSION)
+
+
+def put_mesh(store: ArtifactStore, files, key: str | None = None) -> Manifest:
+    return store.put(
+        key or mesh_key(), files, stage="mesh", inputs=INPUTS, config=CONFIG, version=VERSION
+    )
+
+
+def stored_file_url(store_url: str, key: str, name: str) -> str:
+    """Where the documented layout puts an artifact's file (used to damage it on purpose)."""
+    return f"{store_url}/artifacts/{key}/{name}"
+
+
+@pytest.fixture(autouse=True)
+def facecap_home(tmp_path, monkeypatch) -> Path:
+    # Never touch the real ~/.cache/facecap from tests.
+    home = tmp_path / "facecap-home"
+    monkeypatch.setenv("FACECAP_HOME", str(home))
+    return home
+
+
+@pytest.fixture
+def memory_url():
+    name = f"facecap-test-{uuid.uuid4().hex}"
+    yield f"memory://{name}"
+    memory_fs = fsspec.filesystem("memory")
+    for path in [p for p in memory_fs.store if p.startswith(f"/{name}/")]:
+        del memory_fs.store[path]
+    memory_fs.pseudo_dirs[:] = [d for d in memory_fs.pseudo_dirs if not d.startswith(f"/{name}")]
+
+
+@pytest.fixture(params=["local", "memory"])
+def store_url(request, tmp_path) -> str:
+    if request.param == "local":
+        return str(tmp_path / "store")
+    return request.getfixturevalue("memory_url")
+
+
+@pytest.fixture
+def store(store_url) -> ArtifactStore:
+    return ArtifactStore(store_url)
+
+
+# --------------------------------------------------------------------------- keys
+
+
+def test_key_is_deterministic_and_well_formed():
+    key = mesh_key()
+    assert key == artifact_key("mesh", dict(reversed(list(INPUTS.items()))), dict(CONFIG), "1")
+    assert key.startswith("mesh-") and len(key) == len("mesh-") + 32
+
+
+@pytest.mark.parametrize(
+    "changed",
+    [
+        dict(inputs={"video": "input-" + "1" * 32}),
+        dict(inputs={"clip": "input-" + "0" * 32}),
+        dict(config={**CONFIG, "resolution": 512}),
+        dict(config=None),
+        dict(version="2"),
+        dict(stage="depth"),
+    ],
+    ids=["input-value", "input-name", "config-value", "no-config", "version", "stage"],
+)
+def test_key_changes_when_anything_changes(changed):
+    arguments = dict(stage="mesh", inputs=INPUTS, config=CONFIG, version=VERSION) | changed
+    assert artifact_key(**arguments) != mesh_key()
+
+
+def test_pydantic_config_and_equal_dict_give_the_same_key():
+    assert artifact_key("mesh", INPUTS, MeshConfig(), VERSION) == mesh_key()
+
+
+@pytest.mark.parametrize("stage", ["Mesh", "mesh-v2", "", "../mesh", "mesh fit"])
+def test_bad_stage_names_are_rejected(stage):
+    with pytest.raises(InputError):
+        artifact_key(stage, INPUTS, CONFIG, VERSION)
+
+
+def test_input_key_is_the_file_content_digest(tmp_path):
+    video = tmp_path / "clip.mp4"
+    video.write_bytes(b"frames" * 1000)
+    digest = hashlib.sha256(video.read_bytes()).hexdigest()
+    assert file_digest(video) == digest
+    assert input_key(video) == f"input-{digest[:32]}"
+    with pytest.raises(InputError):
+        input_key(tmp_path / "missing.mp4")
+
+
+# --------------------------------------------------------------------------- round trip
+
+
+def test_put_get_read_bytes_round_trip(store, tmp_path):
+    source = tmp_path / "source-depth.npy"
+    source.write_bytes(b"depth" * 100)
+    files = {"mesh.ply": b"ply data", "maps/depth.npy": source}
+
+    manifest = put_mesh(store, files)
+
+    key = mesh_key()
+    assert store.exists(key)
+    assert store.keys() == [key] and store.keys("mesh") == [key] and store.keys("depth") == []
+    assert store.manifest(key) == manifest
+    assert manifest.key == key and manifest.stage == "mesh" and manifest.version == VERSION
+    assert manifest.inputs == INPUTS and manifest.config == CONFIG
+    expected = {"mesh.ply": b"ply data", "maps/depth.npy": source.read_bytes()}
+    for name, data in expected.items():
+        assert manifest.files[name].sha256 == hashlib.sha256(data).hexdigest()
+        assert manifest.files[name].size == len(data)
+        assert store.read_bytes(key, name) == data
+
+    folder = store.get(key)
+    assert folder.is_dir()
+    for name, data in expected.items():
+        assert (folder / name).read_bytes() == data
+    store.verify(key)
+
+
+def test_pydantic_config_is_stored_as_plain_json(store):
+    manifest = store.put(
+        mesh_key(), {"a": b"x"}, stage="mesh", inputs=INPUTS, config=MeshConfig(),
+        version=VERSION, meta={"faces": 12},
+    )
+    assert manifest.config == CONFIG and manifest.meta == {"faces": 12}
+
+
+def test_put_on_an_existing_key_is_a_no_op(store, store_url):
+    first = put_mesh(store, {"mesh.ply": b"first"})
+    stored = stored_file_url(store_url, mesh_key(), "mesh.ply")
+    mtime_before = os.stat(stored).st_mtime_ns if "://" not in store_url else None
+
+    again = put_mesh(store, {"mesh.ply": b"second, different bytes"})
+
+    assert again == first
+    assert store.read_bytes(mesh_key(), "mesh.ply") == b"first"
+    if mtime_before is not None:
+        assert os.stat(stored).st_mtime_ns == mtime_before
+
+
+def test_local_get_returns_the_artifact_folder(tmp_path):
+    store = ArtifactStore(f"file://{tmp_path / 'store'}")
+    put_mesh(store, {"mesh.ply": b"ply"})
+    assert store.get(mesh_key()) == tmp_path / "store" / "artifacts" / mesh_key()
+    assert repr(store) == f"ArtifactStore({str(tmp_path / 'store')!r})"
+
+
+# --------------------------------------------------------------------------- failures
+
+
+class ExplodingReader:
+    """A file-like source that fails halfway, like a crash while reading a big input."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def read(self, size=-1):
+        self.calls += 1
+        if self.calls > 1:
+            raise RuntimeError("simulated crash")
+        return b"partial"
+
+
+def assert_nothing_committed(store: ArtifactStore, store_url: str) -> None:
+    assert not store.exists(mesh_key())
+    assert store.keys() == []
+    fs, root = fsspec.core.url_to_fs(store_url)
+    assert not fs.exists(f"{root}/artifacts/{mesh_key()}")
+    if "://" not in store_url:
+        temp_root = Path(store_url) / ".tmp"
+        assert not temp_root.exists() or list(temp_root.iterdir()) == []
+
+
+def test_missing_source_file_leaves_nothing_behind(store, store_url, tmp_path):
+    with pytest.raises(InputError, match="missing.npy"):
+        put_mesh(store, {"mesh.ply": b"ply", "depth.npy": tmp_path / "missing.npy"})
+    assert_nothing_committed(store, store_url)
+
+
+def test_crash_midway_leaves_nothing_behind(store, store_url):
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        put_mesh(store, {"mesh.ply": b"ply", "depth.npy": ExplodingReader()})
+    assert_nothing_committed(store, store_url)
+    # The store still works after the failed attempt.
+    put_mesh(store, {"mesh.ply": b"ply"})
+    assert store.keys() == [mesh_key()]
+
+
+@pytest.mark.parametrize("name", ["../x", "/abs", "a/../../x", "a//b", "./a", "manifest.json"])
+def test_bad_file_names_are_rejected(store, name):
+    with pytest.raises(InputError):
+        put_mesh(store, {name: b"x"})
+    assert store.keys() == []
+
+
+def test_bad_stage_or_mismatched_key_is_rejected_by_put(store):
+    with pytest.raises(InputError):
+        store.put(mesh_key(), {"a": b"x"}, stage="Mesh!", inputs={}, config=None, version="1")
+    with pytest.raises(InputError):
+        store.put(mesh_key(), {"a": b"x"}, stage="depth", inputs={}, config=None, version="1")
+
+
+def test_missing_artifact_raises_not_found(store):
+    with pytest.raises(ArtifactNotFoundError, match=mesh_key()):
+        store.manifest(mesh_key())
+    with pytest.raises(ArtifactNotFoundError):
+        store.get(mesh_key())
+    with pytest.raises(ArtifactNotFoundError):
+        store.read_bytes(mesh_key(), "mesh.ply")
+    put_mesh(store, {"mesh.ply": b"ply"})
+    with pytest.raises(ArtifactNotFoundError, match="nope"):
+        store.read_bytes(mesh_key(), "nope")
+
+
+def test_corrupted_file_is_detected(store, store_url):
+    put_mesh(store, {"mesh.ply": b"good bytes", "maps/depth.npy": b"depth"})
+    with fsspec.open(stored_file_url(store_url, mesh_key(), "maps/depth.npy"), "wb") as f:
+        f.write(b"DEPTH")  # same size, different content
+
+    for check in (
+        lambda: store.verify(mesh_key()),
+        lambda: store.read_bytes(mesh_key(), "maps/depth.npy"),
+        lambda: store.get(mesh_key()),
+    ):
+        with pytest.raises(CorruptArtifactError) as caught:
+            check()
+        message = str(caught.value)
+        assert "\n" not in message
+        assert mesh_key() in message and "maps/depth.npy" in message and "delete" in message
+    # Unverified reads still work, for debugging.
+    assert store.read_bytes(mesh_key(), "maps/depth.npy", verify=False) == b"DEPTH"
+
+
+def test_missing_stored_file_is_corruption(store, store_url):
+    put_mesh(store, {"mesh.ply": b"good bytes"})
+    fs, path = fsspec.core.url_to_fs(stored_file_url(store_url, mesh_key(), "mesh.ply"))
+    fs.rm_file(path)
+    with pytest.raises(CorruptArtifactError, match="missing"):
+        store.verify(mesh_key())
+
+
+def test_delete_removes_the_artifact_so_it_can_be_recomputed(store):
+    put_mesh(store, {"mesh.ply": b"old"})
+    store.delete(mesh_key())
+    assert not store.exists(mesh_key()) and store.keys() == []
+    put_mesh(store, {"mesh.ply": b"new"})
+    assert store.read_bytes(mesh_key(), "mesh.ply") == b"new"
+    with pytest.raises(ArtifactNotFoundError):
+        store.delete(artifact_key("mesh", {}, None, "1"))
+
+
+# --------------------------------------------------------------------------- local only
+
+
+def test_concurrent_puts_of_one_key_commit_exactly_once(tmp_path):
+    store = ArtifactStore(tmp_path / "store")
+    files = {"mesh.ply": b"ply" * 10_000, "maps/depth.npy": b"depth" * 10_000}
+    start = threading.Barrier(8)
+    results: list[Manifest] = []
+    errors: list[BaseException] = []
+
+    def writer():
+        start.wait()
+        try:
+            results.append(put_mesh(ArtifactStore(tmp_path / "store"), files))
+        except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=writer) for _ in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+
+    assert errors == []
+    assert len(results) == 8 and all(result == results[0] for result in results)
+    assert store.keys() == [mesh_key()]
+    store.verify(mesh_key())
+    assert list((tmp_path / "store" / ".tmp").iterdir()) == []
+
+
+def test_read_only_store_raises_store_write_error(tmp_path):
+    root = tmp_path / "store"
+    store = ArtifactStore(root)
+    put_mesh(store, {"mesh.ply": b"kept"})
+    folders = [root, *(path for path in root.rglob("*") if path.is_dir())]
+    for folder in folders:
+        os.chmod(folder, 0o555)
+    try:
+        if os.access(root, os.W_OK):
+            pytest.skip("chmod does not stop this user (root) from writing")
+        other_key = artifact_key("mesh", INPUTS, CONFIG, "2")
+        with pytest.raises(StoreWriteError) as caught:
+            put_mesh(store, {"mesh.ply": b"new"}, key=other_key)
+        assert isinstance(caught.value.__cause__, OSError)
+        assert "\n" not in str(caught.value) and str(root) in str(caught.value)
+        assert store.keys() == [mesh_key()]
+        assert store.read_bytes(mesh_key(), "mesh.ply") == b"kept"
+    finally:
+        for folder in folders:
+            os.chmod(folder, 0o755)
+
+
+def test_unwritable_location_raises_store_write_error(tmp_path):
+    # A regular file where the store folder should be fails even for root.
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_bytes(b"")
+    store = ArtifactStore(blocker)
+    with pytest.raises(StoreWriteError) as caught:
+        put_mesh(store, {"mesh.ply": b"ply"})
+    assert isinstance(caught.value, FacecapError)
+    assert isinstance(caught.value.__cause__, OSError)
+    assert "\n" not in str(caught.value)
+
+
+# --------------------------------------------------------------------------- remote cache
+
+
+def test_remote_get_downloads_into_the_cache_once(memory_url, facecap_home):
+    store = ArtifactStore(memory_url)
+    put_mesh(store, {"mesh.ply": b"ply", "maps/depth.npy": b"depth"})
+
+    folder = store.get(mesh_key())
+
+    assert folder == facecap_home / "store-cache" / mesh_key()
+    assert (folder / "mesh.ply").read_bytes() == b"ply"
+    assert (folder / "maps" / "depth.npy").read_bytes() == b"depth"
+    marker = folder / "marker"
+    marker.write_bytes(b"")  # would vanish if the second get downloaded again
+    assert store.get(mesh_key()) == folder
+    assert marker.exists()
+    assert [p.name for p in (facecap_home / "store-cache" / ".tmp").iterdir()] == []
+
+
+def test_damaged_cache_copy_is_downloaded_again(memory_url):
+    store = ArtifactStore(memory_url)
+    put_mesh(store, {"mesh.ply": b"ply"})
+    folder = store.get(mesh_key())
+    (folder / "mesh.ply").write_bytes(b"PLY")
+
+    assert (store.get(mesh_key()) / "mesh.ply").read_bytes() == b"ply"
+
+
+def test_remote_delete_drops_the_cached_copy(memory_url):
+    store = ArtifactStore(memory_url)
+    put_mesh(store, {"mesh.ply": b"ply"})
+    folder = store.get(mesh_key())
+    store.delete(mesh_key())
+    assert not folder.exists()
