@@ -24,6 +24,34 @@ from facecap_core.template import Template
 PAPER_MEAN_BASEL = "paper, Mean Basel (10 real subjects): accuracy 3.09 / 1.24 / 2.62, completion 3.02 / 1.25 / 2.76 mm"
 
 
+def landmark_agreement(capture, max_yaw_deg: float = 12.0) -> tuple[float, int]:
+    """Median distance (px) between dlib's inner 51 landmarks and the projected ground truth
+    on the near-frontal frames, and the number of frames where a face was found."""
+    import av
+    import numpy as np
+
+    from facecap_core.camera import camera_center, project
+    from facecap_core.landmarks import detect_68
+    from facecap_core.meshio import load_landmarks
+    from facecap_core.synthetic import load_gt_cameras
+
+    intr, poses = load_gt_cameras(capture.gt_cameras)
+    landmarks = load_landmarks(capture.gt_landmarks)
+    errors, found = [], 0
+    with av.open(str(capture.video)) as video:
+        for frame, pose in zip(video.decode(video=0), poses):
+            c = camera_center(pose["R"], pose["t"])
+            if abs(np.degrees(np.arctan2(c[0], c[2]))) > max_yaw_deg:
+                continue
+            det = detect_68(frame.to_ndarray(format="rgb24"))
+            if det is None:
+                continue
+            found += 1
+            uv, _ = project(landmarks, pose["R"], pose["t"], intr)
+            errors.append(np.linalg.norm(det.points[17:] - uv[17:], axis=1))
+    return (float(np.median(np.concatenate(errors))) if errors else float("nan")), found
+
+
 def run_baseline(subjects: list[str], out: Path, width: int = 1280, height: int = 720,
                  fps: float = 30.0, seconds: float = 6.0, ict_model: str | None = None,
                  progress: bool = True) -> str:
@@ -44,10 +72,12 @@ def run_baseline(subjects: list[str], out: Path, width: int = 1280, height: int 
         for p, s in scores.items():
             rows[p].append(score_json(s))
         sim, met = scores["similarity"], scores["metric"]
+        lm_px, lm_frames = landmark_agreement(capture)
         lines.append(f"- {subject}: {capture.frames} frames at {width}x{height}, "
                      f"{per_frame:.2f} s/frame; mean template similarity accuracy median "
                      f"{sim.accuracy.median:.2f} mm (scale {sim.scale:.3f}), metric "
-                     f"{met.accuracy.median:.2f} mm; heat maps in {folder}")
+                     f"{met.accuracy.median:.2f} mm; dlib vs projected GT landmarks (inner 51, "
+                     f"{lm_frames} frontal frames) median {lm_px:.2f} px; heat maps in {folder}")
     table = paper_table([(f"Mean template ({p})", r) for p, r in rows.items()])
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return "\n".join(lines + ["", table, "", PAPER_MEAN_BASEL,

@@ -16,7 +16,6 @@ offline; it is verified the same way.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import shutil
 import subprocess
@@ -26,6 +25,7 @@ import tempfile
 from pathlib import Path
 
 from facecap_core.errors import FacecapError
+from facecap_core.store import file_digest
 
 MENPO3D_REQUIREMENT = "menpo3d==0.8.6"
 MENPO3D_SDIST = "menpo3d-0.8.6.tar.gz"
@@ -38,14 +38,6 @@ MENPO3D_FILES = (
 def facecap_home() -> Path:
     """The user cache folder: ``$FACECAP_HOME`` or ``~/.cache/facecap``."""
     return Path(os.environ.get("FACECAP_HOME") or Path.home() / ".cache" / "facecap").expanduser()
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _download_sdist(dest: Path) -> Path:
@@ -77,7 +69,7 @@ def menpo3d_data() -> Path:
     with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
         tmp = Path(tmp)
         sdist = _download_sdist(tmp)
-        digest = _sha256(sdist)
+        digest = file_digest(sdist)
         if digest != MENPO3D_SHA256:
             raise FacecapError(
                 f"{sdist} has sha256 {digest}, expected {MENPO3D_SHA256}: the package index "

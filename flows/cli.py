@@ -101,7 +101,10 @@ def _cmd_demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="facecap", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="facecap",
+        description="Metric 3D face meshes from one handheld phone video, and the tools to "
+                    "measure them.")
     sub = p.add_subparsers(dest="command", required=True)
 
     a = sub.add_parser("assets", help="fetch, verify and list the template and sample scan")
