@@ -51,9 +51,9 @@ class SynthConfig(StrictModel):
     """Relative standard deviation of the drawn focal length (the focal is 'unknown')."""
     principal_point_jitter: float = Field(0.01, ge=0, le=0.1)
     """Standard deviation of the principal point offset, as a fraction of the image size."""
-    k1_range: tuple[float, float] = (0.02, 0.10)
-    """Range of the radial distortion k1 (barrel positive in this model is pincushion;
-    phone lenses after ISP correction keep a small residual). k2 = -0.25 k1."""
+    k1_range: tuple[float, float] = (-0.10, -0.02)
+    """Range of the radial distortion k1 (negative: barrel, as a phone's wide lens leaves
+    after the ISP's own correction; positive: pincushion). k2 = -0.25 k1."""
 
     yaw_start_deg: float = Field(-95.0, ge=-180, le=180)
     """Camera azimuth at the start, around the head's vertical axis (0 = frontal,

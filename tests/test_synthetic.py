@@ -34,7 +34,8 @@ def test_video_and_ground_truth_files(sweep):
     assert len(frames) == cap.frames == 45
     assert frames[0].shape == (360, 640, 3)
     intr, poses = load_gt_cameras(cap.gt_cameras)
-    assert len(poses) == 45 and 58 < intr.horizontal_fov_deg < 72 and intr.k1 > 0
+    assert len(poses) == 45 and 58 < intr.horizontal_fov_deg < 72
+    assert config.k1_range[0] <= intr.k1 <= config.k1_range[1] and intr.k2 == -0.25 * intr.k1
     for p in poses:
         np.testing.assert_allclose(p["R"] @ p["R"].T, np.eye(3), atol=1e-9)
     mesh = load_mesh(cap.gt_mesh)
