@@ -1,0 +1,137 @@
+"""Video access: probing, and frames streamed at a processing resolution.
+
+Frames are decoded one at a time (never the whole video in memory), turned upright by the
+container's display rotation (phones store portrait video as landscape + a rotation), and
+resized to a processing width. Any frame rate and resolution FFmpeg decodes is accepted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import cv2
+import numpy as np
+
+from facecap_core.errors import InputError
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """What a video holds, as displayed (after rotation)."""
+
+    path: Path
+    width: int
+    height: int
+    fps: float
+    frame_count: int
+    duration_s: float
+    rotation_deg: int  # counter-clockwise turn applied to decoded frames for display
+    codec: str
+
+
+@dataclass
+class Frame:
+    index: int
+    time: float
+    image: np.ndarray  # uint8 (H, W, 3) RGB, or (H, W) grey
+
+
+def _open(path: Path):
+    import av
+
+    if not path.is_file():
+        raise InputError(f"video not found: {path}")
+    try:
+        container = av.open(str(path))
+    except Exception as exc:  # PyAV raises FFmpeg errors of many classes for junk files
+        raise InputError(f"{path} is not a readable video ({type(exc).__name__}); give an "
+                         "MP4/MOV file from a camera") from None
+    if not container.streams.video:
+        container.close()
+        raise InputError(f"{path} has no video stream (audio only?); give a video file")
+    return container
+
+
+def _display_rotation(frame) -> int:
+    return int(round(getattr(frame, "rotation", 0) or 0)) % 360
+
+
+def probe(path: str | Path) -> VideoInfo:
+    """Size, rate, length and rotation of a video (decodes its first frame)."""
+    path = Path(path)
+    container = _open(path)
+    try:
+        stream = container.streams.video[0]
+        try:
+            first = next(container.decode(stream))
+        except StopIteration:
+            raise InputError(f"{path} holds no decodable frames") from None
+        except Exception as exc:
+            raise InputError(f"{path}: the first frame cannot be decoded ({type(exc).__name__});"
+                             " the file is damaged or truncated") from None
+        rotation = _display_rotation(first)
+        w, h = first.width, first.height
+        if rotation in (90, 270):
+            w, h = h, w
+        fps = float(stream.average_rate or stream.guessed_rate or 0) or 30.0
+        duration = (float(stream.duration * stream.time_base) if stream.duration
+                    else float(container.duration or 0) / 1e6)
+        count = stream.frames or int(round(duration * fps))
+        return VideoInfo(path, w, h, fps, count, duration, rotation, stream.codec_context.name)
+    finally:
+        container.close()
+
+
+def processing_size(width: int, height: int, target_width: int | None) -> tuple[int, int]:
+    """(w, h) with the aspect ratio kept, at most ``target_width`` wide (no upscaling)."""
+    if target_width is None or target_width >= width:
+        return width, height
+    return int(target_width), max(1, int(round(height * target_width / width)))
+
+
+def _upright(image: np.ndarray, rotation: int) -> np.ndarray:
+    return np.ascontiguousarray(np.rot90(image, k=rotation // 90)) if rotation else image
+
+
+def iter_frames(path: str | Path, width: int | None = None, grey: bool = False,
+                indices: Iterable[int] | None = None) -> Iterator[Frame]:
+    """Frames in order, upright, at most ``width`` pixels wide; only ``indices`` if given."""
+    path = Path(path)
+    wanted = None if indices is None else sorted(set(int(i) for i in indices))
+    container = _open(path)
+    try:
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        last = wanted[-1] if wanted else None
+        pos = 0
+        for index, frame in enumerate(container.decode(stream)):
+            if last is not None and index > last:
+                break
+            if wanted is not None:
+                if index != wanted[pos]:
+                    continue
+                pos += 1
+            image = _upright(frame.to_ndarray(format="gray" if grey else "rgb24"),
+                             _display_rotation(frame))
+            w, h = processing_size(image.shape[1], image.shape[0], width)
+            if (w, h) != (image.shape[1], image.shape[0]):
+                image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+            t = float(frame.time) if frame.time is not None else index / float(stream.average_rate or 30)
+            yield Frame(index, t, image)
+            if wanted is not None and pos == len(wanted):
+                break
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"{path}: decoding stopped ({type(exc).__name__}); the file is "
+                         "damaged or truncated") from None
+    finally:
+        container.close()
+
+
+def read_frames(path: str | Path, indices: Iterable[int], width: int | None = None,
+                grey: bool = False) -> dict[int, np.ndarray]:
+    """The requested frames as {index: image} (one sequential pass over the video)."""
+    return {f.index: f.image for f in iter_frames(path, width, grey, indices)}

@@ -1,0 +1,70 @@
+import av
+import numpy as np
+import pytest
+
+from facecap_core.errors import InputError
+from facecap_core.video import iter_frames, probe, read_frames
+
+
+def _write(path, frames, fps=30, rotation=0):
+    with av.open(str(path), "w", format="mp4") as c:
+        s = c.add_stream("libx264", rate=fps)
+        s.height, s.width = frames[0].shape[:2]
+        s.pix_fmt = "yuv420p"
+        s.options = {"crf": "0"}
+        if rotation:
+            s.set_display_rotation(rotation)
+        for i, img in enumerate(frames):
+            f = av.VideoFrame.from_ndarray(img, format="rgb24")
+            f.pts = i
+            for p in s.encode(f):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+
+
+@pytest.fixture
+def clip(tmp_path):
+    frames = []
+    for i in range(12):
+        img = np.full((64, 96, 3), 40, np.uint8)
+        img[:16, :16] = 250  # a marker in the top-left corner
+        img[40:48, 8 * i:8 * i + 8] = 200  # a block moving right, one per frame
+        frames.append(img)
+    _write(tmp_path / "clip.mp4", frames, fps=60)
+    return tmp_path / "clip.mp4"
+
+
+def test_probe_and_stream(clip):
+    info = probe(clip)
+    assert (info.width, info.height, info.frame_count, info.rotation_deg) == (96, 64, 12, 0)
+    assert info.fps == 60
+    frames = list(iter_frames(clip, width=48))
+    assert len(frames) == 12 and frames[0].image.shape == (32, 48, 3)
+    assert np.isclose(frames[3].time, 3 / 60)
+    picked = read_frames(clip, [7, 2])
+    assert sorted(picked) == [2, 7]
+    # Frame 7's moving block sits at x = 56..63.
+    assert picked[7][44, 60].mean() > 150 and picked[2][44, 60].mean() < 100
+
+
+@pytest.mark.parametrize("rotation, corner", [(90, (-1, 0)), (-90, (0, -1)), (180, (-1, -1))])
+def test_display_rotation_is_applied(tmp_path, rotation, corner):
+    img = np.zeros((32, 64, 3), np.uint8)
+    img[:8, :8] = 255
+    _write(tmp_path / "r.mp4", [img] * 3, rotation=rotation)
+    info = probe(tmp_path / "r.mp4")
+    up = next(iter_frames(tmp_path / "r.mp4")).image
+    assert up.shape[:2] == (info.height, info.width)
+    assert up[corner[0] * 3, corner[1] * 3].mean() > 200  # the top-left marker moved there
+
+
+def test_bad_videos(tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        probe(tmp_path / "none.mp4")
+    (tmp_path / "empty.mp4").write_bytes(b"")
+    with pytest.raises(InputError):
+        probe(tmp_path / "empty.mp4")
+    (tmp_path / "photo.mp4").write_bytes(b"\xff\xd8\xff\xe0" + b"\x00" * 200)
+    with pytest.raises(InputError):
+        probe(tmp_path / "photo.mp4")
