@@ -145,3 +145,38 @@ def dump_yaml(config: BaseModel, path: str | Path) -> Path:
     path = Path(path)
     path.write_text(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
     return path
+
+
+class KeyframeConfig(StrictModel):
+    """Lucas–Kanade tracking and keyframe selection (``facecap_core/keyframes.py``)."""
+
+    track_width: int = Field(640, ge=160, le=4096)
+    """Frames are tracked at this width (pixels); keyframe positions are full resolution."""
+    max_features: int = Field(800, ge=50, le=10000)
+    """Features kept per frame."""
+    min_features: int = Field(400, ge=20, le=10000)
+    """Re-seed new features when fewer than this many are tracked."""
+    feature_quality: float = Field(0.005, gt=0, lt=1)
+    """Shi–Tomasi quality level relative to the best corner."""
+    min_distance_px: int = Field(8, ge=1, le=100)
+    """Minimum spacing of features (tracking pixels)."""
+    lk_window: int = Field(21, ge=5, le=101)
+    """LK window size (tracking pixels)."""
+    lk_levels: int = Field(3, ge=0, le=8)
+    """LK pyramid levels above the base image."""
+    fb_max_px: float = Field(0.7, gt=0, le=10)
+    """Largest forward–backward error of a kept track (tracking pixels)."""
+    keyframe_angle_deg: float = Field(4.0, gt=0.2, le=45)
+    """A keyframe is due when the view has turned this much since the last one."""
+    angle_slack: float = Field(0.25, ge=0, lt=1)
+    """Frames past (1 - slack) of that angle compete on sharpness to be the keyframe."""
+    nominal_hfov_deg: float = Field(65.0, gt=20, lt=150)
+    """Horizontal field of view assumed while measuring angles (the true focal comes later)."""
+    sharpness_window: int = Field(6, ge=1, le=240)
+    """The sharpest of this many recent frames becomes the keyframe."""
+    min_shared_tracks: int = Field(30, ge=8)
+    """A keyframe is forced when fewer tracks than this link back to the last one."""
+    min_frames: int = Field(15, ge=2)
+    """Videos with fewer frames are refused."""
+    min_keyframes: int = Field(5, ge=2)
+    """Fewer keyframes than this means the camera did not move enough."""

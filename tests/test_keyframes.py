@@ -1,0 +1,54 @@
+import numpy as np
+import pytest
+
+from facecap_core.camera import camera_center
+from facecap_core.config import KeyframeConfig, SynthConfig
+from facecap_core.errors import InputError
+from facecap_core.keyframes import select_keyframes
+from facecap_core.synthetic import load_gt_cameras, synthesize
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory, ict_model):
+    config = SynthConfig(subject="ict:2", ict_model=ict_model, width=640, height=360,
+                         duration_s=3.0, fps=30, seed=2)
+    return synthesize(config, tmp_path_factory.mktemp("kf"), progress=False)
+
+
+def test_keyframes_are_spaced_by_angle(sweep):
+    kf = select_keyframes(sweep.video)
+    _, poses = load_gt_cameras(sweep.gt_cameras)
+    centres = np.array([camera_center(poses[i]["R"], poses[i]["t"]) for i in kf.indices])
+    yaw = np.degrees(np.arctan2(centres[:, 0], centres[:, 2]))
+    steps = np.diff(yaw)
+    # ~185° in 4° steps: 30-80 keyframes, ordered, no gap much wider than the step.
+    assert 30 <= len(kf.indices) <= 80 and np.all(np.diff(kf.indices) > 0)
+    assert np.median(steps) == pytest.approx(KeyframeConfig().keyframe_angle_deg, rel=0.4)
+    assert steps.max() < 8.0
+    # Consecutive keyframes share enough tracks to be matched.
+    assert min(len(kf.tracks_between(a, a + 1)[0]) for a in range(len(kf.indices) - 1)) > 100
+    obs = kf.observations
+    assert obs[:, 2].max() < 640 and obs[:, 3].max() < 360 and obs[:, 2:].min() >= 0
+
+
+def test_more_keyframes_for_smaller_angles(sweep):
+    coarse = select_keyframes(sweep.video, KeyframeConfig(keyframe_angle_deg=8.0))
+    fine = select_keyframes(sweep.video)
+    assert len(coarse.indices) < 0.7 * len(fine.indices)
+
+
+def test_static_camera_is_refused(tmp_path, ict_model):
+    config = SynthConfig(subject="ict:2", ict_model=ict_model, width=320, height=180,
+                         duration_s=1.0, yaw_start_deg=0, yaw_end_deg=0, hand_jitter_mm=0,
+                         hand_jitter_deg=0, elevation_wobble_deg=0, roll_deg=0)
+    cap = synthesize(config, tmp_path, progress=False)
+    with pytest.raises(InputError, match="barely moves"):
+        select_keyframes(cap.video)
+
+
+def test_too_short_video_is_refused(tmp_path, ict_model):
+    config = SynthConfig(subject="ict:2", ict_model=ict_model, width=160, height=90,
+                         fps=30, duration_s=10 / 30)
+    cap = synthesize(config, tmp_path, progress=False)
+    with pytest.raises(InputError, match="10 frames"):
+        select_keyframes(cap.video)
