@@ -75,6 +75,29 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _cmd_reconstruct(args) -> int:
+    from facecap_core.config import KeyframeConfig
+    from facecap_core.keyframes import select_keyframes
+    from facecap_core.pose.colmap_sfm import run_sfm
+    from facecap_core.pose.io import write_outputs
+    from facecap_core.video import read_frames
+
+    out = Path(args.out)
+    keyframes = select_keyframes(args.video, KeyframeConfig(), progress=True)
+    print(f"{len(keyframes.indices)} keyframes of {keyframes.frames_read} frames")
+    if args.until == "keyframes":
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "keyframes.json").write_text(json.dumps({"frame_indices": keyframes.indices}))
+        print(f"wrote {out / 'keyframes.json'}")
+        return 0
+    images = read_frames(args.video, keyframes.indices, width=960)
+    poses = run_sfm(images, out / "work" / "sfm", keyframes.video_size)
+    path = write_outputs(poses, out / "work" / "sfm", out)
+    print(f"{len(poses.frame_indices)}/{len(keyframes.indices)} keyframes registered; "
+          f"focal {poses.intrinsics.fx:.1f} px; wrote {path} and {out / 'colmap'}")
+    return 0
+
+
 def _cmd_demo(args) -> int:
     import os
 
@@ -133,6 +156,14 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.add_argument("--heatmap", help="write accuracy heat maps to this PNG path")
     e.set_defaults(func=_cmd_evaluate)
+
+    r = sub.add_parser("reconstruct", help="reconstruct a capture (stages so far: keyframes, "
+                                           "poses)")
+    r.add_argument("video", help="the capture: a handheld ear-to-ear video of a still face")
+    r.add_argument("--out", required=True, help="output folder")
+    r.add_argument("--until", choices=["keyframes", "poses"], default="poses",
+                   help="last stage to run")
+    r.set_defaults(func=_cmd_reconstruct)
 
     d = sub.add_parser("demo", help="synthesize a capture and score the mean-template baseline")
     d.add_argument("--out", default="out/demo")

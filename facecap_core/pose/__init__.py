@@ -1,0 +1,1 @@
+"""Camera poses of the keyframes: geometric initialisation and its outputs."""

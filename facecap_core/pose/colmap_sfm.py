@@ -1,0 +1,82 @@
+"""Geometric structure from motion on the keyframes with pycolmap (SIFT, sequential
+matching, incremental mapping with one shared RADIAL camera).
+
+This is the starting point for photometric bundle adjustment and the peer it is compared
+with. Keyframes are written as PNG at ``sfm_width`` and the result is converted back to
+full-resolution pixels.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from facecap_core.camera import Intrinsics
+from facecap_core.errors import FacecapError
+
+
+@dataclass
+class Poses:
+    """Intrinsics (full video resolution) and world-to-camera poses of registered keyframes."""
+
+    intrinsics: Intrinsics
+    frame_indices: list[int]  # video frame index of each registered keyframe
+    R: list[np.ndarray]
+    t: list[np.ndarray]
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # sparse points
+    seconds: float = 0.0
+
+
+def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tuple[int, int],
+            overlap: int = 6) -> Poses:
+    """SfM over keyframe images ({video frame index: RGB uint8}, all one size)."""
+    import time
+
+    import pycolmap
+
+    start = time.perf_counter()
+    work = Path(work_dir)
+    img_dir = work / "images"
+    shutil.rmtree(work, ignore_errors=True)
+    img_dir.mkdir(parents=True)
+    names = {}
+    for index, img in sorted(images.items()):
+        name = f"frame_{index:06d}.png"
+        cv2.imwrite(str(img_dir / name), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        names[name] = index
+    h, w = next(iter(images.values())).shape[:2]
+    db = work / "database.db"
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "RADIAL"
+    pycolmap.extract_features(db, img_dir, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, device=pycolmap.Device.cpu)
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = overlap
+    pycolmap.match_sequential(db, pairing_options=pairing, device=pycolmap.Device.cpu)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = 2
+    maps = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options)
+    if not maps:
+        raise FacecapError("structure from motion registered no keyframes: the video has "
+                           "too little texture or motion to estimate camera poses")
+    rec = max(maps.values(), key=lambda r: r.num_reg_images())
+    cam = next(iter(rec.cameras.values()))
+    f, cx, cy, k1, k2 = cam.params
+    sx, sy = video_size[0] / w, video_size[1] / h
+    # COLMAP's image edge is at 0 (pixel centres at +0.5); ours is at -0.5.
+    intr = Intrinsics(video_size[0], video_size[1], f * sx, f * sy, cx * sx - 0.5,
+                      cy * sy - 0.5, k1, k2)
+    order = sorted(rec.images.values(), key=lambda im: names[im.name])
+    R, t, idx = [], [], []
+    for im in order:
+        pose = im.cam_from_world()
+        R.append(np.asarray(pose.rotation.matrix()))
+        t.append(np.asarray(pose.translation))
+        idx.append(names[im.name])
+    pts = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    rec.write_text(str(work / "sparse"))
+    return Poses(intr, idx, R, t, pts, time.perf_counter() - start)
