@@ -7,7 +7,7 @@ rejected with a message that names the field.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TypeVar
+from typing import Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -180,3 +180,185 @@ class KeyframeConfig(StrictModel):
     """Videos with fewer frames are refused."""
     min_keyframes: int = Field(5, ge=2)
     """Fewer keyframes than this means the camera did not move enough."""
+
+
+class PBAConfig(StrictModel):
+    """Photometric bundle adjustment (``facecap_core/pose/pba.py``)."""
+
+    cell: int = Field(12, ge=4, le=64)
+    """One point per cell×cell block of each keyframe (its strongest gradient)."""
+    min_gradient: float = Field(8.0, ge=0)
+    """Weakest gradient (grey levels per pixel) a point may have."""
+    init_radius_px: float = Field(20.0, gt=0)
+    """Sparse points within this radius give a point's initial inverse depth."""
+    neighbours: int = Field(4, ge=1, le=15)
+    """Each point is compared in this many keyframes before and after its host."""
+    pyramid_levels: int = Field(3, ge=1, le=6)
+    """Coarse-to-fine levels (each half the size of the previous)."""
+    iterations: int = Field(12, ge=1, le=200)
+    """Levenberg–Marquardt iterations per pyramid level."""
+    depth_only_iterations: int = Field(2, ge=0)
+    """The first iterations of each level move only the inverse depths."""
+    huber: float = Field(9.0, gt=0)
+    """Huber threshold of the photometric residual (grey levels)."""
+    gradient_weight: float = Field(50.0, gt=0)
+    """DSO's gradient weight c²/(c² + |∇I|²): strong edges count less (sub-pixel noise)."""
+    max_residual: float = Field(40.0, gt=0)
+    """Residuals above this (grey levels) are dropped: occlusions and highlights."""
+    initial_lambda: float = Field(1e-3, gt=0)
+    """Initial Levenberg–Marquardt damping."""
+    refine_intrinsics: bool = True
+    """Refine focal length, principal point and k1, k2 with the poses."""
+    scale_prior: float = Field(1e8, gt=0)
+    """Weight of the prior that fixes the length of the first baseline (the scale gauge)."""
+
+
+class FittingConfig(StrictModel):
+    """Non-rigid template fitting: optimal-step NICP (Amberg et al. 2007) to a fused point
+    cloud, 3D landmarks, ear points and keyframe silhouettes (Agrawal et al. 2020, "Mesh
+    fitting"). Distances in mm, weights relative to one cloud target."""
+
+    stiffness: list[float] = [50.0, 20.0, 10.0, 5.0, 2.0, 1.0]
+    """Stiffness alpha per level, from global (large) to local (small) deformation; the
+    template is centred and scaled to unit RMS radius, so the values do not depend on units."""
+    landmark_weight: list[float] = [50.0, 20.0, 10.0, 5.0, 2.0, 1.0]
+    """Weight of each landmark target per level (same length as ``stiffness``); falls with
+    the stiffness so that landmarks place the mesh first and the cloud refines it."""
+    iterations_per_level: int = Field(3, ge=1, le=100)
+    """Most optimal steps per stiffness level (fewer when the mesh stops moving)."""
+    convergence_mm: float = Field(0.02, ge=0)
+    """A level ends early when no vertex moved more than this in its last step."""
+    gamma: float = Field(1.0, gt=0)
+    """Weight of the translation part against the linear part in the stiffness term."""
+    reuse_factorization: bool = True
+    """Keep the per-vertex weights fixed within a level, so the matrix is factored once per
+    level; vertices that lose their cloud target during the level hold their position."""
+    solver: Literal["auto", "cholmod", "scipy"] = "auto"
+    """Sparse solver: CHOLMOD via cvxopt (supernodal Cholesky), scipy's SuperLU, or auto."""
+    initial_similarity: bool = True
+    """Start from a similarity (Umeyama) fit of the template's inner landmarks to the given
+    landmarks."""
+
+    use_cloud: bool = True
+    """Use the point-cloud constraint (False: the landmarks-only ablation)."""
+    use_edges: bool = True
+    """Use keyframe silhouette/edge constraints when keyframes are given."""
+    use_ear_landmarks: bool = True
+    """Use ear points (vertex id, 3D target) when given."""
+
+    data_weight: float = Field(1.0, gt=0)
+    """Weight of one point-cloud target."""
+    search_radius_mm: tuple[float, float] = (8.0, 3.0)
+    """How far along the vertex normal cloud points are accepted, at the first and last
+    level (geometric in between): wide while the template is far, tight at the end."""
+    normal_distance_mm: float = Field(1.5, gt=0)
+    """Largest distance of an accepted cloud point from the vertex-normal line."""
+    min_points: int = Field(3, ge=1)
+    """Fewest accepted points for a cloud target; vertices with fewer fall back to stiffness."""
+    normal_agreement_deg: float = Field(60.0, gt=0, le=180)
+    """When the cloud has normals, accept only points whose normal is within this angle of
+    the vertex normal (180: no check)."""
+    recompute_every: int = Field(1, ge=1)
+    """Recompute the cloud targets every this many steps (the paper: every few)."""
+
+    ear_weight: float = Field(1.0, ge=0)
+    """Ear point weight relative to the level's landmark weight."""
+
+    edge_weight: float = Field(1.0, ge=0)
+    """Weight of one silhouette target (per keyframe that sees the vertex on its contour)."""
+    edge_recompute_every: int = Field(2, ge=1)
+    """Recompute silhouette vertices and their edge targets every this many steps."""
+    edge_first_level: int = Field(1, ge=0)
+    """First level (0-based) that uses edges: before it the mesh is too far for a few-pixel
+    match."""
+    edge_max_px: float = Field(3.0, gt=0)
+    """Largest image distance from a projected contour vertex to its edge pixel."""
+    edge_min_cos: float = Field(0.7, ge=0, le=1)
+    """The edge pixel must lie along the projected vertex normal: |cos| of the angle at least
+    this."""
+    edge_blur_sigma: float = Field(1.0, ge=0)
+    """Gaussian blur (px) before Canny."""
+    canny_thresholds: tuple[int, int] = (30, 90)
+    """Canny hysteresis thresholds on the grey image."""
+    edge_boundary_rings: int = Field(4, ge=0)
+    """Template vertices this many edges or fewer from the template's open border never give
+    silhouettes (the border is not a real contour)."""
+
+    texture: bool = True
+    """Colour the fitted mesh from the keyframes (per-vertex colour) when keyframes are given."""
+    texture_min_cos: float = Field(0.25, ge=0, le=1)
+    """A view colours a vertex only when the vertex faces it at least this much (cos)."""
+
+    @model_validator(mode="after")
+    def _check_schedule(self):
+        if len(self.stiffness) == 0 or len(self.stiffness) != len(self.landmark_weight):
+            raise ValueError("stiffness and landmark_weight need the same, non-zero length")
+        if any(a <= 0 for a in self.stiffness) or any(b < 0 for b in self.landmark_weight):
+            raise ValueError("stiffness must be > 0 and landmark_weight >= 0")
+        if self.search_radius_mm[1] <= self.normal_distance_mm / 2 or \
+                self.search_radius_mm[0] < self.search_radius_mm[1]:
+            raise ValueError("search_radius_mm: (start, end) with start >= end > "
+                             "normal_distance_mm / 2")
+        return self
+
+
+class MVSConfig(StrictModel):
+    """Dense multi-view stereo: view selection, PatchMatch depth maps, filtering, fusion."""
+
+    processing_width: int = Field(640, ge=64, le=4096)
+    """Width (px) the keyframes are resized to before undistortion and matching."""
+    num_sources: int = Field(12, ge=1, le=64)
+    """Source views per reference view, the best by the view-selection score."""
+    view_theta0_deg: float = Field(10.0, gt=0, lt=90)
+    """Preferred baseline angle theta0 of the view-selection score."""
+    view_sigma1: float = Field(5.0, gt=0)
+    """Spread (degrees) of the score below theta0."""
+    view_sigma2: float = Field(10.0, gt=0)
+    """Spread (degrees) of the score above theta0."""
+
+    depth_margin_mm: float = Field(8.0, gt=0, le=100)
+    """Half-width of the depth search range around the coarse mesh."""
+    head_dilation_px: int = Field(6, ge=0, le=100)
+    """Pixels the coarse mesh's silhouette is grown by to form the computed region."""
+    init_from_coarse: bool = True
+    """Also test the coarse mesh's plane at initialisation (the paper initialises with it)."""
+
+    iterations: int = Field(5, ge=1, le=32)
+    """Red–black PatchMatch iterations (each updates both colours once)."""
+    neighbours: str = Field("fast", pattern="^(fast|full)$")
+    """Gipuma's propagation pattern: 8 ('fast': ±1, ±5 on both axes) or 20 ('full')."""
+    refine_trials: int = Field(3, ge=0, le=10)
+    """Random refinements per pixel and iteration (depth, normal, both perturbed)."""
+    normal_perturbation_deg: float = Field(30.0, gt=0, le=90)
+    """Largest normal perturbation; the depth and normal steps halve every iteration."""
+    window_radius: int = Field(5, ge=1, le=15)
+    """Half-size (px) of the matching window."""
+    window_step: int = Field(2, ge=1, le=5)
+    """Sample every ``window_step``-th pixel of the window (sparse window)."""
+    presmooth_sigma: float = Field(0.8, ge=0, le=5)
+    """Gaussian blur (px) of the grey images before matching (noise vs. sparse sampling)."""
+    sigma_color: float = Field(0.2, gt=0)
+    """Bilateral weight's intensity spread (intensities in [0, 1])."""
+    sigma_spatial: float | None = Field(None, gt=0)
+    """Bilateral weight's spatial spread in px; default: the window radius."""
+    num_best_views: int = Field(8, ge=1, le=64)
+    """A hypothesis' cost is the mean of its best this-many per-view costs (occlusion)."""
+    seed: int = 0
+    """Seed of the random hypotheses (results are reproducible per keyframe)."""
+
+    max_cost: float = Field(0.5, gt=0, le=2)
+    """Depths whose aggregated cost (1 - NCC) exceeds this are rejected."""
+    coarse_max_distance_mm: float = Field(6.0, gt=0)
+    """Depths farther than this from the coarse mesh (along the ray) are rejected."""
+
+    fusion_max_depth_mm: float = Field(1.0, gt=0)
+    """Fusion: a source agrees when its depth differs by at most this from the reprojection."""
+    fusion_max_reprojection_px: float = Field(1.0, gt=0)
+    """Fusion: ... and the round trip through its depth lands within this many pixels."""
+    fusion_max_normal_deg: float = Field(30.0, gt=0, le=180)
+    """Fusion: ... and its normal is within this angle."""
+    min_consistent_views: int = Field(2, ge=1)
+    """Fusion: source views that must agree with a reference pixel to make a point."""
+
+    workers: int = Field(2, ge=1, le=256)
+    """Depth maps computed at once (threads; the kernels release the GIL)."""

@@ -1,0 +1,226 @@
+"""Optimal-step non-rigid ICP of the template to cloud, landmarks, ear points and edges.
+
+:func:`fit` runs the schedule of :class:`~facecap_core.config.FittingConfig`: for each
+stiffness level (global → local, landmark weight falling with it) up to
+``iterations_per_level`` optimal steps; each step recomputes the cloud targets (every
+``recompute_every`` steps) and the silhouette targets (every ``edge_recompute_every``) from
+the current mesh, then solves the NICP system (:mod:`.solver`). The result keeps the
+template's topology exactly: only vertex positions change.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from facecap_core.errors import InputError
+from facecap_core.evaluation import umeyama
+from facecap_core.fitting.constraints import (
+    CloudGrid, Keyframe, boundary_distance, cloud_targets, edge_map, edge_targets,
+    landmark_targets, nearest_edge_pixels,
+)
+from facecap_core.fitting.solver import NicpSystem
+from facecap_core.render import RaycastScene, vertex_normals
+from facecap_core.template import INNER_LANDMARKS, Template
+
+from facecap_core.config import FittingConfig
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FitResult", "fit", "check_inputs", "initial_similarity"]
+
+
+@dataclass
+class FitResult:
+    """The fitted mesh (template topology, mm) and how the fit went."""
+
+    template: Template  # the fitted vertices in the template's topology
+    initial: np.ndarray  # vertices after the initial similarity
+    iterations: int
+    factorizations: int
+    wall_s: float
+    cpu_s: float
+    log: list[dict] = field(default_factory=list)  # one record per step
+    supported: np.ndarray | None = None  # last cloud support mask
+
+    @property
+    def vertices(self) -> np.ndarray:
+        return self.template.vertices
+
+    @property
+    def faces(self) -> np.ndarray:
+        return self.template.faces
+
+    def timing(self) -> dict:
+        steps = [r["wall_s"] for r in self.log]
+        return {"iterations": self.iterations, "factorizations": self.factorizations,
+                "wall_s": self.wall_s, "cpu_s": self.cpu_s,
+                "wall_s_per_iteration": float(np.mean(steps)) if steps else float("nan")}
+
+
+def check_inputs(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray | None,
+                 ear_points: tuple[np.ndarray, np.ndarray] | None,
+                 cloud_normals: np.ndarray | None, config: FittingConfig):
+    """Validate shapes; raises :class:`InputError` with one line naming the problem."""
+    if landmarks is None:
+        raise InputError("fitting needs the 68 3D landmarks (iBUG order, mm) of the subject")
+    L = np.asarray(landmarks, float)
+    if L.shape != (68, 3):
+        raise InputError(f"fitting landmarks must be 68 3D points (68, 3); got shape {L.shape}")
+    if not np.all(np.isfinite(L[INNER_LANDMARKS])):
+        raise InputError("fitting landmarks 17-67 hold non-finite coordinates")
+    if config.use_cloud:
+        if cloud is None:
+            raise InputError("fitting needs a point cloud (N, 3) in mm (or use_cloud=False)")
+        C = np.asarray(cloud, float)
+        if C.ndim != 2 or C.shape[1] != 3:
+            raise InputError(f"point cloud must be (N, 3) points; got shape {C.shape}")
+        if len(C) < 100:
+            raise InputError(f"point cloud has {len(C)} points; fitting needs at least 100 "
+                             "(did fusion fail?)")
+        if not np.all(np.isfinite(C)):
+            raise InputError("point cloud holds non-finite coordinates")
+        if cloud_normals is not None and np.shape(cloud_normals) != C.shape:
+            raise InputError(f"cloud normals shape {np.shape(cloud_normals)} does not match "
+                             f"the cloud's {C.shape}")
+        # Template/cloud mismatch: the landmarks must lie near the cloud (same frame, units).
+        size = np.linalg.norm(L[36] - L[45])
+        lo, hi = C.min(0) - size, C.max(0) + size
+        if not np.all((L[INNER_LANDMARKS] >= lo) & (L[INNER_LANDMARKS] <= hi)):
+            raise InputError("landmarks lie outside the point cloud's bounding box: cloud and "
+                             "landmarks are in different frames or units")
+    if ear_points is not None:
+        ids, pts = np.asarray(ear_points[0]), np.asarray(ear_points[1], float)
+        if ids.ndim != 1 or pts.shape != (len(ids), 3):
+            raise InputError(f"ear points must be (k,) vertex ids and (k, 3) targets; got "
+                             f"{ids.shape} and {pts.shape}")
+        if len(ids) and (ids.min() < 0 or ids.max() >= len(template.vertices)):
+            raise InputError(f"ear point vertex ids must be in [0, {len(template.vertices)})")
+
+
+def initial_similarity(template: Template, landmarks: np.ndarray) -> np.ndarray:
+    src = template.vertices[template.landmarks[INNER_LANDMARKS]]
+    s, R, t = umeyama(src, np.asarray(landmarks, float)[INNER_LANDMARKS], with_scale=True)
+    return s * template.vertices @ R.T + t
+
+
+def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
+        keyframes: list[Keyframe] | tuple = (),
+        ear_points: tuple[np.ndarray, np.ndarray] | None = None,
+        cloud_normals: np.ndarray | None = None,
+        config: FittingConfig | None = None) -> FitResult:
+    """Deform ``template`` onto the constraints; returns a :class:`FitResult`.
+
+    ``cloud`` (N, 3) mm (with optional ``cloud_normals``), ``landmarks`` the subject's 68 3D
+    landmarks (only 17-67 are used), ``keyframes`` images with cameras for the silhouettes,
+    ``ear_points`` ``(vertex ids (k,), targets (k, 3))``. The template is used as given
+    (in the subject's frame) unless ``config.initial_similarity``.
+    """
+    config = config or FittingConfig()
+    check_inputs(template, cloud, landmarks, ear_points, cloud_normals, config)
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
+    L = np.asarray(landmarks, float)
+    faces = template.faces
+    n = len(template.vertices)
+    v0 = initial_similarity(template, L) if config.initial_similarity else template.vertices.copy()
+    system = NicpSystem(v0, faces, gamma=config.gamma, solver=config.solver)
+
+    levels = len(config.stiffness)
+    r0, r1 = config.search_radius_mm
+    radii = np.geomspace(r0, r1, levels) if levels > 1 else np.array([r1])
+    grid = None
+    if config.use_cloud:
+        grid = CloudGrid.build(cloud, cloud_normals, cell=max(r1, 2.0 * config.normal_distance_mm))
+
+    lm_ids = template.landmarks[INNER_LANDMARKS]
+    lm_pts = L[INNER_LANDMARKS]
+    ears = None
+    if ear_points is not None and config.use_ear_landmarks and len(ear_points[0]):
+        ears = (np.asarray(ear_points[0], np.int64), np.asarray(ear_points[1], float))
+    use_edges = config.use_edges and len(keyframes) > 0 and config.edge_weight > 0
+    edge_exclude = boundary_distance(n, faces, config.edge_boundary_rings) if use_edges else None
+    nearest = [nearest_edge_pixels(edge_map(kf.image, config.edge_blur_sigma,
+                                            *config.canny_thresholds)) for kf in keyframes
+               ] if use_edges else []
+
+    V = v0.copy()
+    records: list[dict] = []
+    step = 0
+    ok = np.zeros(n, bool)
+    cloud_t = np.zeros((n, 3))
+    edge_w = np.zeros(n)
+    edge_wu = np.zeros((n, 3))
+    for level, (alpha, beta) in enumerate(zip(config.stiffness, config.landmark_weight)):
+        w_level = None
+        for it in range(config.iterations_per_level):
+            t0 = time.perf_counter()
+            normals = vertex_normals(V, faces)
+            if grid is not None and (step % config.recompute_every == 0 or it == 0):
+                ok, cloud_t, _ = cloud_targets(V, normals, grid, radii[level],
+                                               config.normal_distance_mm, config.min_points,
+                                               config.normal_agreement_deg)
+            t_cloud = time.perf_counter() - t0
+            if use_edges and level >= config.edge_first_level and \
+                    (it == 0 or step % config.edge_recompute_every == 0):
+                edge_w, edge_wu = _edge_terms(V, normals, faces, keyframes, nearest,
+                                              edge_exclude, config)
+            elif not use_edges or level < config.edge_first_level:
+                edge_w, edge_wu = np.zeros(n), np.zeros((n, 3))
+
+            w = np.where(ok, config.data_weight, 0.0) if grid is not None else np.zeros(n)
+            wu = w[:, None] * cloud_t
+            lw, lwu = landmark_targets(n, lm_ids, lm_pts, beta)
+            w, wu = w + lw, wu + lwu
+            if ears is not None:
+                ew, ewu = landmark_targets(n, ears[0], ears[1], beta * config.ear_weight)
+                w, wu = w + ew, wu + ewu
+            w, wu = w + edge_w, wu + edge_wu
+            targets = wu / np.maximum(w, 1e-300)[:, None]
+            if config.reuse_factorization:
+                if w_level is None:
+                    w_level = w
+                else:
+                    # Same weights as the level's first step: vertices that lost their
+                    # targets hold their place, new ones wait for the next level.
+                    lost = (w == 0) & (w_level > 0)
+                    targets = np.where(lost[:, None], V, targets)
+                    new = (w > 0) & (w_level == 0)
+                    targets[new] = 0.0
+                    # Reweight to the level's weights (targets are weighted means already).
+                    w = w_level
+            t1 = time.perf_counter()
+            V_new = system.solve(alpha, w, targets)
+            t_solve = time.perf_counter() - t1
+            moved = float(np.max(np.linalg.norm(V_new - V, axis=1)))
+            V = V_new
+            rec = {"level": level, "alpha": alpha, "landmark_weight": beta, "step": step,
+                   "cloud_targets": int(ok.sum()), "edge_targets": int((edge_w > 0).sum()),
+                   "max_move_mm": moved, "cloud_s": t_cloud, "solve_s": t_solve,
+                   "wall_s": time.perf_counter() - t0,
+                   "landmark_rms_mm": float(np.sqrt(np.mean(np.sum((V[lm_ids] - lm_pts) ** 2, 1))))}
+            records.append(rec)
+            log.debug("fit step %s", rec)
+            step += 1
+            if moved < config.convergence_mm:
+                break
+
+    fitted = template.with_vertices(V)
+    return FitResult(fitted, v0, step, system.factorizations, time.perf_counter() - t_wall,
+                     time.process_time() - t_cpu, records, ok)
+
+
+def _edge_terms(V, normals, faces, keyframes, nearest, exclude, config):
+    n = len(V)
+    w = np.zeros(n)
+    wu = np.zeros((n, 3))
+    scene = RaycastScene()
+    scene.add(V, faces)
+    for kf, near in zip(keyframes, nearest):
+        ids, tg = edge_targets(V, normals, faces, kf, scene, near, config.edge_max_px,
+                               config.edge_min_cos, exclude)
+        np.add.at(w, ids, config.edge_weight)
+        np.add.at(wu, ids, config.edge_weight * tg)
+    return w, wu

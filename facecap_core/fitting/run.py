@@ -1,0 +1,120 @@
+"""Entry point of the fitting stage: inputs in, ``mesh.ply`` / ``mesh.obj`` (+ colours) out.
+
+:func:`main` loads what it is given (arrays or files), fits the template (:func:`fit`),
+colours it from the keyframes (:func:`facecap_core.texture.vertex_colours`) and writes
+
+    mesh.ply     fitted mesh in template topology, mm, per-vertex RGB
+    mesh.obj     the same, vertex colours as ``v x y z r g b``
+    landmarks.json  the fitted mesh's 68 landmark points
+    fit.json     schedule, per-step log, timing (wall and CPU seconds)
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from facecap_core.errors import InputError
+from facecap_core.fitting.constraints import Keyframe
+from facecap_core.fitting.nicp import FitResult, FittingConfig, fit
+from facecap_core.meshio import load_landmarks, save_landmarks
+from facecap_core.template import Template
+
+__all__ = ["main", "write_mesh", "load_cloud", "keyframes_from_video"]
+
+
+def load_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (N, 3) and normals (or None) from a PLY/PCD/XYZ point cloud or an ``.npz``
+    with ``points`` (and ``normals``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"point cloud file not found: {path}")
+    if path.suffix.lower() == ".npz":
+        with np.load(path) as z:
+            if "points" not in z:
+                raise InputError(f"point cloud {path} has no 'points' array")
+            return z["points"].astype(float), (z["normals"].astype(float) if "normals" in z else None)
+    import open3d as o3d
+
+    pc = o3d.io.read_point_cloud(str(path))
+    pts = np.asarray(pc.points, float)
+    if len(pts) == 0:
+        raise InputError(f"point cloud {path} is empty or unreadable (expected PLY/PCD/XYZ)")
+    return pts, (np.asarray(pc.normals, float) if pc.has_normals() else None)
+
+
+def keyframes_from_video(video: str | Path, intrinsics, poses: list[dict],
+                         indices: list[int], width: int | None = None) -> list[Keyframe]:
+    """Keyframes (RGB images + cameras) for the frame ``indices`` of a video; ``poses`` are
+    per-frame dicts with ``index``, ``R``, ``t`` (world-to-camera)."""
+    from facecap_core.video import read_frames
+
+    images = read_frames(video, indices, width=width)
+    by_index = {p["index"]: p for p in poses}
+    return [Keyframe(images[i], intrinsics, by_index[i]["R"], by_index[i]["t"])
+            for i in indices if i in images]
+
+
+def write_mesh(folder: str | Path, vertices: np.ndarray, faces: np.ndarray,
+               colours: np.ndarray | None = None) -> tuple[Path, Path]:
+    """Write ``mesh.ply`` and ``mesh.obj`` (vertex order and faces exactly as given)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces, np.int64),
+                           process=False)
+    if colours is not None:
+        rgba = np.c_[np.asarray(colours, np.uint8), np.full(len(vertices), 255, np.uint8)]
+        mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=rgba)
+    ply, obj = folder / "mesh.ply", folder / "mesh.obj"
+    for path, kwargs in ((ply, {"encoding": "binary"}), (obj, {"include_color": True,
+                                                               "include_normals": False,
+                                                               "include_texture": False})):
+        tmp = path.with_name(path.name + ".part")
+        tmp.write_bytes(_export(mesh, path.suffix[1:], kwargs))
+        tmp.replace(path)
+    return ply, obj
+
+
+def _export(mesh: trimesh.Trimesh, kind: str, kwargs: dict) -> bytes:
+    data = trimesh.exchange.export.export_mesh(mesh, None, file_type=kind, **kwargs)
+    return data if isinstance(data, bytes) else data.encode()
+
+
+def main(cloud, landmarks, out_dir: str | Path, template: Template | None = None,
+         keyframes: list[Keyframe] | tuple = (), ear_points=None, cloud_normals=None,
+         config: FittingConfig | None = None) -> Path:
+    """Fit and write the mesh; returns the path of ``mesh.ply``.
+
+    ``cloud``: (N, 3) array or a point-cloud file; ``landmarks``: (68, 3) array or a
+    landmark file; ``template``: default :meth:`Template.default`.
+    """
+    config = config or FittingConfig()
+    if isinstance(cloud, (str, Path)):
+        cloud, file_normals = load_cloud(cloud)
+        cloud_normals = cloud_normals if cloud_normals is not None else file_normals
+    if isinstance(landmarks, (str, Path)):
+        landmarks = load_landmarks(landmarks)
+    template = template or Template.default()
+    result = fit(template, cloud, landmarks, keyframes, ear_points, cloud_normals, config)
+    colours = None
+    if config.texture and len(keyframes):
+        from facecap_core.texture import vertex_colours
+
+        colours, _ = vertex_colours(result.vertices, result.faces, keyframes,
+                                    config.texture_min_cos)
+    out = Path(out_dir)
+    ply, _ = write_mesh(out, result.vertices, result.faces, colours)
+    save_landmarks(out / "landmarks.json", result.template.landmark_points,
+                   template=template.name)
+    write_report(out / "fit.json", result, config)
+    return ply
+
+
+def write_report(path: Path, result: FitResult, config: FittingConfig) -> Path:
+    doc = {"config": config.model_dump(mode="json"), "timing": result.timing(),
+           "vertices": len(result.vertices), "faces": len(result.faces), "steps": result.log}
+    path.write_text(json.dumps(doc, indent=1))
+    return path

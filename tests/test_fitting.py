@@ -1,0 +1,269 @@
+"""Fitting stage (issue 6): NICP solver, constraints, ablations, texture, files, bad input.
+
+Ground truth: an ICT identity (its skin mesh) is the subject; the template is the ICT mean
+face in the same topology (11k vertices: fast), started from a landmark similarity. The
+cloud is sampled from the subject like a fused MVS cloud (0.7 pt/mm², 0.5 mm noise, 20 %
+coherent holes, 5 % outliers), the landmarks carry 1 mm noise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+import trimesh
+
+from facecap_core.camera import Intrinsics, look_at
+from facecap_core.errors import InputError
+from facecap_core.evaluation import distances, score
+from facecap_core.fitting import FittingConfig, Keyframe, NicpSystem, fit, main
+from facecap_core.fitting.constraints import CloudGrid, cloud_targets, nearest_edge_pixels
+from facecap_core.fitting.nicp import initial_similarity
+from facecap_core.fitting.synthetic_cloud import mvs_like_cloud
+from facecap_core.render import RaycastScene, interpolate
+from facecap_core.template import INNER_LANDMARKS, Template, head_frame
+from facecap_core.texture import vertex_colours
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+def _to_head(vertices, landmarks):
+    R, origin = head_frame(landmarks)
+    return (vertices - origin) @ R.T, (landmarks - origin) @ R.T
+
+
+@pytest.fixture(scope="module")
+def setup(ict_model):
+    """(template, subject vertices, faces, landmarks, cloud, normals, noisy landmarks)."""
+    mean = Template.from_ict(ict_model)
+    coeffs = np.random.default_rng(11).standard_normal(100) * 1.5
+    subj = Template.from_ict(ict_model, coeffs)
+    sv, slm = _to_head(subj.vertices, subj.landmark_points)
+    tv, tlm = _to_head(mean.vertices, mean.landmark_points)
+    template = mean.with_vertices(tv)
+    cloud, normals = mvs_like_cloud(sv, subj.faces, density=0.7, noise_mm=0.5, holes=0.2,
+                                    outliers=0.05, seed=3)
+    noisy = slm + np.random.default_rng(4).normal(0, 1.0, slm.shape)
+    return template, sv, subj.faces, slm, cloud, normals, noisy
+
+
+def _colour_fn(p):
+    """A smooth colour field over the head (uint8-range floats)."""
+    return np.stack([128 + 90 * np.sin(p[:, 0] / 25.0), 128 + 90 * np.sin(p[:, 1] / 30.0),
+                     128 + 90 * np.cos(p[:, 2] / 20.0)], axis=1)
+
+
+def _render_keyframes(vertices, faces, yaws=(-90, -45, 0, 45, 90), size=480, dist=450.0):
+    """Ray-cast colour images of the subject on black, from cameras around the head."""
+    intr = Intrinsics(size, size, 560.0, 560.0, (size - 1) / 2, (size - 1) / 2)
+    scene = RaycastScene()
+    scene.add(vertices, faces)
+    colours = _colour_fn(vertices)
+    out = []
+    for yaw in yaws:
+        a = np.radians(yaw)
+        eye = np.array([dist * np.sin(a), 20.0, dist * np.cos(a)])
+        R, t = look_at(eye, np.array([0.0, 10.0, 20.0]), np.array([0.0, 1.0, 0.0]))
+        hits = scene.cast_camera(intr, R, t)
+        img = np.zeros((size, size, 3))
+        ok = hits.valid
+        img[ok] = interpolate(colours, faces, hits.triangle[ok], hits.bary[ok])
+        out.append(Keyframe(np.clip(img, 0, 255).astype(np.uint8), intr, R, t))
+    return out
+
+
+FAST = dict(stiffness=[50.0, 20.0, 10.0, 5.0, 2.0, 1.0],
+            landmark_weight=[50.0, 20.0, 10.0, 5.0, 2.0, 1.0], iterations_per_level=3)
+
+
+# --------------------------------------------------------------------------- solver
+
+
+def test_solver_matches_direct_solve_and_keeps_affine():
+    """Stiffness + a few consistent targets: the exact minimiser is the global affine map,
+    and the Cholesky solve agrees with scipy's direct solve."""
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=50.0)
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    A = np.array([[1.1, 0.1, 0.0], [0.0, 0.9, 0.05], [0.02, 0.0, 1.05]])
+    b = np.array([3.0, -2.0, 5.0])
+    goal = v @ A.T + b
+    w = np.zeros(len(v))
+    w[[0, 5, 17, 40, 77, 101, 300]] = 1.0  # a few non-coplanar vertices
+    solvers = ["scipy"] + (["cholmod"] if NicpSystem(v, f).solver == "cholmod" else [])
+    results = []
+    for solver in solvers:
+        system = NicpSystem(v, f, solver=solver, damping=1e-9)
+        results.append(system.solve(5.0, w, goal))
+        assert np.abs(results[-1] - goal).max() < 1e-3
+        assert len(results[-1]) == len(v)
+        # Affine in, affine out: a second step from there keeps it.
+        assert np.abs(system.solve(5.0, w, goal) - goal).max() < 1e-5
+    if len(results) == 2:
+        assert np.abs(results[0] - results[1]).max() < 1e-5
+
+
+def test_stiffness_only_leaves_affine_template_affine(setup):
+    """Landmarks only, consistent with a global affine map of the template: the whole mesh
+    follows that map (no data term, stiffness fills in everywhere)."""
+    template = setup[0]
+    A = np.array([[1.05, 0.02, 0.0], [-0.03, 0.97, 0.01], [0.0, 0.04, 1.02]])
+    b = np.array([1.0, 2.0, -3.0])
+    moved = template.vertices @ A.T + b
+    config = FittingConfig(use_cloud=False, use_edges=False, initial_similarity=False,
+                           stiffness=[10.0, 1.0], landmark_weight=[10.0, 1.0])
+    result = fit(template, None, moved[template.landmarks], config=config)
+    assert np.abs(result.vertices - moved).max() < 0.05
+
+
+# --------------------------------------------------------------------------- constraints
+
+
+def test_cloud_targets_reject_outliers_and_find_holes():
+    """A noisy plane with 5 % outliers: normal-ray median targets lie on the plane, and
+    vertices over a hole get none."""
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-40, 40, (6000, 2)), rng.normal(0, 0.5, 6000)]  # ~0.94 pt/mm²
+    out = rng.choice(len(pts), 300, replace=False)
+    pts[out, 2] += rng.choice([-1, 1], 300) * rng.uniform(2, 10, 300)
+    pts = pts[np.linalg.norm(pts[:, :2] - [20, 20], axis=1) > 8]  # a hole
+    gx, gy = np.meshgrid(np.linspace(-30, 30, 31), np.linspace(-30, 30, 31))
+    verts = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, 3.0)]  # 3 mm above the plane
+    normals = np.tile([0.0, 0.0, 1.0], (len(verts), 1))
+    grid = CloudGrid.build(pts, None, cell=3.0)
+    ok, targets, count = cloud_targets(verts, normals, grid, radius=8.0, perp_tol=1.5,
+                                       min_points=3, normal_agreement_deg=180)
+    in_hole = np.linalg.norm(verts[:, :2] - [20, 20], axis=1) < 6.5
+    assert not ok[in_hole].any()
+    assert ok[~in_hole].mean() > 0.9
+    z = targets[ok & ~in_hole, 2]
+    assert np.median(np.abs(z)) < 0.35  # single-vertex targets: median of ~7 noisy points
+    assert np.abs(z).max() < 2.0  # outliers never win the median
+    assert np.allclose(targets[ok][:, :2], verts[ok][:, :2])  # along the normal line
+
+
+def test_nearest_edge_pixel_labels():
+    edges = np.zeros((40, 50), np.uint8)
+    edges[10, 5] = edges[30, 40] = edges[25, 7] = 255
+    dist, xy = nearest_edge_pixels(edges)
+    assert tuple(xy[12, 6]) == (5, 10) and tuple(xy[29, 38]) == (40, 30)
+    assert tuple(xy[26, 8]) == (7, 25) and dist[10, 5] == 0
+
+
+# --------------------------------------------------------------------------- fitting
+
+
+def test_fit_ict_identity_meets_tolerances(setup):
+    """Mean ICT template → another identity: metric accuracy/completion medians.
+
+    Measured (this cloud, 11k-vertex template): accuracy median ~0.15 mm, completion median
+    ~0.22 mm, from ~1.5 / 1.6 mm for the landmark-similarity start. Tolerances 0.3 / 0.4 mm
+    (the benchmark's bars) leave room for platform differences but not for a broken term.
+    """
+    template, sv, sf, slm, cloud, normals, noisy = setup
+    result = fit(template, cloud, noisy, cloud_normals=normals, config=FittingConfig(**FAST))
+    assert len(result.vertices) == len(template.vertices)
+    assert np.array_equal(result.faces, template.faces)
+    s = score(result.vertices, result.faces, sv, sf, slm, result.template.landmark_points,
+              protocol="metric")
+    s0 = score(result.initial, template.faces, sv, sf, slm, result.initial[template.landmarks],
+               protocol="metric")
+    assert s0.accuracy.median > 0.8  # the start is far off
+    assert s.accuracy.median < 0.3, s.accuracy
+    assert s.completion.median < 0.4, s.completion
+    # Same topology as the subject: vertices land on their own counterparts, not just on the
+    # surface (little sliding on the face): median correspondence error 1.75 mm measured,
+    # bounded by the 1 mm-per-axis landmark noise that alone fixes the tangential position.
+    face = template.regions["face"]
+    assert np.median(np.linalg.norm(result.vertices[face] - sv[face], axis=1)) < 2.5
+    assert result.iterations <= 3 * len(FAST["stiffness"])
+
+
+def test_landmarks_only_ablation_is_coarse(setup):
+    template, sv, sf, slm, cloud, normals, noisy = setup
+    lm_only = fit(template, cloud, noisy, config=FittingConfig(**FAST, use_cloud=False))
+    s = score(lm_only.vertices, template.faces, sv, sf, slm, lm_only.template.landmark_points,
+              protocol="metric")
+    # Landmarks move the mesh (better than the start) but cannot reach the cloud's accuracy.
+    assert 0.3 < s.accuracy.median < 2.5
+    landmark_error = np.linalg.norm(lm_only.vertices[template.landmarks[INNER_LANDMARKS]]
+                                    - slm[INNER_LANDMARKS], axis=1)
+    assert np.median(landmark_error) < 2.0
+
+
+def test_ear_points_pull_their_vertices(setup):
+    template, sv, sf, slm, cloud, normals, noisy = setup
+    ids = np.flatnonzero(template.regions["ears"])[:10]
+    if len(ids) == 0:
+        ids = np.arange(10)
+    goal = initial_similarity(template, noisy)[ids] + np.array([0.0, 0.0, 4.0])
+    config = FittingConfig(use_cloud=False, stiffness=[10.0, 2.0], landmark_weight=[10.0, 2.0],
+                           ear_weight=5.0)
+    with_ears = fit(template, None, noisy, ear_points=(ids, goal), config=config)
+    without = fit(template, None, noisy, ear_points=(ids, goal),
+                  config=config.model_copy(update={"use_ear_landmarks": False}))
+    err_with = np.linalg.norm(with_ears.vertices[ids] - goal, axis=1).mean()
+    err_without = np.linalg.norm(without.vertices[ids] - goal, axis=1).mean()
+    assert err_with < 0.5 * err_without
+
+
+def test_edges_and_texture_and_files(setup, tmp_path):
+    """Keyframes rendered from the subject: silhouette targets are found and used, vertex
+    colours match the subject's colour field, and the mesh files read back."""
+    template, sv, sf, slm, cloud, normals, noisy = setup
+    keyframes = _render_keyframes(sv, sf)
+    config = FittingConfig(**FAST)
+    path = main(cloud, noisy, tmp_path / "fit", template=template, keyframes=keyframes,
+                cloud_normals=normals, config=config)
+    assert path.name == "mesh.ply" and (tmp_path / "fit" / "mesh.obj").is_file()
+    import json
+
+    log = json.loads((tmp_path / "fit" / "fit.json").read_text())
+    assert max(s["edge_targets"] for s in log["steps"]) > 50
+    for p in (path, tmp_path / "fit" / "mesh.obj"):
+        tm = trimesh.load(p, process=False, maintain_order=True)
+        assert len(tm.vertices) == len(template.vertices)
+        assert np.array_equal(np.asarray(tm.faces), template.faces)
+        o3 = o3d.io.read_triangle_mesh(str(p))
+        assert len(o3.vertices) == len(template.vertices) and o3.has_vertex_colors()
+        # open3d's OBJ reader renumbers vertices by first use: compare the triangles' corners.
+        corners = np.asarray(o3.vertices)[np.asarray(o3.triangles)]
+        assert np.allclose(corners, np.asarray(tm.vertices)[template.faces], atol=1e-4)
+    tm = trimesh.load(path, process=False)
+    colours = np.asarray(tm.visual.vertex_colors)[:, :3].astype(float)
+    verts = np.asarray(tm.vertices)
+    on_face = (verts[:, 2] > 20) & (distances(verts, sv, sf) < 1.0)
+    err = np.abs(colours[on_face] - _colour_fn(verts[on_face]))
+    assert np.median(err) < 6.0
+
+
+def test_texture_prefers_frontal_visible_views(setup):
+    template, sv, sf, *_ = setup
+    keyframes = _render_keyframes(sv, sf)
+    colours, view = vertex_colours(sv, sf, keyframes)
+    nose = np.argmax(sv[:, 2])
+    assert view[nose] == 2  # the frontal camera (yaw 0)
+    assert colours.shape == (len(sv), 3) and colours.dtype == np.uint8
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize("cloud, landmarks, match", [
+    (np.zeros((0, 3)), None, "landmarks"),
+    (np.zeros((0, 3)), np.zeros((68, 3)), "at least 100"),
+    (np.zeros((500, 2)), np.zeros((68, 3)), r"\(N, 3\)"),
+    (np.random.default_rng(0).normal(size=(500, 3)), np.zeros((51, 3)), r"68 3D points"),
+    (np.random.default_rng(0).normal(size=(500, 3)) + 1000, np.zeros((68, 3)),
+     "different frames or units"),
+])
+def test_bad_input_raises_one_line(setup, cloud, landmarks, match):
+    template = setup[0]
+    with pytest.raises(InputError, match=match) as err:
+        fit(template, cloud, landmarks)
+    assert "\n" not in str(err.value)
+
+
+def test_config_rejects_bad_schedule():
+    with pytest.raises(ValueError, match="same"):
+        FittingConfig(stiffness=[10.0, 1.0], landmark_weight=[1.0])
