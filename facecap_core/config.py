@@ -189,8 +189,12 @@ class PBAConfig(StrictModel):
     """One point per cell×cell block of each keyframe (its strongest gradient)."""
     min_gradient: float = Field(8.0, ge=0)
     """Weakest gradient (grey levels per pixel) a point may have."""
-    init_radius_px: float = Field(20.0, gt=0)
-    """Sparse points within this radius give a point's initial inverse depth."""
+    search_level: int = Field(1, ge=0, le=5)
+    """Pyramid level of the initial depth search along the epipolar lines."""
+    search_samples: int = Field(96, ge=8, le=1024)
+    """Inverse-depth samples of that search (log-spaced over the sparse points' range)."""
+    min_search_quality: float = Field(1.5, ge=1)
+    """A point is kept when its second-best match costs this many times its best."""
     neighbours: int = Field(4, ge=1, le=15)
     """Each point is compared in this many keyframes before and after its host."""
     pyramid_levels: int = Field(3, ge=1, le=6)
