@@ -680,7 +680,10 @@ def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True) 
             img = img * gain
             sigma = np.sqrt(config.read_noise ** 2 + config.shot_noise ** 2 * np.clip(img, 0, 1))
             img = img + sigma * noise_rng.standard_normal(img.shape)
-            frame = av.VideoFrame.from_ndarray(_to_srgb8(img), format="rgb24")
+            # reformat() copies into FFmpeg-owned buffers: the encoder keeps frames for its
+            # look-ahead, and a frame wrapping a temporary numpy array would be overwritten.
+            frame = av.VideoFrame.from_ndarray(_to_srgb8(img), format="rgb24").reformat(
+                format="yuv420p")
             frame.pts = i
             for packet in stream.encode(frame):
                 container.mux(packet)
