@@ -1,0 +1,224 @@
+"""Dense MVS stage against ground truth: depth-map error, fused-cloud accuracy/completion, speed.
+
+    python benchmarks/bench_mvs.py [--subjects ict:0 ict:1 james] [--width 1280 --height 720]
+        [--keyframes 40] [--proc-width 640] [--out out/bench_mvs] [--no-peer]
+
+Per subject a synthetic capture is rendered once (cached under OUT/captures). The stage is
+fed ground-truth cameras, keyframes evenly spaced over the sweep, sparse points = GT mesh
+vertices (subsampled, visibility by ray casting) and a coarse mesh = the GT mesh smoothed
+and offset by a ~2.5 mm low-frequency field, so that MVS is judged alone. A fronto-parallel
+plane sweep (numpy/OpenCV) on the same inputs, filtered and fused the same way, is the peer.
+Prints a table and writes OUT/report.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import time
+import zlib
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numba
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from facecap_core.config import SynthConfig
+from facecap_core.evaluation import distances, region_sphere
+from facecap_core.meshio import load_landmarks, load_mesh
+from facecap_core.mvs.filtering import filter_with_prior, geometric_filter
+from facecap_core.mvs.fusion import fuse, write_ply
+from facecap_core.mvs.pipeline import MVSConfig, choose_sources, compute_depth_map, sparse_from_mesh
+from facecap_core.mvs.planesweep import plane_sweep
+from facecap_core.mvs.prior import coarse_prior
+from facecap_core.mvs.testing import coarse_from_gt, even_keyframes, gt_depth, load_views
+from facecap_core.synthetic import load_gt_cameras, synthesize
+
+BARS = {"depth_median_mm": 0.5, "coverage_pct": 90.0, "accuracy_median_mm": 0.5,
+        "completion_pct": 95.0, "s_per_map": 10.0}
+
+
+def capture_for(subject: str, out: Path, width: int, height: int, ict_model: str | None):
+    """The subject's capture, rendered once and reused."""
+    folder = out / "captures" / f"{subject.replace(':', '_')}_{width}x{height}"
+    if not (folder / "gt" / "render.json").is_file():
+        config = SynthConfig(subject=subject, width=width, height=height,
+                             ict_model=ict_model or os.environ.get("FACECAP_ICT_MODEL"))
+        print(f"rendering {subject} at {width}x{height} into {folder} ...", flush=True)
+        synthesize(config, folder, progress=False)
+    return folder
+
+
+def depth_scores(maps, views, V, F, centre, radius):
+    """Per map: (median |depth error| mm, coverage %) on face pixels (GT hit in the sphere)."""
+    errs, covs = [], []
+    for dm, view in zip(maps, views):
+        d, P = gt_depth(view, V, F)
+        face = np.isfinite(d) & (np.linalg.norm(np.nan_to_num(P) - centre, axis=-1) <= radius)
+        if face.sum() < 100:
+            continue
+        ok = face & (dm.depth > 0)
+        errs.append(np.median(np.abs(dm.depth[ok] - d[ok])) if ok.any() else np.nan)
+        covs.append(100.0 * ok.sum() / face.sum())
+    return float(np.nanmedian(errs)), float(np.median(covs)), float(np.min(covs))
+
+
+def cloud_scores(cloud, V, F, centre, radius, samples):
+    """Accuracy median (cloud points in the sphere -> GT surface) and completion (% of GT face
+    area samples within 2 mm of the cloud)."""
+    inside = np.linalg.norm(cloud.points - centre, axis=1) <= radius
+    acc = distances(cloud.points[inside], V, F)
+    if len(cloud.points) == 0:
+        return np.nan, 0.0, 0
+    dist, _ = cKDTree(cloud.points).query(samples)
+    return float(np.median(acc)), float(100.0 * np.mean(dist <= 2.0)), int(inside.sum())
+
+
+def face_samples(V, F, centre, radius, count=20000, seed=0):
+    mesh = trimesh.Trimesh(V, F, process=False)
+    pts, _ = trimesh.sample.sample_surface_even(mesh, count * 4, seed=seed)
+    return pts[np.linalg.norm(pts - centre, axis=1) <= radius]
+
+
+def run_subject(subject, args, config, out):
+    folder = capture_for(subject, out, args.width, args.height, args.ict_model)
+    gt = load_mesh(folder / "gt" / "mesh.ply")
+    V, F = np.asarray(gt.vertices, float), np.asarray(gt.faces)
+    centre, radius = region_sphere(load_landmarks(folder / "gt" / "landmarks.json"))
+    _, frames = load_gt_cameras(folder / "gt" / "cameras.json")
+    keyframes = even_keyframes(len(frames), args.keyframes)
+    views = load_views(folder, keyframes, args.proc_width)
+    coarse = coarse_from_gt(V, F, seed=zlib.crc32(subject.encode()) % 1000)  # stable per subject
+    points, vis = sparse_from_mesh(views, V, F, count=4000)
+    sources = choose_sources(views, points, vis, config)
+    samples = face_samples(V, F, centre, radius)
+    rows = {}
+
+    # Speed on one core: a few maps one after another on this thread.
+    numba.set_num_threads(1)
+    compute_depth_map(views[0], [views[j] for j in sources[0]], coarse, F, config)  # JIT/cache
+    mid = len(views) // 2
+    single = [compute_depth_map(views[i], [views[j] for j in sources[i]], coarse, F, config)[0]
+              for i in range(mid - args.speed_maps // 2, mid - args.speed_maps // 2 + args.speed_maps)]
+
+    # All keyframes with ``workers`` threads.
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(config.workers) as pool:
+        res = list(pool.map(lambda i: compute_depth_map(
+            views[i], [views[j] for j in sources[i]], coarse, F, config), range(len(views))))
+    t_maps = time.perf_counter() - t0
+    raw = [r[0] for r in res]
+    filt = [r[1] for r in res]
+    t1 = time.perf_counter()
+    geo = geometric_filter(filt, config.min_consistent_views, config.fusion_max_depth_mm,
+                           config.fusion_max_reprojection_px, config.fusion_max_normal_deg)
+    cloud = fuse(geo, [v.rgb for v in views], config.min_consistent_views,
+                 config.fusion_max_depth_mm, config.fusion_max_reprojection_px,
+                 config.fusion_max_normal_deg)
+    t_fuse = time.perf_counter() - t1
+    write_ply(cloud, out / f"{subject.replace(':', '_')}_cloud.ply")
+    rows["patchmatch"] = {
+        "raw": depth_scores(raw, views, V, F, centre, radius),
+        "filtered": depth_scores(filt, views, V, F, centre, radius),
+        "geometric": depth_scores(geo, views, V, F, centre, radius),
+        "cloud": cloud_scores(cloud, V, F, centre, radius, samples), "points": len(cloud),
+        "wall_1core": float(np.median([m.seconds for m in single])),
+        "cpu_per_map": float(np.median([m.cpu_seconds for m in raw])),
+        "total_s": t_maps, "fuse_s": t_fuse,
+        "pixels": float(np.median([(m.cost < 2).sum() for m in raw])),
+    }
+
+    if args.peer:
+        t0 = time.perf_counter()
+
+        def peer(i):
+            prior = coarse_prior(views[i], coarse, F, config.depth_margin_mm,
+                                 config.head_dilation_px)
+            dm = plane_sweep(views[i], [views[j] for j in sources[i]], prior,
+                             config.depth_margin_mm, radius=config.window_radius,
+                             nbest=config.num_best_views)
+            return dm, filter_with_prior(dm, prior, config.max_cost,
+                                         config.coarse_max_distance_mm, config.depth_margin_mm)
+
+        with ThreadPoolExecutor(config.workers) as pool:
+            pres = list(pool.map(peer, range(len(views))))
+        t_maps = time.perf_counter() - t0
+        pfilt = [r[1] for r in pres]
+        t1 = time.perf_counter()
+        pgeo = geometric_filter(pfilt, config.min_consistent_views, config.fusion_max_depth_mm,
+                                config.fusion_max_reprojection_px, config.fusion_max_normal_deg)
+        pcloud = fuse(pgeo, [v.rgb for v in views], config.min_consistent_views,
+                      config.fusion_max_depth_mm, config.fusion_max_reprojection_px,
+                      config.fusion_max_normal_deg)
+        rows["plane sweep (peer)"] = {
+            "raw": depth_scores([r[0] for r in pres], views, V, F, centre, radius),
+            "filtered": depth_scores(pfilt, views, V, F, centre, radius),
+            "geometric": depth_scores(pgeo, views, V, F, centre, radius),
+            "cloud": cloud_scores(pcloud, V, F, centre, radius, samples), "points": len(pcloud),
+            "wall_1core": float("nan"),
+            "cpu_per_map": float(np.median([r[0].cpu_seconds for r in pres])),
+            "total_s": t_maps, "fuse_s": time.perf_counter() - t1,
+            "pixels": float(np.median([(r[0].cost < 2).sum() for r in pres])),
+        }
+    return rows, len(views)
+
+
+def table(results, args, config) -> str:
+    head = ("| subject | method | depth med mm (raw / filtered) | coverage % filtered (min) "
+            "| after geo-filter: med mm, cov % | cloud acc med mm | completion % ≤2 mm | points "
+            "| s/map 1 core wall | CPU s/map | total s (2 workers) | fuse s |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for subject, (rows, n) in results.items():
+        for name, r in rows.items():
+            raw, fl, ge, cl = r["raw"], r["filtered"], r["geometric"], r["cloud"]
+            lines.append(
+                f"| {subject} | {name} | {raw[0]:.3f} / {fl[0]:.3f} | {fl[1]:.1f} ({fl[2]:.1f}) "
+                f"| {ge[0]:.3f}, {ge[1]:.1f} | {cl[0]:.3f} | {cl[1]:.1f} | {r['points']} "
+                f"| {r['wall_1core']:.2f} | {r['cpu_per_map']:.2f} | {r['total_s']:.1f} "
+                f"| {r['fuse_s']:.1f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> Path:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--subjects", nargs="+", default=["ict:0", "ict:1", "james"])
+    p.add_argument("--width", type=int, default=1280)
+    p.add_argument("--height", type=int, default=720)
+    p.add_argument("--keyframes", type=int, default=40)
+    p.add_argument("--proc-width", type=int, default=640)
+    p.add_argument("--speed-maps", type=int, default=3)
+    p.add_argument("--out", type=Path, default=Path("out/bench_mvs"))
+    p.add_argument("--ict-model", default=None)
+    p.add_argument("--no-peer", dest="peer", action="store_false")
+    p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="MVSConfig overrides, e.g. --set iterations=6 window_radius=4")
+    args = p.parse_args(argv)
+    overrides = dict(kv.split("=", 1) for kv in args.set)
+    config = MVSConfig(processing_width=args.proc_width, **overrides)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for subject in args.subjects:
+        results[subject] = run_subject(subject, args, config, args.out)
+        print(table({subject: results[subject]}, args, config), flush=True)
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    report = (f"# bench_mvs\n\n{len(args.subjects)} subjects, {args.width}x{args.height} "
+              f"captures, {args.keyframes} keyframes, processing width {args.proc_width}, "
+              f"{config.num_sources} sources, {config.iterations} iterations, window radius "
+              f"{config.window_radius} step {config.window_step}, best {config.num_best_views}"
+              f" views; {config.workers} workers. Peak RSS {peak_mb:.0f} MB.\n\n"
+              f"{table(results, args, config)}\n\n"
+              f"Bars: depth median ≤ {BARS['depth_median_mm']} mm, coverage ≥ "
+              f"{BARS['coverage_pct']} %, cloud accuracy median ≤ {BARS['accuracy_median_mm']}"
+              f" mm, completion ≥ {BARS['completion_pct']} %, ≤ {BARS['s_per_map']} s/map on "
+              "one core.\n")
+    print("\n" + report)
+    path = args.out / "report.md"
+    path.write_text(report)
+    return path
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,101 @@
+"""Fusing depth maps into one point cloud with normals and colours (Gipuma's fusion).
+
+Each reference pixel with a depth is projected into the other depth maps; where at least
+``min_consistent_views`` of them agree (depth, round-trip reprojection and normal, see
+:func:`~facecap_core.mvs.filtering.agreement`) the agreeing 3D points, normals and colours
+are averaged into one output point, and the pixels used are marked so that the same surface
+point is not emitted again from another view.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from facecap_core.errors import InputError
+from facecap_core.mvs.filtering import _partners, agreement, backproject
+from facecap_core.mvs.patchmatch import DepthMap
+
+
+@dataclass
+class PointCloud:
+    """Fused points (N, 3) mm world frame, unit normals (N, 3), uint8 colours (N, 3),
+    and how many views each point was seen consistently in."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray
+    views: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def fuse(maps: list[DepthMap], images: list[np.ndarray] | None = None,
+         min_consistent_views: int = 2, max_depth_mm: float = 1.0,
+         max_reprojection_px: float = 1.0, max_normal_deg: float = 30.0) -> PointCloud:
+    """Fuse depth maps; ``images`` are the RGB images (same size) aligned with ``maps``."""
+    if images is not None and len(images) != len(maps):
+        raise InputError(f"fusion: {len(images)} images for {len(maps)} depth maps")
+    used = [np.zeros(m.depth.shape, bool) for m in maps]
+    out_p, out_n, out_c, out_v = [], [], [], []
+    for i, dm in enumerate(maps):
+        rows, cols = np.nonzero((dm.depth > 0) & ~used[i])
+        if len(rows) == 0:
+            continue
+        pts, nrm = backproject(dm, rows, cols)
+        s_p, s_n = pts.copy(), nrm.copy()
+        s_c = (images[i][rows, cols].astype(float) if images is not None
+               else np.zeros((len(rows), 3)))
+        count = np.ones(len(rows), np.int32)
+        contrib = []
+        for j in _partners(maps, i):
+            if j == i:
+                continue
+            ok, orow, ocol, o_p, o_n = agreement(pts, nrm, rows, cols, dm, maps[j],
+                                                 max_depth_mm, max_reprojection_px,
+                                                 max_normal_deg)
+            ok &= ~used[j][orow, ocol]
+            s_p[ok] += o_p[ok]
+            s_n[ok] += o_n[ok]
+            if images is not None:
+                s_c[ok] += images[j][orow[ok], ocol[ok]]
+            count += ok
+            contrib.append((j, ok, orow, ocol))
+        keep = count - 1 >= min_consistent_views
+        for j, ok, orow, ocol in contrib:
+            sel = ok & keep
+            used[j][orow[sel], ocol[sel]] = True
+        used[i][rows[keep], cols[keep]] = True
+        c = count[keep][:, None]
+        n = s_n[keep]
+        out_p.append(s_p[keep] / c)
+        out_n.append(n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12))
+        out_c.append(np.clip(np.rint(s_c[keep] / c), 0, 255).astype(np.uint8))
+        out_v.append(count[keep])
+    if not out_p:
+        return PointCloud(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
+                          np.zeros(0, np.int32))
+    return PointCloud(np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_c),
+                      np.concatenate(out_v))
+
+
+def write_ply(cloud: PointCloud, path: str | Path) -> Path:
+    """Binary PLY with positions, normals and colours (MeshLab, CloudCompare, open3d);
+    written to a temporary name first so a crash never leaves half a file."""
+    import open3d as o3d
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pc = o3d.geometry.PointCloud()
+    pc.points = o3d.utility.Vector3dVector(np.asarray(cloud.points, float))
+    pc.normals = o3d.utility.Vector3dVector(np.asarray(cloud.normals, float))
+    pc.colors = o3d.utility.Vector3dVector(np.asarray(cloud.colors, float) / 255.0)
+    tmp = path.with_name(f".{path.stem}.part{path.suffix}")
+    if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
+        raise InputError(f"could not write the point cloud to {path}")
+    os.replace(tmp, path)
+    return path

@@ -1,0 +1,404 @@
+"""Multi-view PatchMatch (Gipuma-style) on the CPU: one depth + normal map per call.
+
+Every pixel of the head region holds a plane hypothesis (depth along its ray and a normal,
+camera frame). A hypothesis is scored by warping a sparse window of the reference image into
+each source view with the plane's homography and comparing with bilaterally weighted NCC;
+the cost is the mean of the best ``num_best_views`` per-view costs (1 - NCC), so views
+where the point is occluded or foreshortened drop out. Hypotheses improve by red–black
+checkerboard propagation (Gipuma's neighbour pattern: a pixel of one colour only reads
+pixels of the other, so a half-sweep can update in place) and random refinement with steps
+that halve every iteration. The search is bounded by the coarse mesh's depth ± a margin.
+
+The kernels are numba ``nogil`` functions: one call computes one depth map on one thread,
+and several calls run in parallel from Python threads. Costs that only depend on the
+reference (bilateral weights, the reference window's mean and deviation) are computed once
+per pixel: evaluating exp() per sample costs 3× (measured, docs/mvs.md).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+from facecap_core.camera import Intrinsics
+from facecap_core.errors import InputError
+from facecap_core.mvs.images import MVSView
+from facecap_core.mvs.prior import CoarsePrior
+
+MAX_COST = 2.0  # 1 - NCC ranges over [0, 2]; invalid views and hypotheses score this
+
+# Gipuma's propagation patterns, (dx, dy). Every offset has an odd |dx| + |dy|, so it points
+# at a pixel of the other checkerboard colour.
+NEIGHBOURS_FAST = np.array([(0, -1), (0, 1), (-1, 0), (1, 0),
+                            (0, -5), (0, 5), (-5, 0), (5, 0)], np.int32)
+NEIGHBOURS_FULL = np.array(
+    [(0, -1), (0, 1), (-1, 0), (1, 0), (0, -3), (0, 3), (-3, 0), (3, 0),
+     (0, -5), (0, 5), (-5, 0), (5, 0), (-1, -2), (1, -2), (-2, -1), (2, -1),
+     (-1, 2), (1, 2), (-2, 1), (2, 1)], np.int32)
+
+
+@dataclass
+class DepthMap:
+    """One reference view's PatchMatch result (pinhole camera of the processed image)."""
+
+    index: int  # keyframe index of the reference
+    depth: np.ndarray  # float32 (H, W), camera z in mm; 0 = no depth
+    normal: np.ndarray  # float32 (H, W, 3), camera frame, facing the camera; 0 = none
+    cost: np.ndarray  # float32 (H, W), aggregated 1 - NCC; MAX_COST where not computed
+    intr: Intrinsics
+    R: np.ndarray
+    t: np.ndarray
+    sources: np.ndarray | None = None  # keyframe indices of the source views
+    seconds: float = 0.0  # wall time of the call
+    cpu_seconds: float = 0.0  # CPU time of the calling thread
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.depth > 0
+
+
+# --------------------------------------------------------------------------- kernels
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _bilateral_weights(ref, us, vs, dxs, dys, sigma_c, sigma_s, wn, wa, ok):
+    """Per pixel and window sample: normalised bilateral weight ``wn`` and ``wa = wn (r - mean)
+    / std`` so that NCC against a source needs only sum(wn s), sum(wn s^2), sum(wa s)."""
+    h, w = ref.shape
+    ns = dxs.shape[0]
+    ic = 1.0 / (2.0 * sigma_c * sigma_c)
+    is_ = 1.0 / (2.0 * sigma_s * sigma_s)
+    vals = np.empty(ns)
+    for r in range(us.shape[0]):
+        u, v = us[r], vs[r]
+        centre = ref[v, u]
+        sw = 0.0
+        for k in range(ns):
+            x = min(max(u + dxs[k], 0), w - 1)
+            y = min(max(v + dys[k], 0), h - 1)
+            val = ref[y, x]
+            vals[k] = val
+            dc = val - centre
+            wk = np.exp(-dc * dc * ic - (dxs[k] * dxs[k] + dys[k] * dys[k]) * is_)
+            wn[r, k] = wk
+            sw += wk
+        mean = 0.0
+        sq = 0.0
+        for k in range(ns):
+            wn[r, k] /= sw
+            mean += wn[r, k] * vals[k]
+            sq += wn[r, k] * vals[k] * vals[k]
+        var = sq - mean * mean
+        # A flat reference window has no signal to match (NCC undefined).
+        ok[r] = var > 1e-6
+        sd = np.sqrt(max(var, 1e-12))
+        for k in range(ns):
+            wa[r, k] = wn[r, k] * (vals[k] - mean) / sd
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _hypothesis_cost(u, v, row, d, n0, n1, n2, srcs, A, b, fx, fy, cx, cy, dxs, dys,
+                     wn, wa, nbest, best):
+    """Aggregated cost of plane (depth ``d`` at pixel (u, v), normal n) over the sources."""
+    rx = (u - cx) / fx
+    ry = (v - cy) / fy
+    ndr = n0 * rx + n1 * ry + n2
+    if ndr > -1e-3:  # plane seen edge-on or from behind
+        return MAX_COST
+    delta = d * ndr  # plane: n . X = delta (camera frame)
+    m0 = n0 / fx / delta
+    m1 = n1 / fy / delta
+    m2 = (n2 - n0 * cx / fx - n1 * cy / fy) / delta
+    ns = dxs.shape[0]
+    nsrc = srcs.shape[0]
+    h = srcs.shape[1]
+    w = srcs.shape[2]
+    for k in range(nbest):
+        best[k] = MAX_COST
+    for s in range(nsrc):
+        # Homography H = A + b m^T maps reference pixels to source pixels.
+        h00 = A[s, 0, 0] + b[s, 0] * m0
+        h01 = A[s, 0, 1] + b[s, 0] * m1
+        h02 = A[s, 0, 2] + b[s, 0] * m2
+        h10 = A[s, 1, 0] + b[s, 1] * m0
+        h11 = A[s, 1, 1] + b[s, 1] * m1
+        h12 = A[s, 1, 2] + b[s, 1] * m2
+        h20 = A[s, 2, 0] + b[s, 2] * m0
+        h21 = A[s, 2, 1] + b[s, 2] * m1
+        h22 = A[s, 2, 2] + b[s, 2] * m2
+        px = h00 * u + h01 * v + h02
+        py = h10 * u + h11 * v + h12
+        pz = h20 * u + h21 * v + h22
+        s1 = 0.0
+        s2 = 0.0
+        c = 0.0
+        valid = True
+        for k in range(ns):
+            dx = dxs[k]
+            dy = dys[k]
+            z = pz + h20 * dx + h21 * dy
+            if z <= 1e-9:
+                valid = False
+                break
+            iz = 1.0 / z
+            x = (px + h00 * dx + h01 * dy) * iz
+            y = (py + h10 * dx + h11 * dy) * iz
+            if x < 0.0 or y < 0.0 or x >= w - 1 or y >= h - 1:
+                valid = False
+                break
+            x0 = int(x)
+            y0 = int(y)
+            ax = x - x0
+            ay = y - y0
+            top = srcs[s, y0, x0] + ax * (srcs[s, y0, x0 + 1] - srcs[s, y0, x0])
+            bot = srcs[s, y0 + 1, x0] + ax * (srcs[s, y0 + 1, x0 + 1] - srcs[s, y0 + 1, x0])
+            val = top + ay * (bot - top)
+            wk = wn[row, k]
+            s1 += wk * val
+            s2 += wk * val * val
+            c += wa[row, k] * val
+        cost = MAX_COST
+        if valid:
+            var = s2 - s1 * s1
+            if var > 1e-10:
+                cost = 1.0 - c / np.sqrt(var)
+                cost = min(max(cost, 0.0), MAX_COST)
+        # Insert into the sorted list of the best ``nbest`` costs.
+        if cost < best[nbest - 1]:
+            j = nbest - 1
+            while j > 0 and best[j - 1] > cost:
+                best[j] = best[j - 1]
+                j -= 1
+            best[j] = cost
+    total = 0.0
+    for k in range(nbest):
+        total += best[k]
+    return total / nbest
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _random_normal(rx, ry, max_tilt):
+    """Random unit normal facing the camera, within ``max_tilt`` (cosine) of the view ray."""
+    inv = 1.0 / np.sqrt(rx * rx + ry * ry + 1.0)
+    for _ in range(20):
+        n0 = np.random.normal()
+        n1 = np.random.normal()
+        n2 = np.random.normal()
+        norm = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if norm < 1e-9:
+            continue
+        n0 /= norm
+        n1 /= norm
+        n2 /= norm
+        dot = (n0 * rx + n1 * ry + n2) * inv
+        if dot > 0:
+            n0, n1, n2, dot = -n0, -n1, -n2, -dot
+        if -dot >= max_tilt:
+            return n0, n1, n2
+    return -rx * inv, -ry * inv, -inv
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _perturb_normal(n0, n1, n2, sigma, rx, ry):
+    """Normal rotated by a random angle of about ``sigma`` radians, kept facing the camera."""
+    m0 = n0 + sigma * np.random.normal()
+    m1 = n1 + sigma * np.random.normal()
+    m2 = n2 + sigma * np.random.normal()
+    norm = np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    m0 /= norm
+    m1 /= norm
+    m2 /= norm
+    if m0 * rx + m1 * ry + m2 >= 0:
+        return n0, n1, n2
+    return m0, m1, m2
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
+                srcs, A, b, fx, fy, cx, cy, dxs, dys, wn, wa, nbest, iterations,
+                nbr, refine_trials, normal_sigma, seed, depth, normal, cost):
+    """Initialise and iterate PatchMatch in place on ``depth``, ``normal``, ``cost``."""
+    np.random.seed(seed)
+    best = np.empty(nbest)
+    h, w = idx.shape
+    m = us.shape[0]
+    max_tilt = 0.17  # cos(80°): steeper planes are not plausible skin
+    for r in range(m):
+        u, v = us[r], vs[r]
+        rx = (u - cx) / fx
+        ry = (v - cy) / fy
+        if not ok[r]:
+            continue
+        d = lo[v, u] + np.random.random() * (hi[v, u] - lo[v, u])
+        n0, n1, n2 = _random_normal(rx, ry, max_tilt)
+        c = _hypothesis_cost(u, v, r, d, n0, n1, n2, srcs, A, b, fx, fy, cx, cy, dxs, dys,
+                             wn, wa, nbest, best)
+        if use_prior and np.isfinite(prior_depth[v, u]):
+            p0, p1, p2 = prior_normal[v, u, 0], prior_normal[v, u, 1], prior_normal[v, u, 2]
+            pd = prior_depth[v, u]
+            pc = _hypothesis_cost(u, v, r, pd, p0, p1, p2, srcs, A, b, fx, fy, cx, cy,
+                                  dxs, dys, wn, wa, nbest, best)
+            if pc < c:
+                d, n0, n1, n2, c = pd, p0, p1, p2, pc
+        depth[v, u] = d
+        normal[v, u, 0] = n0
+        normal[v, u, 1] = n1
+        normal[v, u, 2] = n2
+        cost[v, u] = c
+
+    for it in range(iterations):
+        scale = 0.5 ** it
+        for colour in range(2):
+            for r in range(m):
+                u, v = us[r], vs[r]
+                if (u + v) % 2 != colour or not ok[r]:
+                    continue
+                rx = (u - cx) / fx
+                ry = (v - cy) / fy
+                d = depth[v, u]
+                n0, n1, n2 = normal[v, u, 0], normal[v, u, 1], normal[v, u, 2]
+                c = cost[v, u]
+                dlo, dhi = lo[v, u], hi[v, u]
+                # Propagation: the neighbour's plane, intersected with this pixel's ray.
+                for k in range(nbr.shape[0]):
+                    qu = u + nbr[k, 0]
+                    qv = v + nbr[k, 1]
+                    if qu < 0 or qv < 0 or qu >= w or qv >= h:
+                        continue
+                    q = idx[qv, qu]
+                    if q < 0 or not ok[q]:
+                        continue
+                    q0, q1, q2 = normal[qv, qu, 0], normal[qv, qu, 1], normal[qv, qu, 2]
+                    qd = depth[qv, qu]
+                    delta = qd * (q0 * (qu - cx) / fx + q1 * (qv - cy) / fy + q2)
+                    ndr = q0 * rx + q1 * ry + q2
+                    if ndr > -1e-3:
+                        continue
+                    dp = delta / ndr
+                    if dp < dlo or dp > dhi:
+                        continue
+                    # The same plane as the current one: nothing to test.
+                    if abs(dp - d) < 1e-5 * d and q0 == n0 and q1 == n1 and q2 == n2:
+                        continue
+                    cc = _hypothesis_cost(u, v, r, dp, q0, q1, q2, srcs, A, b, fx, fy, cx,
+                                          cy, dxs, dys, wn, wa, nbest, best)
+                    if cc < c:
+                        d, n0, n1, n2, c = dp, q0, q1, q2, cc
+                # Refinement: perturb depth, normal, then both, by shrinking steps.
+                for j in range(refine_trials):
+                    kind = j % 3
+                    step = scale * 0.5 ** (j // 3)
+                    dd = d
+                    m0, m1, m2 = n0, n1, n2
+                    if kind != 1:
+                        dd = d + (2.0 * np.random.random() - 1.0) * 0.5 * (dhi - dlo) * step
+                        if dd < dlo or dd > dhi:
+                            continue
+                    if kind != 0:
+                        m0, m1, m2 = _perturb_normal(n0, n1, n2, normal_sigma * step, rx, ry)
+                    cc = _hypothesis_cost(u, v, r, dd, m0, m1, m2, srcs, A, b, fx, fy, cx,
+                                          cy, dxs, dys, wn, wa, nbest, best)
+                    if cc < c:
+                        d, n0, n1, n2, c = dd, m0, m1, m2, cc
+                depth[v, u] = d
+                normal[v, u, 0] = n0
+                normal[v, u, 1] = n1
+                normal[v, u, 2] = n2
+                cost[v, u] = c
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def window_offsets(radius: int, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse window sample offsets (dx, dy): every ``step``-th pixel, centred."""
+    k = np.arange(-(radius // step), radius // step + 1) * step
+    dy, dx = np.meshgrid(k, k, indexing="ij")
+    return dx.ravel().astype(np.int32), dy.ravel().astype(np.int32)
+
+
+def _smooth(grey: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian pre-smoothing: a sparse window samples every other pixel, so sensor noise
+    above the sampling rate would otherwise alias straight into the NCC."""
+    if sigma <= 0:
+        return grey
+    return cv2.GaussianBlur(grey, (0, 0), sigma)
+
+
+def _relative_poses(ref: MVSView, sources: list[MVSView]) -> tuple[np.ndarray, np.ndarray]:
+    """Per source: A = K_s R_rel K_r^-1 and b = K_s t_rel (reference camera -> source)."""
+    k_inv = np.linalg.inv(ref.intr.K)
+    A = np.empty((len(sources), 3, 3))
+    b = np.empty((len(sources), 3))
+    for i, s in enumerate(sources):
+        r_rel = s.R @ ref.R.T
+        t_rel = s.t - r_rel @ ref.t
+        A[i] = s.intr.K @ r_rel @ k_inv
+        b[i] = s.intr.K @ t_rel
+    return A, b
+
+
+def check_inputs(ref: MVSView, sources: list[MVSView], prior: CoarsePrior) -> None:
+    """One-line InputErrors for inputs PatchMatch cannot use."""
+    if not sources:
+        raise InputError(f"keyframe {ref.index}: no source views to match against")
+    for s in sources:
+        if s.grey.shape != ref.grey.shape:
+            raise InputError(f"keyframe {s.index} is {s.grey.shape[1]}x{s.grey.shape[0]} but "
+                             f"reference {ref.index} is {ref.grey.shape[1]}x{ref.grey.shape[0]};"
+                             " process all keyframes at one size")
+        if (s.intr.width, s.intr.height) != (s.grey.shape[1], s.grey.shape[0]):
+            raise InputError(f"keyframe {s.index}: camera is {s.intr.width}x{s.intr.height} but "
+                             f"its image is {s.grey.shape[1]}x{s.grey.shape[0]}")
+    if (ref.intr.width, ref.intr.height) != (ref.grey.shape[1], ref.grey.shape[0]):
+        raise InputError(f"keyframe {ref.index}: camera is {ref.intr.width}x{ref.intr.height} "
+                         f"but its image is {ref.grey.shape[1]}x{ref.grey.shape[0]}")
+    if prior.mask.shape != ref.grey.shape:
+        raise InputError(f"keyframe {ref.index}: coarse prior is {prior.mask.shape[::-1]} but "
+                         f"the image is {ref.grey.shape[::-1]}")
+    if not prior.mask.any():
+        raise InputError(f"keyframe {ref.index}: the coarse mesh does not overlap the image")
+
+
+def patchmatch_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, config) -> DepthMap:
+    """Depth, normal and cost maps of ``ref`` over the prior's region (``config``:
+    :class:`~facecap_core.config.MVSConfig`). Raw: no filtering."""
+    start, cpu = time.perf_counter(), time.thread_time()
+    check_inputs(ref, sources, prior)
+    h, w = ref.grey.shape
+    vs, us = np.nonzero(prior.mask)
+    us, vs = us.astype(np.int32), vs.astype(np.int32)
+    idx = np.full((h, w), -1, np.int32)
+    idx[vs, us] = np.arange(len(us), dtype=np.int32)
+    dxs, dys = window_offsets(config.window_radius, config.window_step)
+    wn = np.empty((len(us), len(dxs)), np.float32)
+    wa = np.empty_like(wn)
+    ok = np.empty(len(us), np.bool_)
+    sigma_s = config.sigma_spatial or float(config.window_radius)
+    ref_grey = _smooth(ref.grey, config.presmooth_sigma)
+    _bilateral_weights(ref_grey, us, vs, dxs, dys, config.sigma_color, sigma_s, wn, wa, ok)
+
+    srcs = np.ascontiguousarray(np.stack([_smooth(s.grey, config.presmooth_sigma)
+                                          for s in sources]), dtype=np.float32)
+    A, b = _relative_poses(ref, sources)
+    depth = np.zeros((h, w), np.float32)
+    normal = np.zeros((h, w, 3), np.float32)
+    cost = np.full((h, w), MAX_COST, np.float32)
+    nbr = NEIGHBOURS_FAST if config.neighbours == "fast" else NEIGHBOURS_FULL
+    nbest = int(min(config.num_best_views, len(sources)))
+    k = ref.intr
+    _patchmatch(us, vs, idx, ok, prior.lo, prior.hi, prior.depth, prior.normal,
+                bool(config.init_from_coarse), srcs, A, b, k.fx, k.fy, k.cx, k.cy, dxs, dys,
+                wn, wa, nbest, int(config.iterations), nbr, int(config.refine_trials),
+                float(np.radians(config.normal_perturbation_deg)),
+                int(config.seed) * 1000003 + int(ref.index), depth, normal, cost)
+    # Pixels without a usable window keep no depth.
+    depth[vs[~ok], us[~ok]] = 0.0
+    normal[vs[~ok], us[~ok]] = 0.0
+    return DepthMap(ref.index, depth, normal, cost, ref.intr, ref.R, ref.t,
+                    np.array([s.index for s in sources]), time.perf_counter() - start,
+                    time.thread_time() - cpu)

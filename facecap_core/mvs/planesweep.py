@@ -1,0 +1,90 @@
+"""A simple peer for comparison: fronto-parallel plane sweep around the coarse mesh.
+
+Depth hypotheses are offsets from the coarse mesh's depth (the same search range as
+PatchMatch), every pixel's window is assumed to face the camera, the cost is box-window NCC
+per source (OpenCV box filters) aggregated over the best ``nbest`` sources like
+PatchMatch's, and the winning offset is refined by a parabola through its neighbours.
+Normals come from the depth map's gradient. Vectorised numpy/OpenCV; no plane fitting.
+"""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+
+from facecap_core.mvs.images import MVSView
+from facecap_core.mvs.patchmatch import MAX_COST, DepthMap
+from facecap_core.mvs.prior import CoarsePrior
+
+
+def _box(x: np.ndarray, radius: int) -> np.ndarray:
+    return cv2.boxFilter(x, -1, (2 * radius + 1, 2 * radius + 1), borderType=cv2.BORDER_REFLECT)
+
+
+def depth_normals(depth: np.ndarray, intr) -> np.ndarray:
+    """Camera-frame unit normals (H, W, 3) from a depth map's central differences."""
+    h, w = depth.shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    X = np.stack([(u - intr.cx) / intr.fx * depth, (v - intr.cy) / intr.fy * depth, depth], -1)
+    du = np.zeros_like(X)
+    dv = np.zeros_like(X)
+    du[:, 1:-1] = X[:, 2:] - X[:, :-2]
+    dv[1:-1] = X[2:] - X[:-2]
+    n = np.cross(du, dv)
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-9)
+    return np.where(n[..., 2:3] > 0, -n, n).astype(np.float32)
+
+
+def plane_sweep(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, margin_mm: float,
+                step_mm: float = 0.5, radius: int = 5, nbest: int = 4) -> DepthMap:
+    """Winner-take-all depth over offsets in [-margin, margin] from the coarse depth."""
+    start, cpu = time.perf_counter(), time.thread_time()
+    rows, cols = np.nonzero(prior.mask)
+    r0, r1 = max(rows.min() - radius, 0), min(rows.max() + radius + 1, prior.mask.shape[0])
+    c0, c1 = max(cols.min() - radius, 0), min(cols.max() + radius + 1, prior.mask.shape[1])
+    mask = prior.mask[r0:r1, c0:c1]
+    k = ref.intr
+    u, v = np.meshgrid(np.arange(c0, c1, dtype=float), np.arange(r0, r1, dtype=float))
+    rays = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u)], -1)
+    base = np.where(np.isfinite(prior.depth), prior.depth, 0.5 * (prior.lo + prior.hi))
+    base = base[r0:r1, c0:c1].astype(float)
+    ref_g = ref.grey[r0:r1, c0:c1]
+    mr = _box(ref_g, radius)
+    sr = np.sqrt(np.maximum(_box(ref_g * ref_g, radius) - mr * mr, 1e-8))
+    offsets = np.arange(-margin_mm, margin_mm + 1e-9, step_mm)
+    agg = np.empty((len(offsets),) + base.shape, np.float32)
+    nb = min(nbest, len(sources))
+    for p, off in enumerate(offsets):
+        world = ((rays * (base + off)[..., None]) - ref.t) @ ref.R
+        costs = np.empty((len(sources),) + base.shape, np.float32)
+        for s, src in enumerate(sources):
+            x = world @ src.R.T + src.t
+            z = np.maximum(x[..., 2], 1e-6)
+            mu = (src.intr.fx * x[..., 0] / z + src.intr.cx).astype(np.float32)
+            mv = (src.intr.fy * x[..., 1] / z + src.intr.cy).astype(np.float32)
+            warped = cv2.remap(src.grey, mu, mv, cv2.INTER_LINEAR, borderValue=-1.0)
+            ms = _box(warped, radius)
+            ss = np.sqrt(np.maximum(_box(warped * warped, radius) - ms * ms, 1e-8))
+            ncc = (_box(ref_g * warped, radius) - mr * ms) / (sr * ss)
+            bad = _box((warped < 0).astype(np.float32), radius) > 0
+            costs[s] = np.where(bad, MAX_COST, np.clip(1.0 - ncc, 0, MAX_COST))
+        agg[p] = np.partition(costs, nb - 1, axis=0)[:nb].mean(0)
+    best = np.argmin(agg, axis=0)
+    i = np.clip(best, 1, len(offsets) - 2)
+    c_m = np.take_along_axis(agg, (i - 1)[None], 0)[0]
+    c_0 = np.take_along_axis(agg, i[None], 0)[0]
+    c_p = np.take_along_axis(agg, (i + 1)[None], 0)[0]
+    curv = c_m - 2 * c_0 + c_p
+    sub = np.where(curv > 1e-9, 0.5 * (c_m - c_p) / np.where(curv > 1e-9, curv, 1), 0)
+    depth_c = base + offsets[i] + np.clip(sub, -1, 1) * step_mm
+    cost_c = np.take_along_axis(agg, best[None], 0)[0]
+    depth = np.zeros(prior.mask.shape, np.float32)
+    cost = np.full(prior.mask.shape, MAX_COST, np.float32)
+    depth[r0:r1, c0:c1] = np.where(mask, depth_c, 0)
+    cost[r0:r1, c0:c1] = np.where(mask, cost_c, MAX_COST)
+    normal = np.where((depth > 0)[..., None], depth_normals(depth, k), 0).astype(np.float32)
+    return DepthMap(ref.index, depth, normal, cost, ref.intr, ref.R, ref.t,
+                    np.array([s.index for s in sources]), time.perf_counter() - start,
+                    time.thread_time() - cpu)
