@@ -624,9 +624,7 @@ def _encode(frames_path: Path, width: int, height: int, fps: float, crf: int):
     stream.width, stream.height = width, height
     stream.pix_fmt = "yuv420p"
     stream.time_base = 1 / rate
-    # One encoder thread: with several, x264's output depends on thread timing, and the same
-    # seed must give the same video.
-    stream.options = {"crf": str(crf), "preset": "medium", "threads": "1"}
+    stream.options = {"crf": str(crf), "preset": "medium"}
     return container, stream
 
 
@@ -680,10 +678,7 @@ def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True) 
             img = img * gain
             sigma = np.sqrt(config.read_noise ** 2 + config.shot_noise ** 2 * np.clip(img, 0, 1))
             img = img + sigma * noise_rng.standard_normal(img.shape)
-            # reformat() copies into FFmpeg-owned buffers: the encoder keeps frames for its
-            # look-ahead, and a frame wrapping a temporary numpy array would be overwritten.
-            frame = av.VideoFrame.from_ndarray(_to_srgb8(img), format="rgb24").reformat(
-                format="yuv420p")
+            frame = av.VideoFrame.from_ndarray(_to_srgb8(img), format="rgb24")
             frame.pts = i
             for packet in stream.encode(frame):
                 container.mux(packet)
