@@ -392,12 +392,17 @@ def _relative(R, t):
 
 
 def _level_intrinsics(x: np.ndarray, s: float) -> np.ndarray:
-    """(f, cx, cy, k1, k2) at a pyramid level ``s`` times smaller (image edge fixed at -0.5)."""
-    return np.array([x[0] / s, (x[1] + 0.5) / s - 0.5, (x[2] + 0.5) / s - 0.5, x[3], x[4]])
+    """(f, cx, cy, k1, k2) at a pyramid level ``s`` times smaller.
+
+    cv2.pyrDown centres coarse pixel i on fine pixel s*i, so pixel coordinates simply scale
+    by 1/s (not (u + 0.5)/s - 0.5, which would shift every sample by half a pixel less one
+    coarse half pixel and bias the focal length at the coarse levels).
+    """
+    return np.array([x[0] / s, x[1] / s, x[2] / s, x[3], x[4]])
 
 
 def _full_intrinsics(x: np.ndarray, s: float) -> np.ndarray:
-    return np.array([x[0] * s, (x[1] + 0.5) * s - 0.5, (x[2] + 0.5) * s - 0.5, x[3], x[4]])
+    return np.array([x[0] * s, x[1] * s, x[2] * s, x[3], x[4]])
 
 
 def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -446,7 +451,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
     rho_lo = 1.0 / (np.percentile(depths, 99) * 1.5)
     rho_hi = 1.0 / (np.percentile(depths, 1) * 0.7)
     ss = 2.0 ** config.search_level
-    uv_s = (uv0 + 0.5) / ss - 0.5
+    uv_s = uv0 / ss
     vals_s = np.empty((len(host), 8))
     for k in range(K):
         sel = host == k
@@ -478,7 +483,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
             imgs.append(img)
             gxs.append(gx)
             gys.append(gy)
-        uv_l = (uv0 + 0.5) / s - 0.5
+        uv_l = uv0 / s
         host_values = np.empty((len(host), 8))
         host_weights = np.empty((len(host), 8))
         c2 = config.gradient_weight ** 2
