@@ -83,6 +83,16 @@ def face_samples(V, F, centre, radius, count=20000, seed=0):
     return pts[np.linalg.norm(pts - centre, axis=1) <= radius]
 
 
+
+def consistent_and_fused(maps, views, config):
+    """The geometric-consistency filter and the fusion, as the stage runs them."""
+    geo = geometric_filter(maps, config.min_consistent_views, config.fusion_max_depth_mm,
+                           config.fusion_max_reprojection_px, config.fusion_max_normal_deg)
+    cloud = fuse(geo, [v.rgb for v in views], config.min_consistent_views,
+                 config.fusion_max_depth_mm, config.fusion_max_reprojection_px,
+                 config.fusion_max_normal_deg)
+    return geo, cloud
+
 def run_subject(subject, args, config, out):
     folder = capture_for(subject, out, args.width, args.height, args.ict_model)
     gt = load_mesh(folder / "gt" / "mesh.ply")
@@ -113,11 +123,7 @@ def run_subject(subject, args, config, out):
     raw = [r[0] for r in res]
     filt = [r[1] for r in res]
     t1 = time.perf_counter()
-    geo = geometric_filter(filt, config.min_consistent_views, config.fusion_max_depth_mm,
-                           config.fusion_max_reprojection_px, config.fusion_max_normal_deg)
-    cloud = fuse(geo, [v.rgb for v in views], config.min_consistent_views,
-                 config.fusion_max_depth_mm, config.fusion_max_reprojection_px,
-                 config.fusion_max_normal_deg)
+    geo, cloud = consistent_and_fused(filt, views, config)
     t_fuse = time.perf_counter() - t1
     write_ply(cloud, out / f"{subject.replace(':', '_')}_cloud.ply")
     rows["patchmatch"] = {
@@ -148,11 +154,7 @@ def run_subject(subject, args, config, out):
         t_maps = time.perf_counter() - t0
         pfilt = [r[1] for r in pres]
         t1 = time.perf_counter()
-        pgeo = geometric_filter(pfilt, config.min_consistent_views, config.fusion_max_depth_mm,
-                                config.fusion_max_reprojection_px, config.fusion_max_normal_deg)
-        pcloud = fuse(pgeo, [v.rgb for v in views], config.min_consistent_views,
-                      config.fusion_max_depth_mm, config.fusion_max_reprojection_px,
-                      config.fusion_max_normal_deg)
+        pgeo, pcloud = consistent_and_fused(pfilt, views, config)
         rows["plane sweep (peer)"] = {
             "raw": depth_scores([r[0] for r in pres], views, V, F, centre, radius),
             "filtered": depth_scores(pfilt, views, V, F, centre, radius),
