@@ -50,8 +50,9 @@ class Keyframes:
         return ka[ia, 2:4], kb[ib, 2:4]
 
 
-def sharpness(grey: np.ndarray) -> float:
-    """Variance of the Laplacian: falls with motion blur and defocus."""
+def sharpness(image: np.ndarray) -> float:
+    """Variance of the Laplacian of the grey image: falls with motion blur and defocus."""
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     return float(cv2.Laplacian(grey, cv2.CV_32F).var())
 
 

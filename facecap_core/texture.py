@@ -17,15 +17,10 @@ import cv2
 import numpy as np
 
 from facecap_core.camera import camera_center, project
+from facecap_core.keyframes import sharpness
 from facecap_core.render import RaycastScene, vertex_normals
 
-__all__ = ["vertex_colours", "sharpness"]
-
-
-def sharpness(image: np.ndarray) -> float:
-    """Variance of the Laplacian of the grey image (higher: sharper)."""
-    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    return float(cv2.Laplacian(grey, cv2.CV_64F).var())
+__all__ = ["vertex_colours"]
 
 
 def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:

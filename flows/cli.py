@@ -56,8 +56,8 @@ def _cmd_evaluate(args) -> int:
     scores = ev.evaluate(args.mesh, args.scan, args.scan_landmarks, args.mesh_landmarks,
                          protocols=protocols)
     if args.heatmap:
+        mesh = ev.load_mesh(args.mesh)
         for name, sc in scores.items():
-            mesh = ev.load_mesh(args.mesh)
             out = Path(args.heatmap)
             out = out.with_name(f"{out.stem}_{name}{out.suffix or '.png'}")
             ev.error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces,

@@ -427,10 +427,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
              for im in images]
     K = len(greys)
     levels = config.pyramid_levels
-    pyr = [[g] for g in greys]
-    for p in pyr:
-        for _ in range(levels - 1):
-            p.append(cv2.pyrDown(p[-1]))
+    pyr = [_pyramid(g, levels) for g in greys]
     R = [np.asarray(r, float) for r in R]
     t = [np.asarray(x, float) for x in t]
     affine = np.zeros((K, 2))
