@@ -138,3 +138,43 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle of the relative rotation between two rotation matrices, in degrees."""
     c = (np.trace(np.asarray(R_a) @ np.asarray(R_b).T) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+@dataclass
+class CameraSet:
+    """A ``cameras.json``: one shared camera and every keyframe's world-to-camera pose."""
+
+    intrinsics: Intrinsics
+    frame_indices: list[int]
+    R: list[np.ndarray]
+    t: list[np.ndarray]
+    units: str = "arbitrary"
+    metric_scale: float | None = None
+
+    def pose(self, frame_index: int) -> tuple[np.ndarray, np.ndarray]:
+        k = self.frame_indices.index(int(frame_index))
+        return self.R[k], self.t[k]
+
+
+def read_cameras_json(path) -> CameraSet:
+    """Load a ``cameras.json`` written by the pose or coarse stage (full-resolution pixels,
+    OpenCV world-to-camera R, t)."""
+    import json
+    from pathlib import Path
+
+    from facecap_core.errors import InputError
+
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+        intr = Intrinsics.from_dict(doc["intrinsics"])
+        frames = doc["keyframes"]
+        return CameraSet(intr, [int(f["frame_index"]) for f in frames],
+                         [np.asarray(f["R"], float).reshape(3, 3) for f in frames],
+                         [np.asarray(f["t"], float).reshape(3) for f in frames],
+                         str(doc.get("units", "arbitrary")), doc.get("metric_scale"))
+    except FileNotFoundError:
+        raise InputError(f"cameras file not found: {path}") from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path} is not a facecap cameras.json ({type(exc).__name__}: "
+                         f"{exc}); rerun the pose stage") from None

@@ -614,3 +614,46 @@ def paper_table(rows: Sequence[tuple[str, Sequence[dict]]]) -> str:
               "standard deviation over captures of the per-capture mean (0 for one capture); "
               "median: mean over captures of the per-capture median."]
     return "\n".join(lines)
+
+
+def find_file(folder: str | Path, suffixes: Sequence[str], what: str) -> Path:
+    """The single file in ``folder`` with one of ``suffixes`` (an input artifact's file)."""
+    found = sorted(p for p in Path(folder).iterdir()
+                   if p.is_file() and p.suffix.lower() in suffixes and p.name != "manifest.json")
+    if not found:
+        raise InputError(f"no {what} ({'/'.join(suffixes)}) in {folder}")
+    return found[0]
+
+
+def evaluate_stage(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
+                   scan_landmarks: str | Path | None = None,
+                   config: EvaluationConfig | None = None) -> Path:
+    """Score the fitting stage's ``mesh.ply`` against a scan; writes ``evaluation.json``
+    (:func:`score_json` per protocol) and ``heatmap_<protocol>.png``; returns the JSON."""
+    import json
+
+    mesh_path = Path(mesh_dir) / "mesh.ply"
+    scan_path = find_file(scan_dir, (".ply", ".obj", ".stl", ".off"), "scan mesh")
+    lm_path = (find_file(scan_landmarks, (".json", ".ljson", ".txt", ".pts"), "scan landmarks")
+               if scan_landmarks is not None else None)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    mesh = load_mesh(mesh_path, "mesh")
+    mesh_lm = Path(mesh_dir) / "landmarks.json"
+    if not mesh_lm.is_file():
+        # A mesh in template topology carries its landmarks: the template's landmark vertices.
+        from facecap_core.meshio import save_landmarks
+        from facecap_core.template import Template
+
+        template = Template.default()
+        if len(mesh.vertices) == len(template.vertices):
+            mesh_lm = save_landmarks(out / "mesh_landmarks.json",
+                                     mesh.vertices[template.landmarks])
+    scores = evaluate(mesh_path, scan_path, lm_path, mesh_lm if mesh_lm.is_file() else None,
+                      config=config)
+    for name, sc in scores.items():
+        error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces, sc.accuracy_per_vertex,
+                      out / f"heatmap_{name}.png")
+    path = out / "evaluation.json"
+    path.write_text(json.dumps({p: score_json(s) for p, s in scores.items()}, indent=1))
+    return path

@@ -11,7 +11,9 @@ import json
 import sys
 from pathlib import Path
 
-from facecap_core.errors import FacecapError, InputError
+from facecap_core.errors import FacecapError
+
+_STAGES = ("keyframes", "poses", "landmarks", "coarse", "mvs", "fitting", "evaluation")
 
 
 def _cmd_assets(args) -> int:
@@ -75,26 +77,89 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
-def _cmd_reconstruct(args) -> int:
-    from facecap_core.config import KeyframeConfig
-    from facecap_core.keyframes import select_keyframes
-    from facecap_core.pose.colmap_sfm import run_sfm
-    from facecap_core.pose.io import write_outputs
-    from facecap_core.video import read_frames
+def _prefect_env() -> None:
+    """Defaults for running flows on the embedded server of a 2-core machine."""
+    import os
 
-    out = Path(args.out)
-    keyframes = select_keyframes(args.video, KeyframeConfig(), progress=True)
-    print(f"{len(keyframes.indices)} keyframes of {keyframes.frames_read} frames")
-    if args.until == "keyframes":
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "keyframes.json").write_text(json.dumps({"frame_indices": keyframes.indices}))
-        print(f"wrote {out / 'keyframes.json'}")
-        return 0
-    images = read_frames(args.video, keyframes.indices, width=960)
-    poses = run_sfm(images, out / "work" / "sfm", keyframes.video_size)
-    path = write_outputs(poses, out / "work" / "sfm", out)
-    print(f"{len(poses.frame_indices)}/{len(keyframes.indices)} keyframes registered; "
-          f"focal {poses.intrinsics.fx:.1f} px; wrote {path} and {out / 'colmap'}")
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+
+
+def _print_report(report: dict, out: Path) -> None:
+    from facecap_core.evaluation import paper_table
+
+    print(f"{report['subject']}/{report['capture']}: {report['computed']} artifacts computed, "
+          f"{report['cached']} reused, {report['wall_seconds']} s")
+    for name, info in report["stages"].items():
+        if not name.startswith("depth_"):
+            state = "reused" if info["cached"] else "computed"
+            print(f"  {name:<10} {state:<8} {info['seconds'] or 0:8.1f} s")
+    depth = [i for n, i in report["stages"].items() if n.startswith("depth_")]
+    if depth:
+        print(f"  {'depth':<10} {sum(not i['cached'] for i in depth)} of {len(depth)} maps "
+              f"computed, {sum(i['seconds'] or 0 for i in depth):.1f} s in all")
+    evaluation = report.get("figures", {}).get("evaluation")
+    if evaluation:
+        print(paper_table([(f"facecap ({p})", [s]) for p, s in evaluation.items()]))
+    if (out / "mesh.ply").is_file():
+        print(f"mesh: {out / 'mesh.ply'}")
+    print(f"report: {out / 'report.json'}")
+
+
+def _cmd_reconstruct(args) -> int:
+    _prefect_env()
+    from flows.capture import reconstruct_capture
+
+    report = reconstruct_capture(args.video, args.out, config=args.config, scan=args.scan,
+                                 scan_landmarks=args.scan_landmarks, until=args.until,
+                                 store=args.store, progress=True)
+    _print_report(report, Path(args.out))
+    return 0
+
+
+def _cmd_dataset(args) -> int:
+    _prefect_env()
+    from flows.dataset import reconstruct_dataset
+
+    summary = reconstruct_dataset(args.root, args.out, config=args.config, store=args.store)
+    print(f"{len(summary['done'])} of {summary['captures']} captures reconstructed into "
+          f"{args.out}")
+    for row in summary["consistency"]:
+        print(f"  {row['subject']}: {row['capture_a']} vs {row['capture_b']}: median "
+              f"{row['median_mm']} mm, p95 {row['p95_mm']} mm")
+    return 0
+
+
+def _cmd_evaluate_dataset(args) -> int:
+    _prefect_env()
+    from flows.evaluate import _table, evaluate_dataset
+
+    result = evaluate_dataset(args.root, args.out, store=args.store)
+    if result["captures"]:
+        print(_table(result["captures"]))
+    print(f"scored {len(result['captures'])}, skipped {len(result['skipped'])} (no scan, scan "
+          "landmarks or mesh)")
+    for f in result["regressions"]:
+        print(f"REGRESSION {f['capture']}: {f['measure']} {f['previous_mm']} -> {f['now_mm']} mm")
+    return 1 if result["regressions"] else 0
+
+
+def _cmd_serve(args) -> int:
+    _prefect_env()
+    from deploy.serve import serve
+
+    print(f"serving reconstruct-dataset, reconstruct-capture and nightly-evaluation "
+          f"({args.cron}, {args.timezone}); Ctrl-C stops")
+    serve(args.root, args.out, args.cron, args.timezone, args.limit)
+    return 0
+
+
+def _cmd_train_ears(args) -> int:
+    from facecap_core.landmarks.ears import train
+
+    path = train(args.out, progress=True)
+    print(f"ear model written to {path}")
     return 0
 
 
@@ -109,17 +174,28 @@ def _cmd_demo(args) -> int:
 
     ict_model = args.ict_model or os.environ.get("FACECAP_ICT_MODEL")
     subject = "ict:0" if ict_model else "james"
-    config = SynthConfig(subject=subject, ict_model=ict_model, width=640, height=360,
-                         duration_s=2.0)
+    config = SynthConfig(subject=subject, ict_model=ict_model, width=args.width,
+                         height=args.height, fps=args.fps, duration_s=args.seconds)
     out = Path(args.out)
-    print(f"synthesizing a {config.duration_s:g} s {config.width}x{config.height} capture "
-          f"of {subject} into {out}")
-    capture = synthesize(config, out)
-    print(f"rendered {capture.frames} frames in {capture.seconds:.1f} s")
-    scores = mean_template(Template.default(), capture.gt_mesh, capture.gt_landmarks,
-                           heatmap_dir=out)
-    print(paper_table([(f"Mean template ({p})", [score_json(s)]) for p, s in scores.items()]))
-    print(f"heat maps: {out}/mean_template_*.png")
+    capture_dir = out / "capture"
+    if not (capture_dir / "gt" / "render.json").is_file():
+        print(f"synthesizing a {config.duration_s:g} s {config.width}x{config.height} capture "
+              f"of {subject} into {capture_dir}")
+        capture = synthesize(config, capture_dir)
+        print(f"rendered {capture.frames} frames in {capture.seconds:.1f} s")
+    gt = capture_dir / "gt"
+    scores = mean_template(Template.default(), gt / "mesh.ply", gt / "landmarks.json")
+    rows = [(f"Mean template ({p})", [score_json(s)]) for p, s in scores.items()]
+    _prefect_env()
+    from flows.capture import reconstruct_capture
+
+    report = reconstruct_capture(str(capture_dir / "video.mp4"), str(out / "result"),
+                                 config=args.config, scan=str(gt / "mesh.ply"),
+                                 scan_landmarks=str(gt / "landmarks.json"), progress=True)
+    _print_report(report, out / "result")
+    evaluation = report.get("figures", {}).get("evaluation", {})
+    rows += [(f"facecap ({p})", [s]) for p, s in evaluation.items()]
+    print(paper_table(rows))
     return 0
 
 
@@ -157,17 +233,54 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--heatmap", help="write accuracy heat maps to this PNG path")
     e.set_defaults(func=_cmd_evaluate)
 
-    r = sub.add_parser("reconstruct", help="reconstruct a capture (stages so far: keyframes, "
-                                           "poses)")
+    r = sub.add_parser("reconstruct", help="reconstruct one capture: video in, metric mesh out")
     r.add_argument("video", help="the capture: a handheld ear-to-ear video of a still face")
     r.add_argument("--out", required=True, help="output folder")
-    r.add_argument("--until", choices=["keyframes", "poses"], default="poses",
+    r.add_argument("--config", help="PipelineConfig YAML (any subset of the stages' settings)")
+    r.add_argument("--until", choices=list(_STAGES), default="evaluation",
                    help="last stage to run")
+    r.add_argument("--scan", help="ground-truth scan (mm) to score the mesh against")
+    r.add_argument("--scan-landmarks", help="68 3D landmarks of the scan")
+    r.add_argument("--store", help="artifact store: folder or s3://bucket/prefix "
+                                   "(default $FACECAP_STORE or ~/.cache/facecap/store)")
     r.set_defaults(func=_cmd_reconstruct)
 
-    d = sub.add_parser("demo", help="synthesize a capture and score the mean-template baseline")
+    ds = sub.add_parser("dataset", help="reconstruct every capture of ROOT/<subject>/<capture>.mp4")
+    ds.add_argument("root", help="dataset folder")
+    ds.add_argument("--out", required=True, help="results go to OUT/<subject>/<capture>/")
+    ds.add_argument("--config", help="PipelineConfig YAML")
+    ds.add_argument("--store", help="artifact store (see reconstruct)")
+    ds.set_defaults(func=_cmd_dataset)
+
+    ed = sub.add_parser("evaluate-dataset", help="score a dataset's reconstructions against its "
+                                                 "scans and flag regressions")
+    ed.add_argument("root", help="dataset folder (with ROOT/<subject>/scan.ply)")
+    ed.add_argument("--out", required=True, help="the folder `facecap dataset` wrote")
+    ed.add_argument("--store", help="artifact store (see reconstruct)")
+    ed.set_defaults(func=_cmd_evaluate_dataset)
+
+    sv = sub.add_parser("serve", help="serve the dataset, capture and nightly-evaluation "
+                                      "deployments")
+    sv.add_argument("--root", required=True, help="dataset folder of the nightly evaluation")
+    sv.add_argument("--out", required=True, help="results folder of the nightly evaluation")
+    sv.add_argument("--cron", default="0 2 * * *", help="nightly schedule (cron)")
+    sv.add_argument("--timezone", default="UTC", help="time zone of the schedule (IANA name)")
+    sv.add_argument("--limit", type=int, default=1, help="flow runs at once")
+    sv.set_defaults(func=_cmd_serve)
+
+    te = sub.add_parser("train-ears", help="render the ear training set and train the ear "
+                                           "detector and predictor")
+    te.add_argument("--out", required=True, help="folder for the model files")
+    te.set_defaults(func=_cmd_train_ears)
+
+    d = sub.add_parser("demo", help="synthesize a capture, reconstruct it, print its accuracy")
     d.add_argument("--out", default="out/demo")
     d.add_argument("--ict-model", help="ICT Face Model .npz (or set FACECAP_ICT_MODEL)")
+    d.add_argument("--config", help="PipelineConfig YAML")
+    d.add_argument("--width", type=int, default=960)
+    d.add_argument("--height", type=int, default=540)
+    d.add_argument("--fps", type=float, default=30.0)
+    d.add_argument("--seconds", type=float, default=6.0)
     d.set_defaults(func=_cmd_demo)
     return p
 

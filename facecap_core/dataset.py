@@ -1,0 +1,101 @@
+"""A dataset on disk: subjects, their captures and their scans.
+
+Layout::
+
+    ROOT/<subject>/<capture>.mp4        one or more captures (.mp4, .mov, .m4v, .mkv)
+    ROOT/<subject>/scan.ply             optional ground-truth scan in mm (.ply/.obj/.stl/.off)
+    ROOT/<subject>/scan_landmarks.json  68 3D landmarks of the scan (iBUG order); needed
+                                        to score against the scan
+
+Results go to ``OUT/<subject>/<capture>/`` (see :mod:`flows.capture`). Names may contain
+spaces and any Unicode; hidden entries (``.name``) are ignored; nothing outside ROOT is
+ever read — a symbolic link that leaves ROOT is refused.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from facecap_core.errors import InputError
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
+SCAN_SUFFIXES = (".ply", ".obj", ".stl", ".off")
+LANDMARK_NAMES = ("scan_landmarks.json", "scan_landmarks.ljson", "scan_landmarks.txt")
+
+
+@dataclass(frozen=True)
+class CaptureEntry:
+    subject: str
+    capture: str
+    video: Path
+    scan: Path | None
+    scan_landmarks: Path | None
+
+    def out_dir(self, out_root: str | Path) -> Path:
+        return inside(Path(out_root), Path(out_root) / self.subject / self.capture)
+
+
+def inside(root: Path, path: Path) -> Path:
+    """``path`` resolved, refusing anything that leaves ``root``."""
+    root_r = root.resolve()
+    resolved = path.resolve()
+    if resolved != root_r and root_r not in resolved.parents:
+        raise InputError(f"{path} lies outside the dataset folder {root}; move it inside or "
+                         "remove the link")
+    return resolved
+
+
+def _visible(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if not p.name.startswith("."))
+
+
+def _first(folder: Path, names) -> Path | None:
+    for name in names:
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def scan_dataset(root: str | Path) -> list[CaptureEntry]:
+    """Every capture under ``root`` (sorted by subject, capture)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(f"dataset folder not found: {root}")
+    entries = []
+    for subject in _visible(root):
+        if not subject.is_dir():
+            continue
+        inside(root, subject)
+        scan = next((p for p in (subject / f"scan{s}" for s in SCAN_SUFFIXES) if p.is_file()),
+                    None)
+        landmarks = _first(subject, LANDMARK_NAMES)
+        for video in _visible(subject):
+            if video.suffix.lower() in VIDEO_SUFFIXES and video.is_file():
+                entries.append(CaptureEntry(
+                    subject.name, video.stem, inside(root, video),
+                    inside(root, scan) if scan else None,
+                    inside(root, landmarks) if landmarks else None))
+    if not entries:
+        raise InputError(f"no captures in {root}: expected ROOT/<subject>/<capture>.mp4 "
+                         f"({', '.join(VIDEO_SUFFIXES)})")
+    return entries
+
+
+def mesh_consistency(a_vertices: np.ndarray, b_vertices: np.ndarray) -> dict:
+    """Vertex-to-vertex distances (mm) between two meshes of one subject in template
+    topology, after a rigid alignment (the captures' world frames differ): mean, median,
+    95th percentile, max."""
+    from facecap_core.evaluation import umeyama
+
+    a = np.asarray(a_vertices, float)
+    b = np.asarray(b_vertices, float)
+    if a.shape != b.shape:
+        raise InputError(f"meshes differ in vertex count ({len(a)} vs {len(b)}): not the same "
+                         "template topology")
+    s, R, t = umeyama(b, a, with_scale=False)
+    d = np.linalg.norm(a - (s * b @ R.T + t), axis=1)
+    return {"mean_mm": float(d.mean()), "median_mm": float(np.median(d)),
+            "p95_mm": float(np.percentile(d, 95)), "max_mm": float(d.max())}

@@ -1,0 +1,59 @@
+"""The fitting stage on the files of the stages before it.
+
+Reads the fused ``cloud.ply``, the coarse stage's folder (metric ``cameras.json``,
+``landmarks3d.json`` with all 68 points in mm, ``ears3d.json``) and the keyframe PNGs, and
+writes what :func:`facecap_core.fitting.run.main` writes (``mesh.ply``, ``mesh.obj``,
+``landmarks.json``, ``fit.json``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from facecap_core.camera import read_cameras_json
+from facecap_core.config import FittingConfig
+from facecap_core.fitting.constraints import Keyframe
+from facecap_core.fitting.run import main as fit_main
+from facecap_core.frames import load_frame
+from facecap_core.meshio import load_landmarks
+from facecap_core.template import Template
+
+
+def read_ear_points(path: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(vertex ids, points)`` from an ``ears3d.json``, or None if it holds none."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    doc = json.loads(path.read_text())
+    ids = np.asarray(doc.get("vertex_ids", []), np.int64)
+    if len(ids) == 0:
+        return None
+    return ids, np.asarray(doc["points"], float).reshape(-1, 3)
+
+
+def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str | Path,
+         out_dir: str | Path, config: FittingConfig | None = None,
+         template: Template | None = None, frame_width: int | None = 960) -> Path:
+    """Fit the template; returns ``mesh.ply``. ``cloud_ply`` None: landmarks only."""
+    config = config or FittingConfig()
+    coarse = Path(coarse_dir)
+    cams = read_cameras_json(coarse / "cameras.json")
+    keyframes = []
+    if config.use_edges or config.texture:
+        for i, R, t in zip(cams.frame_indices, cams.R, cams.t):
+            image = load_frame(frames_dir, i)
+            if frame_width and image.shape[1] > frame_width:
+                import cv2
+
+                h = int(round(image.shape[0] * frame_width / image.shape[1]))
+                image = cv2.resize(image, (frame_width, h), interpolation=cv2.INTER_AREA)
+            keyframes.append(Keyframe(image, cams.intrinsics, R, t))
+    if cloud_ply is None:
+        config = config.model_copy(update={"use_cloud": False})
+    landmarks = load_landmarks(coarse / "landmarks3d.json")
+    return fit_main(cloud_ply if cloud_ply is not None else np.zeros((0, 3)), landmarks,
+                    out_dir, template, keyframes, read_ear_points(coarse / "ears3d.json"),
+                    config=config)

@@ -1,0 +1,230 @@
+"""``reconstruct-capture``: one video in, a metric mesh in template topology out.
+
+The flow chains the stage tasks over the artifact store (every stage cached by content:
+rerunning computes nothing, a changed parameter recomputes only the stages after it), fans
+the depth maps out over a thread pool (the PatchMatch kernels release the GIL, so two
+threads use both cores of a worker without a second process or API server), and exports
+the results to ``out``::
+
+    mesh.ply, mesh.obj      fitted mesh (mm, template topology, per-vertex colour)
+    cameras.json            metric cameras (mm) of the keyframes; colmap/ the pose stage's
+                            COLMAP text model (its own units)
+    cloud.ply               fused point cloud with normals and colours
+    landmarks3d.json        68 3D landmarks (mm); ears3d.json the ear points
+    report.json             per-stage seconds (computed or cached), figures, evaluation
+    evaluation.json, heatmap_*.png   with a scan
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+from typing import Literal
+
+from prefect import flow, get_run_logger
+from prefect.task_runners import ThreadPoolTaskRunner
+
+from facecap_core.config import PipelineConfig, load_pipeline_config
+from facecap_core.errors import InputError
+from facecap_core.mvs.stage import DEPTH_FIELDS, FUSION_FIELDS, VIEW_FIELDS, config_part
+from tasks.runner import default_store_url, open_store, stage_meta
+from tasks.stages import (
+    call_ingest, call_stage, coarse_task, depth_task, evaluation_task, fitting_task,
+    frames_task, fusion_task, keyframes_task, landmarks_task, poses_task, views_task,
+)
+
+STAGES = ("keyframes", "poses", "landmarks", "coarse", "mvs", "fitting", "evaluation")
+"""Stages ``until`` can stop after, in order."""
+Stage = Literal["keyframes", "poses", "landmarks", "coarse", "mvs", "fitting", "evaluation"]
+
+
+def capture_name(video: str | Path) -> tuple[str, str]:
+    """(subject, capture) of a video: the parent folder and the file stem."""
+    p = Path(video)
+    return p.parent.name or "capture", p.stem
+
+
+def _run_name() -> str:
+    from prefect.runtime import flow_run
+
+    subject, capture = capture_name(flow_run.parameters.get("video", "capture"))
+    return f"{subject}/{capture}"
+
+
+def _mvs_fan_out(store: str, inputs: dict, config: dict, indices: list[int], label: str,
+                 progress: bool) -> dict[int, str]:
+    """One depth task per keyframe, ``workers`` at a time; a progress artifact in the UI."""
+    from prefect.artifacts import create_progress_artifact, update_progress_artifact
+    from tqdm import tqdm
+
+    artifact = create_progress_artifact(0.0, description=f"depth maps of {label}")
+    futures = {i: call_stage(depth_task, store, inputs, {**config, "_index": i}, label,
+                             submit=True) for i in indices}
+    keys = {}
+    bar = tqdm(total=len(indices), desc="depth maps", unit="map", disable=not progress)
+    for i, future in futures.items():
+        keys[i] = future.result()
+        bar.update()
+        update_progress_artifact(artifact, 100.0 * len(keys) / len(indices))
+    bar.close()
+    return keys
+
+
+def _export(store: str, keys: dict[str, str], out: Path) -> None:
+    """Copy the user-facing files of the finished stages into ``out``."""
+    st = open_store(store)
+    wanted = {
+        "poses": ["cameras.json", "points.ply", "colmap/cameras.txt", "colmap/images.txt",
+                  "colmap/points3D.txt"],
+        "coarse": ["cameras.json", "landmarks3d.json", "ears3d.json", "coarse.ply"],
+        "fusion": ["cloud.ply"],
+        "fitting": ["mesh.ply", "mesh.obj", "fit.json"],
+        "evaluation": ["evaluation.json", "heatmap_similarity.png", "heatmap_metric.png"],
+    }
+    for stage, names in wanted.items():
+        if stage not in keys:
+            continue
+        folder = st.get(keys[stage], verify=False)
+        for name in names:
+            src = folder / name
+            if src.is_file():
+                dst = out / name
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                tmp = dst.with_name(f".{dst.name}.part")
+                shutil.copyfile(src, tmp)
+                tmp.replace(dst)
+
+
+def _stage_report(store: str, keys: dict[str, str], cached: set[str]) -> dict:
+    report = {}
+    for name, key in keys.items():
+        meta = stage_meta(store, key)
+        report[name] = {"key": key, "cached": name in cached,
+                        "seconds": meta.get("seconds"), "cpu_seconds": meta.get("cpu_seconds")}
+    return report
+
+
+@flow(name="reconstruct-capture", flow_run_name=_run_name, log_prints=True,
+      task_runner=ThreadPoolTaskRunner(max_workers=2))
+def reconstruct_capture(video: str, out: str, config: str | None = None,
+                        scan: str | None = None, scan_landmarks: str | None = None,
+                        until: Stage = "evaluation", store: str | None = None,
+                        progress: bool = False) -> dict:
+    """Reconstruct one capture; returns the report (also written to ``out/report.json``).
+
+    ``config``: a PipelineConfig YAML; ``scan``/``scan_landmarks``: ground truth to score
+    against; ``store``: artifact store URL (default ``$FACECAP_STORE``).
+    """
+    logger = get_run_logger()
+    start = time.perf_counter()
+    if not Path(video).is_file():
+        raise InputError(f"video not found: {video}")
+    cfg: PipelineConfig = load_pipeline_config(config)
+    store = store or default_store_url()
+    out_dir = Path(out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    subject, capture = capture_name(video)
+    label = f"{subject}/{capture}"
+    st = open_store(store)
+    keys: dict[str, str] = {}
+    before = set(st.keys())
+
+    def stop(stage: str) -> bool:
+        return STAGES.index(stage) >= STAGES.index(until)
+
+    v = call_ingest(store, video, "video.mp4", label)
+    keys["keyframes"] = call_stage(keyframes_task, store, {"video": v},
+                                   cfg.keyframes.model_dump(mode="json"), label)
+    if not stop("keyframes"):
+        keys["poses"] = call_stage(poses_task, store, {"video": v, "keyframes": keys["keyframes"]},
+                                   cfg.poses.model_dump(mode="json"), label)
+    if not stop("poses"):
+        keys["frames"] = call_stage(frames_task, store, {"video": v, "poses": keys["poses"]}, {},
+                                    label)
+        keys["landmarks"] = call_stage(landmarks_task, store, {"video": v, "poses": keys["poses"]},
+                                       cfg.landmarks.model_dump(mode="json"), label)
+    if not stop("landmarks"):
+        keys["coarse"] = call_stage(coarse_task, store, {"landmarks": keys["landmarks"],
+                                                         "poses": keys["poses"]},
+                                    cfg.coarse.model_dump(mode="json"), label)
+    if not stop("coarse"):
+        dense_and_fit(store, keys, cfg, label, until, scan, scan_landmarks, progress)
+    _export(store, keys, out_dir)
+    computed = set(st.keys()) - before
+    cached = {name for name, key in keys.items() if key not in computed}
+    report = {
+        "subject": subject, "capture": capture, "video": str(video), "store": store,
+        "until": until, "wall_seconds": round(time.perf_counter() - start, 2),
+        "computed": len(computed & set(keys.values())), "cached": len(cached),
+        "stages": _stage_report(store, keys, cached),
+    }
+    figures = _figures(out_dir)
+    if figures:
+        report["figures"] = figures
+    (out_dir / "report.json").write_text(json.dumps(report, indent=1))
+    _publish(report, out_dir, label)
+    logger.info(f"{label}: {report['computed']} artifacts computed, {report['cached']} reused; "
+                f"results in {out_dir}")
+    return report
+
+
+def _figures(out: Path) -> dict:
+    """Headline figures of the exported files (what the UI table and the report show)."""
+    fig = {}
+    if (out / "cameras.json").is_file():
+        doc = json.loads((out / "cameras.json").read_text())
+        fig["keyframes"] = len(doc["keyframes"])
+        fig["focal_px"] = round(doc["intrinsics"]["fx"], 2)
+        if doc.get("metric_scale") is not None:
+            fig["metric_scale"] = doc["metric_scale"]
+    if (out / "fit.json").is_file():
+        fit = json.loads((out / "fit.json").read_text())
+        fig["fit_seconds"] = round(fit["timing"].get("wall_s", 0.0), 2)
+    if (out / "evaluation.json").is_file():
+        fig["evaluation"] = json.loads((out / "evaluation.json").read_text())
+    return fig
+
+
+def _publish(report: dict, out: Path, label: str) -> None:
+    """UI artifacts (stage table, preview images) and a completion event."""
+    from flows.ui import publish_capture
+
+    publish_capture(report, out, label)
+
+
+def dense_and_fit(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str,
+                  until: str = "evaluation", scan: str | None = None,
+                  scan_landmarks: str | None = None, progress: bool = False) -> dict[str, str]:
+    """The stages after the coarse mesh (inside a flow): views, depth maps (fanned out),
+    fusion, fitting, evaluation. ``keys`` holds the ``frames``, ``poses`` and ``coarse``
+    artifacts and receives the new ones."""
+    st = open_store(store)
+
+    def stop(stage: str) -> bool:
+        return STAGES.index(stage) >= STAGES.index(until)
+
+    base = {"frames": keys["frames"], "coarse": keys["coarse"]}
+    keys["views"] = call_stage(views_task, store, {**base, "poses": keys["poses"]},
+                               config_part(cfg.mvs, VIEW_FIELDS), label)
+    indices = json.loads(
+        (st.get(keys["frames"], verify=False) / "frames.json").read_text())["frame_indices"]
+    depth = _mvs_fan_out(store, {**base, "views": keys["views"]},
+                         config_part(cfg.mvs, DEPTH_FIELDS), indices, label, progress)
+    keys.update({f"depth_{i:05d}": k for i, k in depth.items()})
+    keys["fusion"] = call_stage(
+        fusion_task, store, {**base, **{f"depth_{i:05d}": k for i, k in depth.items()}},
+        config_part(cfg.mvs, FUSION_FIELDS), label)
+    if stop("mvs"):
+        return keys
+    keys["fitting"] = call_stage(fitting_task, store, {
+        "fusion": keys["fusion"], "coarse": keys["coarse"], "frames": keys["frames"]},
+        cfg.fitting.model_dump(mode="json"), label)
+    if stop("fitting") or not scan:
+        return keys
+    inputs = {"mesh": keys["fitting"], "scan": call_ingest(store, scan, Path(scan).name)}
+    if scan_landmarks:
+        inputs["scan_landmarks"] = call_ingest(store, scan_landmarks, Path(scan_landmarks).name)
+    keys["evaluation"] = call_stage(evaluation_task, store, inputs, {}, label)
+    return keys

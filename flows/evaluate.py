@@ -1,0 +1,108 @@
+"""``evaluate-dataset``: score every reconstruction that has a scan, compare the table with
+the previous evaluation and flag regressions. Scheduled nightly by ``facecap serve``.
+
+Each evaluation is kept as ``OUT/evaluations/<UTC time>.json``; the newest older one is the
+baseline. A capture regresses when its accuracy or completion median (similarity protocol)
+grows by more than ``tolerance_mm`` and ``tolerance_rel``.
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime, timezone
+from pathlib import Path
+
+from prefect import flow, get_run_logger
+
+from facecap_core.dataset import scan_dataset
+from tasks.runner import default_store_url
+from tasks.stages import call_ingest, call_stage, evaluation_task
+
+
+def _run_name() -> str:
+    from prefect.runtime import flow_run
+
+    return f"evaluate {Path(flow_run.parameters.get('root', 'dataset')).name}"
+
+
+def regressions(current: dict, previous: dict, tolerance_mm: float,
+                tolerance_rel: float) -> list[dict]:
+    """Captures whose medians got worse than the previous evaluation's by both tolerances."""
+    flagged = []
+    for name, now in current.items():
+        before = previous.get(name)
+        if not before:
+            continue
+        for side in ("accuracy", "completion"):
+            a, b = now[side]["median"], before[side]["median"]
+            if a - b > tolerance_mm and a > b * (1 + tolerance_rel):
+                flagged.append({"capture": name, "measure": f"{side} median",
+                                "previous_mm": round(b, 3), "now_mm": round(a, 3)})
+    return flagged
+
+
+def previous_evaluation(folder: Path, before: str) -> dict:
+    older = sorted(p for p in folder.glob("*.json") if p.stem < before)
+    return json.loads(older[-1].read_text())["captures"] if older else {}
+
+
+@flow(name="evaluate-dataset", flow_run_name=_run_name, log_prints=True)
+def evaluate_dataset(root: str, out: str, store: str | None = None,
+                     tolerance_mm: float = 0.05, tolerance_rel: float = 0.05) -> dict:
+    """Score ``out/<subject>/<capture>/mesh.ply`` against ``root/<subject>/scan.*``."""
+    from prefect.artifacts import create_markdown_artifact, create_table_artifact
+    from prefect.events import emit_event
+
+    logger = get_run_logger()
+    store = store or default_store_url()
+    out_root = Path(out)
+    current, skipped = {}, []
+    for entry in scan_dataset(root):
+        mesh = entry.out_dir(out_root) / "mesh.ply"
+        name = f"{entry.subject}/{entry.capture}"
+        if entry.scan is None or entry.scan_landmarks is None or not mesh.is_file():
+            skipped.append(name)
+            continue
+        inputs = {"mesh": call_ingest(store, mesh, "mesh.ply", name),
+                  "scan": call_ingest(store, entry.scan, entry.scan.name, name),
+                  "scan_landmarks": call_ingest(store, entry.scan_landmarks,
+                                                entry.scan_landmarks.name, name)}
+        key = call_stage(evaluation_task, store, inputs, {}, name)
+        from tasks.runner import open_store
+
+        doc = json.loads((open_store(store).get(key) / "evaluation.json").read_text())
+        current[name] = doc["similarity"]
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
+    history = out_root / "evaluations"
+    history.mkdir(parents=True, exist_ok=True)
+    previous = previous_evaluation(history, stamp)
+    flagged = regressions(current, previous, tolerance_mm, tolerance_rel)
+    (history / f"{stamp}.json").write_text(json.dumps(
+        {"time": stamp, "captures": current, "skipped": skipped, "regressions": flagged},
+        indent=1))
+    rows = [{"capture": name, "accuracy_mean": round(s["accuracy"]["mean"], 3),
+             "accuracy_median": round(s["accuracy"]["median"], 3),
+             "completion_mean": round(s["completion"]["mean"], 3),
+             "completion_median": round(s["completion"]["median"], 3),
+             "regressed": any(f["capture"] == name for f in flagged)}
+            for name, s in sorted(current.items())]
+    if rows:
+        create_table_artifact(rows, key="evaluation", description="similarity protocol, mm")
+        table = _table(current)
+        create_markdown_artifact(table + ("\n\n**Regressions:** " + ", ".join(
+            f"{f['capture']} {f['measure']} {f['previous_mm']} → {f['now_mm']} mm"
+            for f in flagged) if flagged else "\n\nNo regression."),
+            key="evaluation-table", description="paper-style table")
+    if flagged:
+        logger.warning(f"{len(flagged)} regression(s): {flagged}")
+        emit_event(event="facecap.evaluation.regressed",
+                   resource={"prefect.resource.id": f"facecap.dataset.{Path(root).name}"},
+                   payload={"regressions": flagged})
+    logger.info(f"scored {len(current)} captures, skipped {len(skipped)} without scan or mesh")
+    return {"captures": current, "skipped": skipped, "regressions": flagged}
+
+
+def _table(current: dict) -> str:
+    from facecap_core.evaluation import paper_table
+
+    return paper_table([("facecap (similarity)", list(current.values()))])

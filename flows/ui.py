@@ -1,0 +1,87 @@
+"""What a capture run shows in the Prefect UI: a stage table, a markdown page with preview
+images (embedded as data URIs, so the browser needs no access to the store), and an event
+that automations can react to."""
+
+from __future__ import annotations
+
+import base64
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+def _slug(text: str) -> str:
+    # Artifact keys: lowercase letters, digits and dashes only.
+    out = "".join(c if c.isalnum() else "-" for c in text.lower())
+    return "-".join(p for p in out.split("-") if p)[:80] or "capture"
+
+
+def png_data_uri(path: Path, max_width: int = 960) -> str:
+    """A PNG as a data URI, downscaled to ``max_width`` so the artifact stays small."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        return ""
+    if image.shape[1] > max_width:
+        h = int(round(image.shape[0] * max_width / image.shape[1]))
+        image = cv2.resize(image, (max_width, h), interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".png", image)
+    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode() if ok else ""
+
+
+def mesh_preview(mesh_path: Path, out_png: Path) -> Path:
+    """Front and profile renders of a mesh (grey, shaded)."""
+    from facecap_core.evaluation import error_heatmap
+    from facecap_core.meshio import load_mesh
+
+    mesh = load_mesh(mesh_path, "mesh")
+    nan = np.full(len(mesh.vertices), np.nan)
+    return error_heatmap(mesh.vertices, mesh.faces, nan, out_png, size=320)
+
+
+def stage_rows(report: dict) -> list[dict]:
+    return [{"stage": name, "cached": info["cached"], "seconds": info["seconds"],
+             "cpu_seconds": info["cpu_seconds"], "artifact": info["key"]}
+            for name, info in report["stages"].items()]
+
+
+def capture_markdown(report: dict, out: Path, images: list[tuple[str, Path]]) -> str:
+    lines = [f"# {report['subject']} / {report['capture']}", "",
+             f"{report['computed']} artifacts computed, {report['cached']} reused, "
+             f"{report['wall_seconds']} s. Results in `{out}`.", ""]
+    fig = report.get("figures", {})
+    for name in ("keyframes", "focal_px", "metric_scale", "fit_seconds"):
+        if name in fig:
+            lines.append(f"- {name}: {fig[name]}")
+    for protocol, sc in fig.get("evaluation", {}).items():
+        a, c = sc["accuracy"], sc["completion"]
+        lines.append(f"- {protocol}: accuracy mean {a['mean']:.3f} / median {a['median']:.3f} mm,"
+                     f" completion mean {c['mean']:.3f} / median {c['median']:.3f} mm")
+    for title, path in images:
+        uri = png_data_uri(path)
+        if uri:
+            lines += ["", f"## {title}", "", f"![{title}]({uri})"]
+    return "\n".join(lines)
+
+
+def publish_capture(report: dict, out: Path, label: str) -> None:
+    from prefect.artifacts import create_markdown_artifact, create_table_artifact
+    from prefect.events import emit_event
+
+    key = _slug(label)
+    create_table_artifact(stage_rows(report), key=f"stages-{key}",
+                          description=f"stages of {label}: computed or reused, seconds")
+    images = []
+    if (out / "mesh.ply").is_file():
+        images.append(("Mesh", mesh_preview(out / "mesh.ply", out / "preview.png")))
+    for protocol in ("similarity", "metric"):
+        p = out / f"heatmap_{protocol}.png"
+        if p.is_file():
+            images.append((f"Accuracy ({protocol})", p))
+    create_markdown_artifact(capture_markdown(report, out, images), key=f"capture-{key}",
+                             description=f"{label}: results and previews")
+    emit_event(event="facecap.capture.completed",
+               resource={"prefect.resource.id": f"facecap.capture.{key}",
+                         "prefect.resource.name": label},
+               payload={"out": str(out), "computed": report["computed"],
+                        "cached": report["cached"], "figures": report.get("figures", {})})

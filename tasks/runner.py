@@ -1,0 +1,169 @@
+"""How every stage task runs: content-addressed, locked, stored atomically, retried only
+when the fault is transient.
+
+A stage is identified by its name, the keys of its input artifacts, its config (JSON) and an
+explicit algorithm version (:data:`VERSIONS`). Together they make the artifact key
+(:func:`facecap_core.store.artifact_key`), which is also the Prefect cache key: a stage whose
+artifact is in the store is never computed again, by any run on any worker. Bump a stage's
+version when its algorithm changes the output.
+
+A stage body is a function ``compute(folders, out_dir, config)`` where ``folders`` maps each
+input name to a local folder holding that input artifact; it writes its files into
+``out_dir``, which is then put into the store in one atomic step.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import resource
+import shutil
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Callable
+
+from facecap_core.errors import FacecapError, InputError
+from facecap_core.store import (
+    ArtifactStore, CorruptArtifactError, StoreWriteError, artifact_key, input_key,
+)
+
+VERSIONS = {
+    "input": "1",
+    "keyframes": "1",
+    "poses": "1",
+    "frames": "1",
+    "landmarks": "1",
+    "coarse": "1",
+    "views": "1",
+    "depth": "1",
+    "fusion": "1",
+    "fitting": "1",
+    "evaluation": "1",
+}
+"""Algorithm version of each stage: part of every artifact key."""
+
+Compute = Callable[[dict[str, Path], Path, dict], None]
+
+
+def facecap_home() -> Path:
+    return Path(os.environ.get("FACECAP_HOME", Path.home() / ".cache" / "facecap"))
+
+
+def default_store_url() -> str:
+    """``$FACECAP_STORE`` (a folder or ``s3://bucket/prefix``), else ``$FACECAP_HOME/store``."""
+    return os.environ.get("FACECAP_STORE") or str(facecap_home() / "store")
+
+
+def open_store(url: str) -> ArtifactStore:
+    return ArtifactStore(url)
+
+
+def stage_key(stage: str, inputs: dict[str, str], config: dict | None) -> str:
+    """The artifact key (= Prefect cache key) of a stage call."""
+    if stage not in VERSIONS:
+        raise ValueError(f"unknown stage {stage!r}")
+    return artifact_key(stage, inputs, config, VERSIONS[stage])
+
+
+def _lock_dir(store: ArtifactStore) -> Path:
+    # A local store holds its own locks, so every process using it sees them; a remote store
+    # is locked per machine (several machines may compute the same artifact at worst once
+    # each, and the store's atomic put keeps the first).
+    if store.url.startswith(("/", "file://")) or "://" not in store.url:
+        root = Path(store.url.removeprefix("file://"))
+        return root / ".locks"
+    return facecap_home() / "locks"
+
+
+@contextmanager
+def key_lock(store: ArtifactStore, key: str):
+    """Exclusive lock on one artifact key: a second run on the same capture waits here, then
+    finds the artifact committed and computes nothing."""
+    folder = _lock_dir(store)
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / f"{key}.lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _scratch() -> Path:
+    folder = facecap_home() / "work"
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def run_stage(store_url: str, stage: str, inputs: dict[str, str], config: dict | None,
+              compute: Compute) -> tuple[str, bool]:
+    """Make the stage's artifact unless it is stored; returns ``(key, computed)``."""
+    store = open_store(store_url)
+    key = stage_key(stage, inputs, config)
+    if store.exists(key):
+        return key, False
+    with key_lock(store, key):
+        if store.exists(key):  # another run made it while we waited
+            return key, False
+        folders = {name: store.get(k) for name, k in inputs.items()}
+        work = Path(tempfile.mkdtemp(prefix=f"{stage}-", dir=_scratch()))
+        try:
+            wall, cpu = time.perf_counter(), time.process_time()
+            compute(folders, work, config or {})
+            meta = {"seconds": round(time.perf_counter() - wall, 3),
+                    "cpu_seconds": round(time.process_time() - cpu, 3),
+                    "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+                                         / 1024, 1)}
+            files = {p.relative_to(work).as_posix(): p
+                     for p in sorted(work.rglob("*")) if p.is_file()}
+            if not files:
+                raise FacecapError(f"stage {stage} wrote no files")
+            store.put(key, files, stage=stage, inputs=inputs, config=config,
+                      version=VERSIONS[stage], meta=meta)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return key, True
+
+
+def ingest(store_url: str, path: str | os.PathLike, name: str) -> str:
+    """Put a raw input file (video, scan) into the store under its content key."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"input file not found: {path}")
+    store = open_store(store_url)
+    key = input_key(path)
+    if not store.exists(key):
+        with key_lock(store, key):
+            store.put(key, {name: path}, stage="input", inputs={}, config=None,
+                      version=VERSIONS["input"], meta={"source": path.name})
+    return key
+
+
+def stage_meta(store_url: str, key: str) -> dict[str, Any]:
+    return open_store(store_url).manifest(key).meta
+
+
+# -- retries ---------------------------------------------------------------------------------
+
+TRANSIENT = (StoreWriteError, CorruptArtifactError, ConnectionError, TimeoutError)
+"""Faults worth retrying: the store or the network failed, not the input."""
+
+
+def is_transient(exc: BaseException) -> bool:
+    """Bad input is never retried; store, network and OS faults are."""
+    if isinstance(exc, TRANSIENT):
+        return True
+    if isinstance(exc, FacecapError):
+        return False
+    return isinstance(exc, OSError)
+
+
+def retry_condition(task, task_run, state) -> bool:
+    """Prefect ``retry_condition_fn``: retry only transient faults."""
+    try:
+        state.result()
+    except BaseException as exc:  # the task's own exception, re-raised by result()
+        return is_transient(exc)
+    return False

@@ -1,0 +1,212 @@
+"""The service's caching, fan-out and recovery, on a real Prefect server (test harness) and a
+real local store.
+
+The stages after the coarse mesh run for real on a small synthetic capture; the pose and
+coarse artifacts are made from the capture's ground truth and put into the store like any
+stage's output, so these tests judge the orchestration, not the upstream stages.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facecap_core.config import PipelineConfig, SynthConfig
+from facecap_core.meshio import load_landmarks, load_mesh, save_landmarks
+from facecap_core.store import ArtifactStore
+
+WIDTH, HEIGHT, FRAMES = 320, 180, 18
+KEYFRAMES = list(range(5, 13))
+
+
+@pytest.fixture(scope="module")
+def prefect_server(tmp_path_factory):
+    import os
+
+    from prefect.testing.utilities import prefect_test_harness
+
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    with prefect_test_harness(server_startup_timeout=120):
+        yield
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory, ict_model):
+    from facecap_core.synthetic import synthesize
+
+    folder = tmp_path_factory.mktemp("capture") / "subject a"
+    fps = FRAMES / 6.0
+    config = SynthConfig(subject="ict:2", ict_model=ict_model, width=WIDTH, height=HEIGHT,
+                         fps=fps, duration_s=6.0, exposure_fraction=0.25 * fps / 30, seed=2)
+    synthesize(config, folder, progress=False)
+    return folder
+
+
+def small_config() -> PipelineConfig:
+    return PipelineConfig.model_validate({
+        "mvs": {"processing_width": WIDTH, "num_sources": 4, "window_radius": 3,
+                "iterations": 3},
+        "fitting": {"stiffness": [50.0, 10.0, 2.0], "landmark_weight": [50.0, 10.0, 2.0],
+                    "iterations_per_level": 2, "use_edges": False},
+    })
+
+
+def _cameras_doc(intr, frames, indices, scale: float, units: str) -> dict:
+    return {"intrinsics": intr.to_dict(), "units": units, "metric_scale": 1.0 / scale,
+            "keyframes": [{"frame_index": i, "R": np.asarray(frames[i]["R"]).tolist(),
+                           "t": (np.asarray(frames[i]["t"]) * scale).tolist()}
+                          for i in indices]}
+
+
+def seed_upstream(store_url: str, capture: Path, tmp: Path) -> dict[str, str]:
+    """Store ground-truth pose and coarse artifacts; returns their keys and the video's."""
+    from facecap_core.mvs.testing import coarse_from_gt
+    from facecap_core.synthetic import load_gt_cameras
+    from tasks.runner import ingest, stage_key
+
+    store = ArtifactStore(store_url)
+    intr, frames = load_gt_cameras(capture / "gt" / "cameras.json")
+    video = ingest(store_url, capture / "video.mp4", "video.mp4")
+    poses = tmp / "poses"
+    poses.mkdir()
+    # The pose stage's units are arbitrary: 1/100 of a mm here.
+    (poses / "cameras.json").write_text(json.dumps(
+        _cameras_doc(intr, frames, KEYFRAMES, 0.01, "arbitrary")))
+    keys = {"video": video}
+    keys["poses"] = stage_key("poses", {"video": video}, {"ground_truth": True})
+    store.put(keys["poses"], {"cameras.json": poses / "cameras.json"}, stage="poses",
+              inputs={"video": video}, config={"ground_truth": True}, version="gt")
+    coarse = tmp / "coarse"
+    coarse.mkdir()
+    mesh = load_mesh(capture / "gt" / "mesh.ply")
+    import trimesh
+
+    trimesh.Trimesh(coarse_from_gt(mesh.vertices, mesh.faces, seed=1), mesh.faces,
+                    process=False).export(coarse / "coarse.ply")
+    (coarse / "cameras.json").write_text(json.dumps(
+        _cameras_doc(intr, frames, KEYFRAMES, 1.0, "mm")))
+    save_landmarks(coarse / "landmarks3d.json", load_landmarks(capture / "gt" / "landmarks.json"))
+    (coarse / "ears3d.json").write_text(json.dumps({"vertex_ids": [], "points": []}))
+    keys["coarse"] = stage_key("coarse", {"poses": keys["poses"]}, {"ground_truth": True})
+    store.put(keys["coarse"], {p.name: p for p in coarse.iterdir()}, stage="coarse",
+              inputs={"poses": keys["poses"]}, config={"ground_truth": True}, version="gt")
+    return keys
+
+
+def make_tail_flow():
+    from prefect import flow
+    from prefect.task_runners import ThreadPoolTaskRunner
+
+    from flows.capture import dense_and_fit
+    from tasks.stages import call_stage, frames_task
+
+    @flow(name="tail", task_runner=ThreadPoolTaskRunner(max_workers=2))
+    def tail(store: str, seeded: dict, config: dict, scan: str, scan_landmarks: str) -> dict:
+        cfg = PipelineConfig.model_validate(config)
+        keys = dict(seeded)
+        keys["frames"] = call_stage(frames_task, store, {"video": seeded["video"],
+                                                         "poses": seeded["poses"]}, {}, "t")
+        return dense_and_fit(store, keys, cfg, "t", "evaluation", scan, scan_landmarks)
+
+    return tail
+
+
+def task_states(flow_run_id) -> dict[str, str]:
+    """{task run name: state name} of one flow run."""
+    import asyncio
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+
+    async def read():
+        async with get_client() as client:
+            runs = await client.read_task_runs(
+                flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id])))
+            return {r.name: r.state.name for r in runs}
+
+    import time
+
+    # Task states reach the server asynchronously: wait until every run is final.
+    for _ in range(100):
+        states = asyncio.run(read())
+        if states and all(s not in ("Running", "Pending", "Scheduled") for s in states.values()):
+            return states
+        time.sleep(0.2)
+    return states
+
+
+def run_tail(tail, store_url, seeded, config, capture):
+    state = tail(store_url, seeded, config.model_dump(mode="json"),
+                 str(capture / "gt" / "mesh.ply"), str(capture / "gt" / "landmarks.json"),
+                 return_state=True)
+    keys = state.result()
+    return keys, task_states(state.state_details.flow_run_id)
+
+
+@pytest.fixture(scope="module")
+def first_run(prefect_server, capture, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("flow")
+    store_url = str(tmp / "store")
+    seeded = seed_upstream(store_url, capture, tmp)
+    tail = make_tail_flow()
+    keys, states = run_tail(tail, store_url, seeded, small_config(), capture)
+    return {"store": store_url, "seeded": seeded, "tail": tail, "keys": keys,
+            "states": states}
+
+
+def test_tail_reconstructs_the_capture(first_run, capture):
+    store = ArtifactStore(first_run["store"])
+    keys = first_run["keys"]
+    assert all(state == "Completed" for state in first_run["states"].values())
+    depth = [k for name, k in keys.items() if name.startswith("depth_")]
+    assert len(depth) == len(KEYFRAMES)
+    evaluation = json.loads((store.get(keys["evaluation"]) / "evaluation.json").read_text())
+    # Ground-truth cameras at 320 px: the fitted mesh is within a few mm of the truth.
+    assert evaluation["similarity"]["accuracy"]["median"] < 1.5
+    mesh = load_mesh(store.get(keys["fitting"]) / "mesh.ply")
+    from facecap_core.template import Template
+
+    template = Template.default()
+    assert len(mesh.vertices) == len(template.vertices)
+    assert np.array_equal(mesh.faces, template.faces)
+
+
+def test_rerun_is_all_cached(first_run, capture):
+    store = ArtifactStore(first_run["store"])
+    before = set(store.keys())
+    keys, states = run_tail(first_run["tail"], first_run["store"], first_run["seeded"],
+                            small_config(), capture)
+    assert keys == first_run["keys"]
+    assert set(store.keys()) == before
+    assert states and all(state == "Cached" for state in states.values()), states
+
+
+def test_fusion_change_recomputes_only_fusion_fitting_evaluation(first_run, capture):
+    store = ArtifactStore(first_run["store"])
+    config = small_config()
+    config.mvs.fusion_max_normal_deg = 25.0
+    before = set(store.keys())
+    keys, states = run_tail(first_run["tail"], first_run["store"], first_run["seeded"], config,
+                            capture)
+    new = set(store.keys()) - before
+    assert sorted(k.split("-")[0] for k in new) == ["evaluation", "fitting", "fusion"]
+    recomputed = {name for name, state in states.items() if state != "Cached"}
+    assert all(name.startswith(("fusion", "fitting", "evaluation")) for name in recomputed)
+
+
+def test_lost_depth_maps_are_recomputed_alone(first_run, capture):
+    """A run killed during MVS leaves some depth maps uncommitted: the rerun makes only
+    those (a deleted artifact stands in for one that was never committed)."""
+    store = ArtifactStore(first_run["store"])
+    keys = first_run["keys"]
+    lost = [keys[f"depth_{i:05d}"] for i in KEYFRAMES[2:4]]
+    for key in lost:
+        store.delete(key)
+    new_keys, states = run_tail(first_run["tail"], first_run["store"], first_run["seeded"],
+                                small_config(), capture)
+    assert new_keys == keys
+    recomputed = sorted(name for name, state in states.items() if state != "Cached")
+    assert recomputed == sorted(f"depth[{i}] t" for i in KEYFRAMES[2:4]), states
