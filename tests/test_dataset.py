@@ -1,0 +1,76 @@
+"""Dataset layout: subjects, captures, scans; odd names; nothing outside the root."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facecap_core.dataset import mesh_consistency, scan_dataset
+from facecap_core.errors import InputError
+from flows.evaluate import regressions
+
+
+def _touch(path, data=b"x"):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(data)
+
+
+def test_layout_with_odd_names(tmp_path):
+    _touch(tmp_path / "Zoë Ångström" / "take 1.mp4")
+    _touch(tmp_path / "Zoë Ångström" / "take 2.MOV")
+    _touch(tmp_path / "Zoë Ångström" / "scan.ply")
+    _touch(tmp_path / "Zoë Ångström" / "scan_landmarks.json")
+    _touch(tmp_path / "bob" / "capture.mp4")
+    _touch(tmp_path / "bob" / "notes.txt")
+    _touch(tmp_path / ".hidden" / "x.mp4")
+    entries = scan_dataset(tmp_path)
+    assert [(e.subject, e.capture) for e in entries] == [
+        ("Zoë Ångström", "take 1"), ("Zoë Ångström", "take 2"), ("bob", "capture")]
+    assert entries[2].scan is None and entries[0].scan.name == "scan.ply"
+    assert entries[0].scan_landmarks.name == "scan_landmarks.json"
+    out = entries[0].out_dir(tmp_path / "out")
+    assert out == (tmp_path / "out" / "Zoë Ångström" / "take 1").resolve()
+
+
+def test_links_out_of_the_root_are_refused(tmp_path):
+    outside = tmp_path / "elsewhere"
+    _touch(outside / "secret.mp4")
+    root = tmp_path / "root"
+    _touch(root / "ann" / "a.mp4")
+    (root / "ann" / "b.mp4").symlink_to(outside / "secret.mp4")
+    with pytest.raises(InputError, match="outside the dataset folder"):
+        scan_dataset(root)
+
+
+def test_empty_or_missing_dataset_is_a_clear_error(tmp_path):
+    with pytest.raises(InputError, match="no captures"):
+        scan_dataset(tmp_path)
+    with pytest.raises(InputError, match="not found"):
+        scan_dataset(tmp_path / "nope")
+
+
+def test_consistency_ignores_the_rigid_motion_between_captures():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(500, 3)) * 50
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_euler("xyz", [20, -35, 10], degrees=True).as_matrix()
+    b = a @ R.T + [10.0, -4.0, 300.0]
+    assert mesh_consistency(a, b)["max_mm"] < 1e-9
+    noisy = b + rng.normal(scale=0.1, size=b.shape)
+    figures = mesh_consistency(a, noisy)
+    assert 0.1 < figures["mean_mm"] < 0.2
+    with pytest.raises(InputError, match="vertex count"):
+        mesh_consistency(a, b[:-1])
+
+
+def _score(acc, comp):
+    return {"accuracy": {"median": acc}, "completion": {"median": comp}}
+
+
+def test_regressions_need_both_tolerances():
+    previous = {"a/1": _score(1.0, 1.0), "b/1": _score(0.5, 0.5)}
+    current = {"a/1": _score(1.2, 1.01), "b/1": _score(0.53, 0.5), "c/1": _score(9.0, 9.0)}
+    flagged = regressions(current, previous, tolerance_mm=0.05, tolerance_rel=0.05)
+    assert flagged == [{"capture": "a/1", "measure": "accuracy median", "previous_mm": 1.0,
+                        "now_mm": 1.2}]

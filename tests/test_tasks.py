@@ -1,0 +1,91 @@
+"""The stage runner: content keys, one computation per key under concurrency, atomic
+stores, and which faults are retried."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from facecap_core.errors import FacecapError, InputError
+from facecap_core.store import ArtifactStore, CorruptArtifactError, StoreWriteError
+from tasks.runner import ingest, is_transient, run_stage, stage_key
+
+
+def test_key_depends_on_inputs_config_and_version(monkeypatch):
+    base = stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 1})
+    assert base == stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 1})
+    assert base != stage_key("fusion", {"frames": "input-" + "1" * 32}, {"a": 1})
+    assert base != stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 2})
+    monkeypatch.setitem(__import__("tasks.runner").runner.VERSIONS, "fusion", "2")
+    assert base != stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 1})
+
+
+def test_concurrent_runs_compute_once(tmp_path):
+    store = str(tmp_path / "store")
+    calls = []
+
+    def slow(folders, out: Path, config):
+        calls.append(1)
+        time.sleep(0.5)
+        (out / "result.txt").write_text(str(config["x"]))
+
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(
+        run_stage(store, "fusion", {}, {"x": 7}, slow))) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(calls) == 1
+    assert len({key for key, _ in results}) == 1
+    assert sorted(computed for _, computed in results) == [False, False, True]
+    key = results[0][0]
+    assert (ArtifactStore(store).get(key) / "result.txt").read_text() == "7"
+
+
+def test_a_failed_stage_stores_nothing(tmp_path):
+    store = str(tmp_path / "store")
+
+    def half(folders, out: Path, config):
+        (out / "part.txt").write_text("half")
+        raise InputError("the input is bad")
+
+    with pytest.raises(InputError):
+        run_stage(store, "fusion", {}, {}, half)
+    assert ArtifactStore(store).keys() == []
+
+
+def test_inputs_reach_the_stage_as_folders(tmp_path):
+    store = str(tmp_path / "store")
+    video = tmp_path / "v.mp4"
+    video.write_bytes(b"not really a video")
+    key = ingest(store, video, "video.mp4")
+    assert ingest(store, video, "video.mp4") == key  # content-addressed: same key
+
+    seen = {}
+
+    def body(folders, out: Path, config):
+        seen["bytes"] = (folders["video"] / "video.mp4").read_bytes()
+        (out / "ok").write_text("1")
+
+    run_stage(store, "keyframes", {"video": key}, {}, body)
+    assert seen["bytes"] == b"not really a video"
+    with pytest.raises(InputError, match="not found"):
+        ingest(store, tmp_path / "missing.mp4", "video.mp4")
+
+
+@pytest.mark.parametrize("exc, retried", [
+    (InputError("bad video"), False),
+    (FacecapError("no face"), False),
+    (StoreWriteError("disk full"), True),
+    (CorruptArtifactError("checksum"), True),
+    (ConnectionError("reset"), True),
+    (TimeoutError("slow"), True),
+    (OSError("EIO"), True),
+    (ValueError("bug"), False),
+])
+def test_only_transient_faults_are_retried(exc, retried):
+    assert is_transient(exc) is retried
