@@ -151,9 +151,20 @@ TRANSIENT = (StoreWriteError, CorruptArtifactError, ConnectionError, TimeoutErro
 """Faults worth retrying: the store or the network failed, not the input."""
 
 
+def _network_errors() -> tuple[type[BaseException], ...]:
+    # s3fs surfaces an unreachable endpoint as botocore's own exceptions, which are neither
+    # OSError nor Python's ConnectionError.
+    try:
+        from botocore.exceptions import ConnectionError as BotoConnectionError
+        from botocore.exceptions import HTTPClientError
+    except ImportError:
+        return ()
+    return (BotoConnectionError, HTTPClientError)
+
+
 def is_transient(exc: BaseException) -> bool:
     """Bad input is never retried; store, network and OS faults are."""
-    if isinstance(exc, TRANSIENT):
+    if isinstance(exc, TRANSIENT + _network_errors()):
         return True
     if isinstance(exc, FacecapError):
         return False
