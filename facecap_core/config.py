@@ -16,9 +16,11 @@ from facecap_core.errors import InputError
 
 
 class StrictModel(BaseModel):
-    """Base: unknown keys are errors, values are validated on assignment too."""
+    """Base: unknown keys are errors, values are validated on assignment too, and NaN or
+    infinite numbers are refused (they pass every ``gt``/``le`` bound they meet in a list
+    or an unbounded field)."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class SynthConfig(StrictModel):
@@ -123,7 +125,8 @@ def build(model: type[M], values: dict, source: str = "config") -> M:
     try:
         return model.model_validate(values)
     except ValidationError as exc:
-        raise InputError(f"invalid {source}: {validation_message(exc)}") from None
+        raise InputError(f"invalid {source}: {validation_message(exc)}; correct or remove "
+                         "these settings") from None
 
 
 def load_yaml(model: type[M], path: str | Path, overrides: dict | None = None) -> M:
@@ -195,11 +198,11 @@ class PBAConfig(StrictModel):
     """Inverse-depth samples of that search (log-spaced over the sparse points' range)."""
     min_search_quality: float = Field(1.5, ge=1)
     """A point is kept when its second-best match costs this many times its best."""
-    neighbours: int = Field(4, ge=1, le=15)
+    neighbours: int = Field(6, ge=1, le=15)
     """Each point is compared in this many keyframes before and after its host."""
-    pyramid_levels: int = Field(3, ge=1, le=6)
+    pyramid_levels: int = Field(2, ge=1, le=6)
     """Coarse-to-fine levels (each half the size of the previous)."""
-    iterations: int = Field(12, ge=1, le=200)
+    iterations: int = Field(8, ge=1, le=200)
     """Levenberg–Marquardt iterations per pyramid level."""
     depth_only_iterations: int = Field(2, ge=0)
     """The first iterations of each level move only the inverse depths."""
@@ -211,10 +214,39 @@ class PBAConfig(StrictModel):
     """Residuals above this (grey levels) are dropped: occlusions and highlights."""
     initial_lambda: float = Field(1e-3, gt=0)
     """Initial Levenberg–Marquardt damping."""
-    refine_intrinsics: bool = True
-    """Refine focal length, principal point and k1, k2 with the poses."""
+    refine_intrinsics: bool = False
+    """Refine focal length, principal point and k1, k2 with the poses (off: motion blur
+    biases the photometric focal length; the geometric solution's intrinsics are better)."""
     scale_prior: float = Field(1e8, gt=0)
     """Weight of the prior that fixes the length of the first baseline (the scale gauge)."""
+    points_from_sparse: bool = True
+    """Use the initial reconstruction's points (at their depths) instead of an epipolar
+    search for strong-gradient pixels."""
+    centre_prior_pct: float = Field(0.05, ge=0)
+    """Camera centres are held near the geometric solution's with this standard deviation
+    (% of the mean camera distance from their centroid; 0: free)."""
+    intrinsics_level: int = Field(0, ge=0, le=5)
+    """Intrinsics are held fixed at pyramid levels coarser than this one (coarse levels bias
+    the focal length)."""
+
+
+class PoseConfig(StrictModel):
+    """Camera poses of the keyframes (``facecap_core/pose/stage.py``): pycolmap SfM, our
+    geometric refinement with the LK tracks, then photometric bundle adjustment."""
+
+    sfm_width: int = Field(1280, ge=320, le=8192)
+    """Keyframes are given to SIFT/SfM at most this wide (pixels)."""
+    match_overlap: int = Field(10, ge=1, le=100)
+    """Sequential matching pairs each keyframe with this many following ones."""
+    use_tracks: bool = True
+    """Add the keyframe tracker's LK tracks to the SfM model and re-adjust it with the
+    principal point free (otherwise the SfM result is the geometric solution)."""
+    method: Literal["geometric", "pba"] = "pba"
+    """Final refinement: ``pba`` (photometric bundle adjustment) or ``geometric`` only."""
+    pba: PBAConfig = Field(default_factory=lambda: PBAConfig())
+    """Photometric bundle adjustment settings."""
+    threads: int = Field(2, ge=1, le=256)
+    """Threads for SIFT, matching and mapping."""
 
 
 class FittingConfig(StrictModel):
@@ -366,3 +398,212 @@ class MVSConfig(StrictModel):
 
     workers: int = Field(2, ge=1, le=256)
     """Depth maps computed at once (threads; the kernels release the GIL)."""
+
+
+class LandmarkConfig(StrictModel):
+    """68-point landmarks per keyframe, their gate, and 3D triangulation
+    (``facecap_core/landmarks/stage.py``; Agrawal et al. 2020, "Landmark constraints")."""
+
+    detect_width: int = Field(640, ge=160, le=4096)
+    """The face box is searched at this image width (dlib's HOG detector is slow at full
+    size); the 68 points are then predicted in the full-resolution frame."""
+    upsample: int = Field(0, ge=0, le=3)
+    """Times the detector doubles the image first (finds smaller faces, 4x slower each)."""
+    min_detector_score: float = Field(-0.3, ge=-2, le=3)
+    """Weakest detector score kept at all (dlib's HOG score: about 1-2 frontal, near 0 at
+    55-60 degrees of yaw)."""
+    gate_min_score: float = Field(-0.3, ge=-2, le=3)
+    """Gate: weakest detector score of a keyframe used for the 3D landmarks (on renders,
+    good detections score from -0.2 up: a stricter score gate only loses views)."""
+    gate_max_yaw_deg: float = Field(40.0, gt=0, le=90)
+    """Gate: largest yaw of the camera around the head (from the first triangulation): the
+    detector's points drift along the face outline beyond it."""
+    gate_max_reprojection: float = Field(0.02, gt=0, le=1)
+    """Gate: largest median reprojection error of a keyframe's inner points against the
+    landmarks triangulated from all views, as a fraction of its face box size (the square
+    root of the box area; ~0.005 for a good detection)."""
+    convention_correction: bool = True
+    """Move the triangulated points from the detector's image convention to 3D landmarks on
+    the face (calibrated per-landmark offsets, ``facecap_core/landmarks/convention.py``)."""
+    max_point_spread: float = Field(0.03, gt=0)
+    """A 3D landmark is dropped (null) when its standard deviation along its least certain
+    direction, for the median reprojection error, exceeds this fraction of the eye-centre
+    distance (~2 mm): its inlier views are too alike."""
+    min_views: int = Field(3, ge=2, le=100)
+    """Fewest gated keyframes wanted; with fewer the gate widens to the best-agreeing
+    detections (recorded in landmarks2d.json)."""
+    outlier_threshold: float = Field(0.02, gt=0, le=1)
+    """A view's observation of a point is an outlier above this reprojection error, as a
+    fraction of that view's face box size."""
+    huber: float = Field(0.01, gt=0, le=1)
+    """Huber threshold of the robust refinement, same unit as ``outlier_threshold``."""
+    min_parallax_deg: float = Field(2.0, ge=0, le=45)
+    """Two views start a point's hypothesis only when their rays meet at this angle or more."""
+    ear_min_yaw_deg: float = Field(45.0, ge=0, le=180)
+    """Ears are searched in keyframes at least this far from frontal (profile side) ..."""
+    ear_max_yaw_deg: float = Field(100.0, ge=0, le=180)
+    """... and at most this far."""
+    ear_min_views: int = Field(3, ge=2, le=100)
+    """Fewest keyframes with an ear detection for that ear's points to be triangulated."""
+    ear_outlier_threshold: float = Field(0.1, gt=0, le=1)
+    """An ear point's observation is an outlier above this reprojection error, as a fraction
+    of the ear box diagonal (the ear predictor's error is ~0.05 of it)."""
+    ear_huber: float = Field(0.03, gt=0, le=1)
+    """Huber threshold of the ears' robust refinement, same unit."""
+
+    @model_validator(mode="after")
+    def _check_ranges(self):
+        if self.ear_min_yaw_deg > self.ear_max_yaw_deg:
+            raise ValueError("ear_min_yaw_deg exceeds ear_max_yaw_deg")
+        if self.huber > self.outlier_threshold:
+            raise ValueError("huber must not exceed outlier_threshold")
+        return self
+
+
+class CoarseConfig(StrictModel):
+    """Metric scale and the coarse template fitted to the 3D landmarks
+    (``facecap_core/coarse.py``)."""
+
+    scale_method: Literal["template", "fixed"] = "template"
+    """How millimetres are obtained: ``template``: the scale that makes the 3D landmarks
+    (and ear points) match the template's landmarks at the template's physical size (a
+    population-mean prior); ``fixed``: ``fixed_scale`` (e.g. from a known distance)."""
+    fixed_scale: float = Field(1.0, gt=0)
+    """Millimetres per camera unit with ``scale_method: fixed``."""
+    landmark_size: float = Field(1.0858, gt=0.5, lt=2)
+    """Size of an average face's inner-landmark configuration relative to the template's
+    landmark vertices (robust similarity scale, template mm to mm): the mean over 200 random
+    ICT identities (``benchmarks/bench_landmarks.py --calibrate`` prints it)."""
+    scale_cauchy_mm: float = Field(10.0, gt=0)
+    """Cauchy scale of the robust similarity that measures the landmark configuration's size
+    (template mm; wide: every landmark counts, a stray one does not)."""
+    landmark_size_spread: float = Field(0.05, gt=0, lt=1)
+    """Relative spread of that size over faces (weights the landmark estimate)."""
+    ear_width_size: float = Field(1.0, gt=0.5, lt=2)
+    """Ear-to-ear width of an average head relative to the template's."""
+    ear_width_spread: float = Field(0.05, gt=0, lt=1)
+    """Relative spread of the ear-to-ear width over heads (weights the ear estimate)."""
+    ear_weight: float = Field(1.0, ge=0)
+    """Weight of one ear point against one face landmark in the similarity fit (and a
+    multiplier of the ear estimate's weight in the scale; 0 ignores ears)."""
+    robust_iterations: int = Field(5, ge=0, le=50)
+    """Reweighting rounds of the robust (Cauchy) similarity fit."""
+    robust_scale_mm: float = Field(3.0, gt=0)
+    """Cauchy scale of the robust similarity fit, in template millimetres."""
+    deformation: Literal["rbf", "nicp", "none"] = "rbf"
+    """Landmark-driven deformation after the similarity: a smooth radial-basis displacement
+    field (``rbf``), the landmarks-only optimal-step NICP (``nicp``), or none."""
+    rbf_kernel_mm: float = Field(30.0, gt=0)
+    """Width of the Gaussian displacement kernel of ``rbf`` (large: stiff, global bends)."""
+    rbf_smoothing: float = Field(0.05, ge=0)
+    """Regularisation of ``rbf`` (0: the landmarks are met exactly; larger: stiffer)."""
+    nicp_stiffness: list[float] = Field(default_factory=lambda: [10.0, 5.0, 2.0], min_length=1)
+    """Stiffness levels of ``nicp`` (high: the coarse mesh stays smooth); each level's
+    landmark weight equals its stiffness, as in the fitting stage's schedule."""
+
+
+class EarTrainingConfig(StrictModel):
+    """Training set (renders of ICT identities) and training of the ear detector (dlib HOG)
+    and ear-contour shape predictor (dlib ERT) (``facecap_core/landmarks/ear_training.py``)."""
+
+    ict_model: Path | None = None
+    """ICT Face Model Light ``.npz``; default ``$FACECAP_ICT_MODEL``."""
+    contour_points: int = Field(12, ge=4, le=40)
+    """Points on each ear's outer contour (template vertices, helix root to lobe)."""
+    contour_arc_deg: tuple[float, float] = (130.0, -115.0)
+    """Start and end of the contour as angles around the ear's centre seen from the side
+    (0 = straight back, 90 = up, -90 = down), swept clockwise over the back of the ear."""
+    identities: int = Field(80, ge=1, le=5000)
+    """ICT identities rendered."""
+    first_identity_seed: int = Field(100, ge=2)
+    """Seed of the first identity (seeds 0 and 1 are held out for evaluation)."""
+    identity_sigma: float = Field(1.0, ge=0, le=3)
+    """Spread of the identity coefficients, in model standard deviations."""
+    views_per_identity: int = Field(15, ge=1, le=1000)
+    """Usable views kept per identity (sides drawn at random; right ears are mirrored)."""
+    image_size: int = Field(360, ge=96, le=2048)
+    """Square render size in pixels."""
+    yaw_deg: tuple[float, float] = (30.0, 100.0)
+    """Range of the camera's yaw around the head (0 = frontal, 90 = profile)."""
+    elevation_deg: tuple[float, float] = (-15.0, 20.0)
+    """Range of the camera's elevation above the eye plane."""
+    roll_deg: float = Field(10.0, ge=0, le=45)
+    """Largest camera roll either way."""
+    distance_mm: tuple[float, float] = (300.0, 550.0)
+    """Range of the camera's distance to the head's centre (perspective as in a capture)."""
+    ear_height_px: tuple[float, float] = (75.0, 170.0)
+    """Range of the ear contour's image height; the focal length is set to give it."""
+    min_visible_fraction: float = Field(0.6, ge=0, le=1)
+    """A view is kept when at least this fraction of its contour points is visible."""
+    rooms: int = Field(6, ge=1, le=100)
+    """Random textured rooms (backgrounds) shared among the identities."""
+    box_aspect: float = Field(0.75, gt=0.2, le=2)
+    """Width / height of the ear boxes (fixed: HOG scans one window shape)."""
+    box_padding: float = Field(0.15, ge=0, le=1)
+    """Margin added on each side of the contour's extent, as a fraction of the box height."""
+    detector_window_px: int = Field(80, ge=24, le=256)
+    """Height of the HOG detection window (its width follows ``box_aspect``)."""
+    detector_c: float = Field(5.0, gt=0)
+    """SVM regularisation C of the HOG detector (larger: fits the training set harder)."""
+    detector_epsilon: float = Field(0.01, gt=0)
+    """Stopping tolerance of the detector's SVM solver."""
+    predictor_cascade_depth: int = Field(10, ge=1, le=30)
+    """Cascade levels of the shape predictor."""
+    predictor_tree_depth: int = Field(4, ge=1, le=8)
+    """Depth of each regression tree."""
+    predictor_trees_per_level: int = Field(120, ge=1, le=2000)
+    """Regression trees per cascade level (with the depth, sets the model file's size)."""
+    predictor_nu: float = Field(0.1, gt=0, le=1)
+    """Shrinkage (learning rate) of the tree ensemble."""
+    predictor_oversampling: int = Field(20, ge=1, le=200)
+    """Random initial shapes per training sample."""
+    predictor_translation_jitter: float = Field(0.1, ge=0, le=1)
+    """Random shifts of the training boxes (fraction of the box size): robustness to the
+    detector's box placement."""
+    predictor_feature_pool_size: int = Field(400, ge=10, le=5000)
+    """Pixel samples per cascade level from which split features are drawn."""
+    predictor_test_splits: int = Field(20, ge=1, le=500)
+    """Random splits tried per tree node."""
+    threads: int = Field(2, ge=1, le=256)
+    """Threads for dlib's training."""
+    seed: int = 0
+    """Seed of every random draw (views, rooms, lights, noise, the predictor's trainer)."""
+
+    @model_validator(mode="after")
+    def _check_ranges(self):
+        for name in ("yaw_deg", "elevation_deg", "distance_mm", "ear_height_px"):
+            lo, hi = getattr(self, name)
+            if lo > hi:
+                raise ValueError(f"{name}: lower bound {lo} exceeds upper bound {hi}")
+        if self.contour_arc_deg[0] <= self.contour_arc_deg[1]:
+            raise ValueError("contour_arc_deg: the start angle must exceed the end angle")
+        return self
+
+
+class PipelineConfig(StrictModel):
+    """Every stage's settings for one reconstruction (``facecap reconstruct --config``).
+
+    A YAML file holds any subset: ``{mvs: {iterations: 4}, fitting: {use_edges: false}}``;
+    what it leaves out keeps its default. Each stage's artifact key hashes its own section
+    only, so changing one section recomputes that stage and the ones after it."""
+
+    keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
+    """Tracking and keyframe selection."""
+    poses: PoseConfig = Field(default_factory=PoseConfig)
+    """Camera poses and intrinsics."""
+    landmarks: LandmarkConfig = Field(default_factory=LandmarkConfig)
+    """68-point and ear landmarks, triangulation."""
+    coarse: CoarseConfig = Field(default_factory=CoarseConfig)
+    """Coarse template fit and metric scale."""
+    mvs: MVSConfig = Field(default_factory=MVSConfig)
+    """View selection, depth maps, fusion."""
+    fitting: FittingConfig = Field(default_factory=FittingConfig)
+    """Non-rigid template fitting and texture."""
+
+
+def load_pipeline_config(path: str | Path | None = None, overrides: dict | None = None
+                         ) -> PipelineConfig:
+    """The pipeline config from a YAML file (or the defaults), with ``overrides``."""
+    if path is None:
+        return build(PipelineConfig, overrides or {}, source="pipeline config")
+    return load_yaml(PipelineConfig, path, overrides)

@@ -16,6 +16,7 @@ same keyframes at 30 or 240 fps.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -124,6 +125,7 @@ def select_keyframes(video: str | Path, config: KeyframeConfig | None = None,
     angles: list[float] = []
     prev = None
     frames_read = 0
+    tracked: list[int] = []  # features held in each frame
 
     def make_keyframe(entry):
         keyframes.append(entry)
@@ -144,6 +146,7 @@ def select_keyframes(video: str | Path, config: KeyframeConfig | None = None,
             pts = np.concatenate([pts, new]).astype(np.float32)
             next_id += len(new)
         prev = grey
+        tracked.append(len(pts))
         if not keyframes:
             make_keyframe((frame.index, frame.time, sharpness(grey), ids.copy(), pts.copy(), 0.0))
             continue
@@ -162,6 +165,13 @@ def select_keyframes(video: str | Path, config: KeyframeConfig | None = None,
             recent = [e for e in recent if e[0] > best[0]]
     bar.close()
 
+    if frames_read < config.min_frames:
+        raise InputError(f"{video} has {frames_read} frames; an ear-to-ear capture needs "
+                         f"at least {config.min_frames} (record a slow sweep of several seconds)")
+    if np.median(tracked) < config.min_shared_tracks:
+        raise InputError(f"{video}: too little texture to track (median {np.median(tracked):.0f}"
+                         f" features per frame, need {config.min_shared_tracks}); film a lit, "
+                         "detailed scene, not a blank wall")
     if len(keyframes) < config.min_keyframes:
         raise InputError(f"{video}: only {len(keyframes)} keyframe(s) — the camera barely moves "
                          f"(need {config.min_keyframes}); sweep the phone around the head, "
@@ -174,3 +184,58 @@ def select_keyframes(video: str | Path, config: KeyframeConfig | None = None,
         indices=[e[0] for e in keyframes], times=[e[1] for e in keyframes],
         sharpness=[e[2] for e in keyframes], observations=np.concatenate(rows),
         video_size=(info.width, info.height), frames_read=frames_read, angles_deg=angles)
+
+
+KEYFRAMES_JSON = "keyframes.json"
+TRACKS_NPZ = "keyframe_tracks.npz"
+
+
+def save_keyframes(keyframes: Keyframes, out_dir: str | Path, **meta) -> Path:
+    """``keyframes.json`` (indices, times, sharpness, angles, sizes) and the LK observations
+    in ``keyframe_tracks.npz`` beside it; returns the JSON path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out / TRACKS_NPZ, observations=keyframes.observations)
+    doc = {
+        "frame_indices": [int(i) for i in keyframes.indices],
+        "times": [round(float(x), 6) for x in keyframes.times],
+        "sharpness": [round(float(x), 3) for x in keyframes.sharpness],
+        "angles_deg": [round(float(x), 4) for x in keyframes.angles_deg],
+        "video_size": list(keyframes.video_size),
+        "frames_read": int(keyframes.frames_read),
+        "tracks": TRACKS_NPZ,
+        "observations": "rows (keyframe number, track id, x, y): full-resolution pixels, "
+                        "pixel centres at integer coordinates",
+        **meta,
+    }
+    path = out / KEYFRAMES_JSON
+    path.write_text(json.dumps(doc, indent=1))
+    return path
+
+
+def load_keyframes(path: str | Path) -> Keyframes:
+    """The keyframes written by :func:`save_keyframes`."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"keyframes file not found: {path}; run the keyframe stage first")
+    doc = json.loads(path.read_text())
+    tracks = path.parent / doc.get("tracks", TRACKS_NPZ)
+    if not tracks.is_file():
+        raise InputError(f"{tracks} is missing (written with {path.name}); re-run the keyframe "
+                         "stage")
+    observations = np.load(tracks)["observations"]
+    return Keyframes(indices=doc["frame_indices"], times=doc["times"],
+                     sharpness=doc["sharpness"], observations=observations,
+                     video_size=tuple(doc["video_size"]), frames_read=doc["frames_read"],
+                     angles_deg=doc.get("angles_deg", []))
+
+
+def main(video: str | Path, out_dir: str | Path, config: KeyframeConfig | None = None,
+         progress: bool = False) -> Path:
+    """Select the keyframes of ``video``; writes ``out_dir/keyframes.json`` (+ tracks)."""
+    import time
+
+    start, cpu = time.perf_counter(), time.process_time()
+    keyframes = select_keyframes(video, config, progress)
+    return save_keyframes(keyframes, out_dir, seconds=round(time.perf_counter() - start, 2),
+                          cpu_seconds=round(time.process_time() - cpu, 2))

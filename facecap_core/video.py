@@ -84,6 +84,20 @@ def probe(path: str | Path) -> VideoInfo:
         container.close()
 
 
+def stored_frame_count(path: str | Path) -> int:
+    """Video frames the file really holds: its packets, read without decoding (fast). A
+    file cut short holds fewer than its header's count, which :func:`probe` reports."""
+    path = Path(path)
+    container = _open(path)
+    try:
+        return sum(1 for packet in container.demux(container.streams.video[0]) if packet.size)
+    except Exception as exc:
+        raise InputError(f"{path}: reading stopped ({type(exc).__name__}); the file is damaged "
+                         "or truncated") from None
+    finally:
+        container.close()
+
+
 def processing_size(width: int, height: int, target_width: int | None) -> tuple[int, int]:
     """(w, h) with the aspect ratio kept, at most ``target_width`` wide (no upscaling)."""
     if target_width is None or target_width >= width:

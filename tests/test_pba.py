@@ -43,3 +43,21 @@ def test_kernel_residuals_match_a_direct_warp():
     residuals = np.concatenate(residuals)
     assert stats[1] == 8 * n
     np.testing.assert_allclose(stats[0], np.sum(residuals ** 2), rtol=1e-4)
+
+
+def test_sparse_points_are_hosted_at_their_depth():
+    intr = Intrinsics(320, 240, 300.0, 300.0, 161.2, 118.7, -0.08, 0.02)
+    R = [np.eye(3), rotation_matrix([0.0, 1.0, 0.0], 0.1)]
+    t = [np.zeros(3), np.array([-30.0, 0.0, 2.0])]
+    rng = np.random.default_rng(1)
+    points = np.column_stack([rng.uniform(-80, 80, 40), rng.uniform(-60, 60, 40),
+                              rng.uniform(300, 500, 40)])
+    points[0, 0] = 1e4  # outside every image: dropped
+    hosts = np.array([0, 1] * 20)
+    host, uv, rho = pba._points_from_sparse(points, hosts, R, t, intr, (240, 320))
+    assert len(host) == 39 and set(host) == {0, 1}
+    for k in (0, 1):
+        sel = np.flatnonzero((hosts == k) & (np.arange(40) > 0))
+        expected, z = project(points[sel], R[k], t[k], intr)
+        np.testing.assert_allclose(uv[host == k], np.round(expected))
+        np.testing.assert_allclose(rho[host == k], 1 / z)

@@ -1,13 +1,29 @@
+import json
+
 import numpy as np
 import pytest
 
-from facecap_core.camera import Intrinsics, camera_center, rotation_matrix
-from facecap_core.config import SynthConfig
-from facecap_core.keyframes import select_keyframes
-from facecap_core.pose.colmap_sfm import run_sfm
+from facecap_core.camera import Intrinsics, rotation_matrix
+from facecap_core.config import PoseConfig, SynthConfig
+from facecap_core.keyframes import load_keyframes, main as keyframes_main
+from facecap_core.pose.colmap_sfm import Poses
 from facecap_core.pose.evaluate import pose_errors
+from facecap_core.pose.geometric import triangulate
+from facecap_core.pose.io import write_colmap_text, write_outputs
+from facecap_core.pose.stage import estimate_poses, track_hosts
 from facecap_core.synthetic import load_gt_cameras, synthesize
-from facecap_core.video import read_frames
+
+
+def _ring(n=8, seed=0):
+    """Cameras on an arc looking at the origin, and points around it."""
+    rng = np.random.default_rng(seed)
+    R, t = [], []
+    for a in np.linspace(-0.6, 0.6, n):
+        Rk = rotation_matrix([0, 1, 0], a)
+        R.append(Rk)
+        t.append(np.array([0, 0, 400.0]) - Rk @ np.zeros(3))
+    points = rng.uniform(-60, 60, (50, 3))
+    return R, t, points
 
 
 def test_pose_errors_ignore_a_similarity_of_the_world():
@@ -24,14 +40,85 @@ def test_pose_errors_ignore_a_similarity_of_the_world():
     assert err["rotation_deg"] < 1e-6 and err["centre_pct"] < 1e-6 and err["focal_pct"] == 0
 
 
-def test_sfm_registers_every_keyframe(tmp_path, ict_model):
-    cap = synthesize(SynthConfig(subject="ict:4", ict_model=ict_model, width=640, height=360,
-                                 duration_s=3.0, seed=4), tmp_path / "cap", progress=False)
-    kf = select_keyframes(cap.video)
-    poses = run_sfm(read_frames(cap.video, kf.indices), tmp_path / "sfm", kf.video_size)
-    assert poses.frame_indices == kf.indices
-    intr_gt, gt = load_gt_cameras(cap.gt_cameras)
-    err = pose_errors(poses.R, poses.t, poses.intrinsics, [gt[i]["R"] for i in kf.indices],
-                      [gt[i]["t"] for i in kf.indices], intr_gt)
-    # A geometric starting point, not the final accuracy (that is PBA's job).
-    assert err["rotation_deg"] < 1.0 and err["centre_pct"] < 1.0 and err["focal_pct"] < 3.0
+def test_triangulation_recovers_points_and_rejects_outliers():
+    from facecap_core.camera import project
+
+    R, t, points = _ring()
+    intr = Intrinsics(640, 360, 500, 500, 321.3, 178.2, -0.05, 0.01)
+    rows = []
+    for k in range(len(R)):
+        uv, _ = project(points, R[k], t[k], intr)
+        rows += [(n + 100, k, *uv[n]) for n in range(len(points))]
+    rows = np.array(rows)
+    rows[(rows[:, 0] == 100) & (rows[:, 1] == 3), 2] += 15.0  # a gross error: track dropped
+    X, obs = triangulate(rows, R, t, intr)
+    assert len(X) == len(points) - 1
+    np.testing.assert_allclose(X, points[1:], atol=1e-6)
+    assert set(np.unique(obs[:, 0])) == set(range(len(X)))
+    hosts = track_hosts(obs, len(X))
+    assert np.all(hosts == len(R) // 2)  # the middle of every full-length track
+
+
+def test_colmap_text_model_reads_back(tmp_path):
+    import pycolmap
+
+    from facecap_core.camera import project
+
+    R, t, points = _ring()
+    intr = Intrinsics(640, 360, 500, 500, 321.3, 178.2, -0.05, 0.01)
+    rows = [(n, k, *project(points[n:n + 1], R[k], t[k], intr)[0][0])
+            for k in range(len(R)) for n in range(len(points))]
+    poses = Poses(intr, list(range(0, 80, 10)), R, t, points, 0.0, np.array(rows))
+    rec = pycolmap.Reconstruction(str(write_colmap_text(poses, tmp_path)))
+    assert rec.num_reg_images() == 8 and rec.num_points3D() == 50
+    # Exact cameras and points reproject with no error in COLMAP's own model.
+    assert rec.compute_mean_reprojection_error() < 1e-3
+    assert next(iter(rec.cameras.values())).params[1] == pytest.approx(321.8)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory, ict_model):
+    config = SynthConfig(subject="ict:4", ict_model=ict_model, width=640, height=360,
+                         duration_s=3.0, seed=4)
+    return synthesize(config, tmp_path_factory.mktemp("pose"), progress=False)
+
+
+def test_pose_stage_calibrates_every_keyframe(capture, tmp_path):
+    kf_json = keyframes_main(capture.video, tmp_path / "kf")
+    kf = load_keyframes(kf_json)
+    intr_gt, gt = load_gt_cameras(capture.gt_cameras)
+    steps = estimate_poses(capture.video, kf, tmp_path / "work", PoseConfig(sfm_width=640))
+    errors = {}
+    for name, poses in steps.items():
+        assert poses.frame_indices == kf.indices
+        errors[name] = pose_errors(poses.R, poses.t, poses.intrinsics,
+                                   [gt[i]["R"] for i in kf.indices],
+                                   [gt[i]["t"] for i in kf.indices], intr_gt)
+    assert list(errors) == ["sfm", "geometric", "pba"]
+    # SfM holds the principal point at the image centre (rotations tilt to make up for it);
+    # the long LK tracks with the principal point free find it.
+    assert errors["sfm"]["rotation_deg"] < 1.0 and errors["sfm"]["focal_pct"] < 3.0
+    assert errors["geometric"]["principal_point_px"] < 2.0
+    assert errors["geometric"]["rotation_deg"] < errors["sfm"]["rotation_deg"]
+    assert errors["geometric"]["centre_pct"] < 0.3 and errors["geometric"]["focal_pct"] < 1.0
+    assert errors["pba"]["rotation_deg"] < 0.25 and errors["pba"]["centre_pct"] < 0.3
+
+    # The stage's outputs.
+    path = write_outputs(steps["pba"], tmp_path / "poses")
+    doc = json.loads(path.read_text())
+    assert [k["frame_index"] for k in doc["keyframes"]] == kf.indices
+    sparse = np.load(tmp_path / "poses" / "sparse.npz")
+    assert sparse["points"].shape[1] == 3 and len(sparse["points"]) > 500
+    assert sparse["visibility"].shape == (len(kf.indices), len(sparse["points"]))
+    assert sparse["visibility"].sum(0).min() >= 2
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        assert (tmp_path / "poses" / "colmap" / name).is_file()
+    assert (tmp_path / "poses" / "points.ply").is_file()
+
+
+def test_pose_stage_needs_the_keyframe_stage(tmp_path):
+    from facecap_core.errors import InputError
+    from facecap_core.pose import main as pose_main
+
+    with pytest.raises(InputError, match="run the keyframe stage first"):
+        pose_main(tmp_path / "video.mp4", tmp_path / "kf" / "keyframes.json", tmp_path / "out")

@@ -29,11 +29,24 @@ class Poses:
     t: list[np.ndarray]
     points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # sparse points
     seconds: float = 0.0
+    # Rows (point number, keyframe number in frame_indices, x, y): full-resolution pixels.
+    observations: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+
+    def visibility(self) -> np.ndarray:
+        """(keyframes, points) bool: which keyframe observes which sparse point."""
+        vis = np.zeros((len(self.frame_indices), len(self.points)), bool)
+        obs = self.observations.astype(np.int64)
+        vis[obs[:, 1], obs[:, 0]] = True
+        return vis
 
 
 def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tuple[int, int],
-            overlap: int = 6) -> Poses:
-    """SfM over keyframe images ({video frame index: RGB uint8}, all one size)."""
+            overlap: int = 10, refine_principal_point: bool = False,
+            threads: int = 2) -> Poses:
+    """SfM over keyframe images ({video frame index: RGB uint8}, all one size).
+
+    With the defaults this is what a COLMAP user gets (principal point held at the image
+    centre); sequential matching pairs each keyframe with the next ``overlap``."""
     import time
 
     import pycolmap
@@ -58,7 +71,8 @@ def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tup
     pairing.overlap = overlap
     pycolmap.match_sequential(db, pairing_options=pairing, device=pycolmap.Device.cpu)
     options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = 2
+    options.num_threads = threads
+    options.ba_refine_principal_point = refine_principal_point
     maps = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options)
     if not maps:
         raise FacecapError("structure from motion registered no keyframes: the video has "
@@ -77,6 +91,13 @@ def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tup
         R.append(np.asarray(pose.rotation.matrix()))
         t.append(np.asarray(pose.translation))
         idx.append(names[im.name])
-    pts = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    view_of = {im.image_id: k for k, im in enumerate(order)}
+    pts, rows = [], []
+    for n, point in enumerate(rec.points3D.values()):
+        pts.append(point.xyz)
+        for el in point.track.elements:
+            xy = rec.images[el.image_id].points2D[el.point2D_idx].xy
+            rows.append((n, view_of[el.image_id], xy[0] * sx - 0.5, xy[1] * sy - 0.5))
     rec.write_text(str(work / "sparse"))
-    return Poses(intr, idx, R, t, pts, time.perf_counter() - start)
+    return Poses(intr, idx, R, t, np.array(pts).reshape(-1, 3), time.perf_counter() - start,
+                 np.array(rows, float).reshape(-1, 4))

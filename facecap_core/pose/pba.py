@@ -2,9 +2,10 @@
 
 The method of DSO (Engel et al.), run as a batch over all keyframes:
 
-* **Points**: in every keyframe (the host), the strongest-gradient pixel of each
-  ``cell``×``cell`` block, with an 8-pixel pattern around it; each point has one unknown, its
-  inverse depth along the host ray.
+* **Points**: the initial reconstruction's sparse points, each hosted in the middle keyframe
+  of its track at its depth (default), or in every keyframe the strongest-gradient pixel of
+  each ``cell``×``cell`` block with an epipolar depth search; an 8-pixel pattern around each;
+  one unknown per point, its inverse depth along the host ray.
 * **Residuals**: each pattern pixel is cast along its host ray at the point's inverse depth,
   projected into nearby keyframes (the targets) and compared there:
   ``r = I_t(u_t) - b_t - exp(a_t - a_h) (I_h(u_h) - b_h)``, with a per-keyframe affine
@@ -15,7 +16,8 @@ The method of DSO (Engel et al.), run as a batch over all keyframes:
   the Schur complement (each is a 1×1 block), leaving a small dense system over the camera
   unknowns; coarse to fine over an image pyramid.
 * **Gauge**: the first keyframe's pose and brightness are fixed, and the scale by a prior on
-  the distance between the first two camera centres.
+  the distance between the first two camera centres. Optionally the camera centres are held
+  near the start by a prior, and the intrinsics fixed (see :class:`PBAConfig`).
 
 Distortion is part of the model (rays are undistorted with the current k1, k2), so the
 intrinsics' Jacobians pass through the undistortion by the implicit-function theorem.
@@ -406,45 +408,51 @@ def _full_intrinsics(x: np.ndarray, s: float) -> np.ndarray:
 
 
 def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    if len(uv) == 0:
+        return np.zeros(0, np.float32)
     m = uv.astype(np.float32)
     return cv2.remap(img, m[None, :, 0], m[None, :, 1], cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE)[0]
 
 
-def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsics,
-                                  R: list[np.ndarray], t: list[np.ndarray],
-                                  sparse_points: np.ndarray, config: PBAConfig | None = None,
-                                  progress: bool = False) -> PBAResult:
-    """Refine keyframe poses, intrinsics and distortion photometrically.
+def _points_from_sparse(points, hosts, R, t, intrinsics: Intrinsics, shape):
+    """The initial reconstruction's points, each hosted in its given keyframe at its depth
+    (no search: the geometric solution already knows where they are)."""
+    from facecap_core.camera import project
 
-    ``images``: the keyframes (grey or RGB, at the intrinsics' resolution) in video order;
-    ``R``, ``t``: their initial world-to-camera poses; ``sparse_points``: 3D points of the
-    initial reconstruction, which give the points' initial inverse depths.
-    """
-    config = config or PBAConfig()
-    start = time.perf_counter()
-    greys = [(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im).astype(np.float32)
-             for im in images]
+    h_img, w_img = shape
+    margin = 8
+    host, uv, rho = [], [], []
+    for k in range(len(R)):
+        sel = np.flatnonzero(hosts == k)
+        if len(sel) == 0:
+            continue
+        p, z = project(points[sel], R[k], t[k], intrinsics)
+        p = np.round(p)  # pattern pixels on the host's pixel grid (no host interpolation)
+        ok = ((z > 0) & (p[:, 0] >= margin) & (p[:, 0] < w_img - margin)
+              & (p[:, 1] >= margin) & (p[:, 1] < h_img - margin))
+        if not ok.any():
+            continue
+        # Depth along the host ray of the rounded pixel: the camera-frame z of the point.
+        host.append(np.full(ok.sum(), k))
+        uv.append(p[ok])
+        rho.append(1.0 / z[ok])
+    if not host:
+        return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
+    return (np.concatenate(host).astype(np.int64), np.concatenate(uv).astype(np.float64),
+            np.concatenate(rho))
+
+
+def _points_by_search(greys, pyr, R, t, intr, sparse_points, config: PBAConfig, log):
+    """Strong-gradient pixels with inverse depths from an epipolar search."""
     K = len(greys)
-    levels = config.pyramid_levels
-    pyr = [_pyramid(g, levels) for g in greys]
-    R = [np.asarray(r, float) for r in R]
-    t = [np.asarray(x, float) for x in t]
-    affine = np.zeros((K, 2))
-    intr = np.array([intrinsics.fx, intrinsics.cx, intrinsics.cy, intrinsics.k1, intrinsics.k2])
-    baseline_ref = np.linalg.norm(R[1].T @ t[1] - R[0].T @ t[0])
-    log: list[str] = []
-
-    # Points: strong-gradient pixels; inverse depth by a search along the epipolar lines of
-    # the neighbouring keyframes, within the depth range of the sparse points.
     uvs = [_select_points(greys[k], config.cell, config.min_gradient, margin=8) for k in range(K)]
     host = np.concatenate([np.full(len(u), k) for k, u in enumerate(uvs)]).astype(np.int64)
     uv0 = np.concatenate(uvs)
     depths = np.concatenate([(sparse_points @ R[k].T + t[k])[:, 2] for k in range(K)])
     depths = depths[depths > 0]
     if len(host) == 0 or len(depths) == 0:
-        raise FacecapError("photometric bundle adjustment found no usable points: the "
-                           "keyframes have no texture")
+        return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
     rho_lo = 1.0 / (np.percentile(depths, 99) * 1.5)
     rho_hi = 1.0 / (np.percentile(depths, 1) * 0.7)
     ss = 2.0 ** config.search_level
@@ -461,8 +469,63 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                   nb.typed.List([pyr[k][config.search_level] for k in range(K)]), R_rel, t_rel,
                   _level_intrinsics(intr, ss), rho, quality)
     keep = quality >= config.min_search_quality
-    host, uv0, rho = host[keep], uv0[keep], rho[keep]
     log.append(f"{keep.sum()} of {len(keep)} points kept after the depth search")
+    return host[keep], uv0[keep], rho[keep]
+
+
+def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsics,
+                                  R: list[np.ndarray], t: list[np.ndarray],
+                                  sparse_points: np.ndarray, config: PBAConfig | None = None,
+                                  progress: bool = False,
+                                  sparse_hosts: np.ndarray | None = None,
+                                  centre_prior: bool = False) -> PBAResult:
+    """Refine keyframe poses, intrinsics and distortion photometrically.
+
+    ``images``: the keyframes (grey or RGB, at the intrinsics' resolution) in video order;
+    ``R``, ``t``: their initial world-to-camera poses; ``sparse_points``: 3D points of the
+    initial reconstruction. With ``sparse_hosts`` (a host keyframe per sparse point, -1 for
+    none) and ``config.points_from_sparse``, the points are those sparse points, hosted there
+    at their initial depths; otherwise strong-gradient pixels get their initial inverse depth
+    by a search along the epipolar lines within the sparse points' depth range. With
+    ``centre_prior`` the camera centres are held near their initial positions with a
+    standard deviation of ``config.centre_prior_pct`` of the mean camera distance from their
+    centroid: the photometric cost pins rotations and intrinsics well but lets the chain of
+    centres bend, where a geometric solution with long tracks is already good.
+    """
+    config = config or PBAConfig()
+    start = time.perf_counter()
+    greys = [(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im).astype(np.float32)
+             for im in images]
+    K = len(greys)
+    levels = config.pyramid_levels
+    pyr = [_pyramid(g, levels) for g in greys]
+    R = [np.asarray(r, float) for r in R]
+    t = [np.asarray(x, float) for x in t]
+    affine = np.zeros((K, 2))
+    intr = np.array([intrinsics.fx, intrinsics.cx, intrinsics.cy, intrinsics.k1, intrinsics.k2])
+    baseline_ref = np.linalg.norm(R[1].T @ t[1] - R[0].T @ t[0])
+    log: list[str] = []
+    centres0 = np.array([-r.T @ x for r, x in zip(R, t)])
+    spread = np.linalg.norm(centres0 - centres0.mean(0), axis=1).mean()
+    # One standard deviation of a centre costs as much as one residual at the Huber threshold.
+    w_centre = (config.huber ** 2 / (config.centre_prior_pct / 100 * spread) ** 2
+                if centre_prior and config.centre_prior_pct > 0 else 0.0)
+
+    def prior_cost(R_, t_):
+        if w_centre == 0:
+            return 0.0
+        c = np.array([-r.T @ x for r, x in zip(R_, t_)])
+        return w_centre * float(np.sum((c - centres0) ** 2))
+
+    if config.points_from_sparse and sparse_hosts is not None:
+        host, uv0, rho = _points_from_sparse(sparse_points, sparse_hosts, R, t, intrinsics,
+                                             greys[0].shape)
+        log.append(f"{len(host)} points from the initial reconstruction")
+    else:
+        host, uv0, rho = _points_by_search(greys, pyr, R, t, intr, sparse_points, config, log)
+    if len(host) == 0:
+        raise FacecapError("photometric bundle adjustment found no usable points: the "
+                           "keyframes have no texture")
     tgt = [[k for k in range(max(0, h - config.neighbours), min(K, h + config.neighbours + 1))
             if k != h] for h in host]
     target_start = np.concatenate([[0], np.cumsum([len(x) for x in tgt])]).astype(np.int64)
@@ -511,6 +574,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
         for it in range(config.iterations):
             cams = it >= config.depth_only_iterations
             H, b, Hpp, bpp, Hcp, idx, cost, count = evaluate(R, t, affine, intr, rho, cams)
+            cost_prior = prior_cost(R, t)
             if rms_first is None:
                 rms_first = np.sqrt(cost / max(count, 1))
             if cams:
@@ -521,7 +585,14 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                 sl = slice(N_INTR, N_INTR + 3)
                 H[sl, sl] += config.scale_prior * np.outer(a, a)
                 b[sl] += config.scale_prior * a * (np.linalg.norm(c1 - c0) - baseline_ref)
-                if not config.refine_intrinsics:
+                if w_centre > 0:
+                    # Centre c = -R^T t moves by -R^T v under the increment (v, w).
+                    for k in range(1, K):
+                        sl = slice(N_INTR + N_FRAME * (k - 1), N_INTR + N_FRAME * (k - 1) + 3)
+                        c = -R[k].T @ t[k]
+                        H[sl, sl] += w_centre * np.eye(3)
+                        b[sl] += -w_centre * R[k] @ (c - centres0[k])
+                if not config.refine_intrinsics or level > config.intrinsics_level:
                     H[:N_INTR, :N_INTR] += 1e12 * np.eye(N_INTR)
                 dc = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), b)
                 dcl = np.where(idx >= 0, dc[np.maximum(idx, 0)], 0.0)
@@ -533,7 +604,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                 R2, t2, aff2, intr2 = R, t, affine, intr
             rho2 = np.clip(rho + drho, rho * 0.5, rho * 2.0)
             cost2, count2 = evaluate(R2, t2, aff2, intr2, rho2, False)[6:]
-            accept = cost2 <= cost
+            accept = cost2 + prior_cost(R2, t2) <= cost + cost_prior
             if accept:
                 R, t, affine, intr, rho = R2, t2, aff2, intr2, rho2
                 lam = max(lam / 4, 1e-7)
