@@ -1,0 +1,265 @@
+"""Metric scale and the coarse template: the template placed and bent onto the 3D landmarks.
+
+A monocular reconstruction knows its cameras only up to scale. facecap reports millimetres
+by a **size prior** (see docs/landmarks.md, "Metric scale"):
+
+* the robust similarity from the template's inner landmark vertices (and ear vertices, when
+  ear points exist) to the triangulated landmarks has a scale ``lambda`` (camera units per
+  template millimetre);
+* an average face's landmark configuration is ``landmark_size`` times the template's (a
+  population mean measured once, with the detector's convention: see
+  :class:`~facecap_core.config.CoarseConfig`);
+* so one camera unit is ``landmark_size / lambda`` millimetres. With ear points, the
+  ear-to-ear width against the template's (``ear_width_size``) gives a second estimate;
+  the two are combined by their assumed relative spreads (a weighted geometric mean).
+
+The error of such a prior is the spread of face sizes around the mean (≈ 5 % for the
+landmark configuration over ICT identities); only a metric cue (a known length in view, a
+depth sensor, the phone's motion sensors) removes it — ``scale_method: fixed`` takes one.
+
+The **coarse mesh**: the template, placed by the robust similarity (in mm), then bent by a
+smooth landmark-driven deformation — a Gaussian radial-basis displacement field of the
+landmark residuals (``rbf``, stiff and fast) or the landmarks-only optimal-step NICP
+(``nicp``). It initialises and bounds the depth search of MVS.
+
+:func:`main` writes ``coarse.ply``, ``cameras.json`` (t in mm), ``landmarks3d.json`` (68
+points in mm, the jaw contour from the coarse mesh), ``ears3d.json`` (mm) and
+``coarse.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from facecap_core.config import CoarseConfig
+from facecap_core.errors import InputError
+from facecap_core.template import INNER_LANDMARKS, Template
+
+__all__ = ["main", "weighted_similarity", "robust_similarity", "metric_scale", "rbf_deform",
+           "coarse_mesh"]
+
+
+# --------------------------------------------------------------------------- similarity
+
+
+def weighted_similarity(src: np.ndarray, dst: np.ndarray, weights: np.ndarray,
+                        with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+    """Weighted Umeyama: ``dst ≈ s R src + t`` minimising ``sum w |.|²``; R proper."""
+    w = np.asarray(weights, float)
+    w = w / w.sum()
+    mu_s, mu_d = w @ src, w @ dst
+    xs, xd = src - mu_s, dst - mu_d
+    cov = (xd * w[:, None]).T @ xs
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.ones(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2] = -1.0
+    R = (U * S) @ Vt
+    s = float(np.sum(D * S) / np.sum(w * np.sum(xs * xs, axis=1))) if with_scale else 1.0
+    return s, R, mu_d - s * R @ mu_s
+
+
+def robust_similarity(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None,
+                      iterations: int = 5, cauchy_mm: float = 3.0, with_scale: bool = True
+                      ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Similarity from ``src`` (template, mm) to ``dst`` reweighted by a Cauchy function of
+    the residuals in template millimetres; returns ``s, R, t`` and the final weights."""
+    base = np.ones(len(src)) if weights is None else np.asarray(weights, float)
+    w = base.copy()
+    s, R, t = weighted_similarity(src, dst, w, with_scale)
+    for _ in range(iterations):
+        r = np.linalg.norm(s * src @ R.T + t - dst, axis=1) / s
+        w = base / (1.0 + (r / cauchy_mm) ** 2)
+        s, R, t = weighted_similarity(src, dst, w, with_scale)
+    return s, R, t, w
+
+
+# --------------------------------------------------------------------------- scale
+
+
+def _ear_width(points: np.ndarray, sides: np.ndarray) -> float:
+    return float(np.linalg.norm(points[sides == "left"].mean(0) - points[sides == "right"].mean(0)))
+
+
+def metric_scale(template: Template, landmarks: np.ndarray, ear_ids: np.ndarray,
+                 ear_points: np.ndarray, ear_sides: np.ndarray, config: CoarseConfig) -> dict:
+    """Millimetres per camera unit and how they were obtained (a JSON-ready dict)."""
+    if config.scale_method == "fixed":
+        return {"metric_scale": config.fixed_scale, "method": "fixed",
+                "how": "given (CoarseConfig.fixed_scale)"}
+    inner = INNER_LANDMARKS
+    ok = np.all(np.isfinite(landmarks[inner]), axis=1)
+    src = template.vertices[template.landmarks[inner]][ok]
+    s, _, _, _ = robust_similarity(src, landmarks[inner][ok], None, config.robust_iterations,
+                                   config.scale_cauchy_mm)
+    from_face = config.landmark_size / s
+    doc = {"method": "template", "landmark_similarity_scale": s,
+           "from_landmarks": from_face, "landmarks_used": int(ok.sum())}
+    both = len(ear_ids) and {"left", "right"} <= set(ear_sides.tolist())
+    if both and config.ear_weight > 0:
+        measured = _ear_width(ear_points, ear_sides)
+        reference = _ear_width(template.vertices[ear_ids], ear_sides)
+        from_ears = config.ear_width_size * reference / measured
+        wf, we = 1.0 / config.landmark_size_spread ** 2, \
+            config.ear_weight / config.ear_width_spread ** 2
+        scale = float(np.exp((wf * np.log(from_face) + we * np.log(from_ears)) / (wf + we)))
+        doc.update(from_ears=from_ears, ear_width_units=measured,
+                   template_ear_width_mm=reference, metric_scale=scale,
+                   how="size prior: landmark configuration and ear-to-ear width")
+    else:
+        doc.update(metric_scale=float(from_face),
+                   how="size prior: landmark configuration (no ear points on both sides)")
+    return doc
+
+
+# --------------------------------------------------------------------------- deformation
+
+
+def rbf_deform(vertices: np.ndarray, anchors: np.ndarray, displacements: np.ndarray,
+               kernel_mm: float, smoothing: float, weights: np.ndarray | None = None
+               ) -> np.ndarray:
+    """Displace ``vertices`` by a Gaussian radial-basis field through ``anchors`` (k, 3)
+    with values ``displacements`` (k, 3); ``smoothing`` regularises (0: exact), larger for
+    anchors of small ``weights``."""
+    d2 = np.sum((anchors[:, None] - anchors[None]) ** 2, axis=-1)
+    K = np.exp(-d2 / (2 * kernel_mm ** 2))
+    w = np.ones(len(anchors)) if weights is None else np.maximum(np.asarray(weights), 1e-6)
+    coef = np.linalg.solve(K + np.diag(smoothing / w), displacements)
+    out = np.array(vertices, float)
+    for start in range(0, len(out), 20000):  # bounded memory: 20k × k kernel blocks
+        v = out[start:start + 20000]
+        kv = np.exp(-np.sum((v[:, None] - anchors[None]) ** 2, axis=-1) / (2 * kernel_mm ** 2))
+        out[start:start + 20000] = v + kv @ coef
+    return out
+
+
+def coarse_mesh(template: Template, landmarks_mm: np.ndarray, ear_ids: np.ndarray,
+                ear_points_mm: np.ndarray, config: CoarseConfig) -> tuple[np.ndarray, dict]:
+    """Coarse vertices (template topology, mm) and a report of the fit."""
+    inner = INNER_LANDMARKS
+    ok = np.all(np.isfinite(landmarks_mm[inner]), axis=1)
+    ids = np.r_[template.landmarks[inner][ok], ear_ids].astype(np.int64)
+    targets = np.r_[landmarks_mm[inner][ok], ear_points_mm]
+    base_w = np.r_[np.ones(int(ok.sum())), np.full(len(ear_ids), config.ear_weight)]
+    src = template.vertices[ids]
+    s, R, t, w = robust_similarity(src, targets, base_w, config.robust_iterations,
+                                   config.robust_scale_mm)
+    placed = s * template.vertices @ R.T + t
+    before = np.linalg.norm(placed[ids] - targets, axis=1)
+    if config.deformation == "rbf":
+        V = rbf_deform(placed, placed[ids], targets - placed[ids], config.rbf_kernel_mm,
+                       config.rbf_smoothing, w / np.maximum(base_w, 1e-12))
+    elif config.deformation == "nicp":
+        V = _nicp(template.with_vertices(placed), landmarks_mm, ear_ids, ear_points_mm, config)
+    else:
+        V = placed
+    after = np.linalg.norm(V[ids] - targets, axis=1)
+    report = {"similarity_scale": s, "deformation": config.deformation,
+              "residual_mm_before": _stats(before), "residual_mm_after": _stats(after),
+              "robust_weights_below_half": int(np.sum(w / np.maximum(base_w, 1e-12) < 0.5))}
+    return V, report
+
+
+def _nicp(placed: Template, landmarks_mm, ear_ids, ear_points_mm, config: CoarseConfig):
+    from facecap_core.config import FittingConfig
+    from facecap_core.fitting.nicp import fit
+
+    L = np.array(landmarks_mm, float)
+    L[:17] = placed.landmark_points[:17]  # unused by the fit; keeps the input finite
+    L[~np.all(np.isfinite(L), axis=1)] = placed.landmark_points[~np.all(np.isfinite(L), axis=1)]
+    fit_config = FittingConfig(stiffness=list(config.nicp_stiffness),
+                               landmark_weight=list(config.nicp_stiffness),
+                               use_cloud=False, use_edges=False, texture=False,
+                               initial_similarity=False)
+    ears = (ear_ids, ear_points_mm) if len(ear_ids) else None
+    return fit(placed, None, L, ear_points=ears, config=fit_config).vertices
+
+
+def _stats(d: np.ndarray) -> dict:
+    d = np.asarray(d, float)
+    if not d.size:
+        return {}
+    return {"mean": float(d.mean()), "median": float(np.median(d)), "max": float(d.max())}
+
+
+# --------------------------------------------------------------------------- main
+
+
+def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Path,
+         template: Template | None = None, config: CoarseConfig | None = None) -> Path:
+    """Metric scale + coarse template. Reads ``landmarks3d.json`` (and ``ears3d.json``) from
+    ``landmarks_dir``; writes ``coarse.ply``, ``cameras.json``, ``landmarks3d.json``,
+    ``ears3d.json`` and ``coarse.json`` into ``out_dir``; returns the path of
+    ``coarse.ply``."""
+    from facecap_core.landmarks.stage import (
+        EAR_TEMPLATE, load_cameras, load_ears3d, load_landmarks3d,
+    )
+
+    config = config or CoarseConfig()
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
+    landmarks_dir = Path(landmarks_dir)
+    L, _ = load_landmarks3d(landmarks_dir / "landmarks3d.json")
+    if np.sum(np.all(np.isfinite(L[INNER_LANDMARKS]), axis=1)) < 6:
+        raise InputError(f"{landmarks_dir / 'landmarks3d.json'} has fewer than 6 inner "
+                         "landmarks in 3D: the coarse template needs the face's landmarks")
+    ear_ids, ear_pts, ear_doc = load_ears3d(landmarks_dir / "ears3d.json")
+    ear_sides = np.asarray(ear_doc.get("sides", []), dtype=object).astype(str)
+    template = template or Template.default()
+    ears_ignored = False
+    if len(ear_ids) and ear_doc.get("template", EAR_TEMPLATE) != template.name:
+        # Ear vertex ids belong to one template's topology.
+        ear_ids, ear_pts, ear_sides, ears_ignored = (np.zeros(0, np.int64), np.zeros((0, 3)),
+                                                     np.zeros(0, str), True)
+    if len(ear_ids) and ear_ids.max() >= len(template.vertices):
+        raise InputError(f"ears3d.json names vertex {ear_ids.max()} of a "
+                         f"{len(template.vertices)}-vertex template")
+    cams = load_cameras(cameras_json)
+
+    scale_doc = metric_scale(template, L, ear_ids, ear_pts, ear_sides, config)
+    m = float(scale_doc["metric_scale"])
+    L_mm, ears_mm = L * m, ear_pts * m
+    V, fit_doc = coarse_mesh(template, L_mm, ear_ids, ears_mm, config)
+    L_out = L_mm.copy()
+    missing = ~np.all(np.isfinite(L_out), axis=1)
+    L_out[missing] = V[template.landmarks[missing]]  # the jaw contour from the coarse mesh
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ply = out / "coarse.ply"
+    tmp = out / "coarse.ply.part"
+    tmp.write_bytes(trimesh.exchange.ply.export_ply(
+        trimesh.Trimesh(V, template.faces, process=False), encoding="binary"))
+    tmp.replace(ply)
+    cam_doc = dict(cams.doc)
+    cam_doc["units"] = "mm"
+    cam_doc["metric_scale"] = m
+    cam_doc["keyframes"] = [{**k, "t": (np.asarray(k["t"], float) * m).tolist()}
+                            for k in cams.doc["keyframes"]]
+    _write(out / "cameras.json", cam_doc)
+    _write(out / "landmarks3d.json", {
+        "convention": "ibug68", "units": "mm", "template": template.name,
+        "from_coarse_mesh": np.flatnonzero(missing).tolist(),
+        "landmarks": np.round(L_out, 6).tolist()})
+    _write(out / "ears3d.json", {"template": template.name, "units": "mm",
+                                 "vertex_ids": ear_ids.tolist(),
+                                 "points": np.round(ears_mm, 6).tolist(),
+                                 "sides": ear_sides.tolist()})
+    _write(out / "coarse.json", {
+        "scale": scale_doc, "fit": fit_doc, "ears_used": int(len(ear_ids)),
+        "ears_ignored_other_template": ears_ignored, "template": template.name,
+        "config": config.model_dump(mode="json"),
+        "seconds": {"wall": round(time.perf_counter() - t_wall, 3),
+                    "cpu": round(time.process_time() - t_cpu, 3)}})
+    return ply
+
+
+def _write(path: Path, doc: dict) -> Path:
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(json.dumps(doc, indent=1))
+    tmp.replace(path)
+    return path

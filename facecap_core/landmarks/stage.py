@@ -1,0 +1,434 @@
+"""The landmark stage: 68 landmarks per keyframe, a confidence gate, and 3D landmarks.
+
+:func:`main` runs, for the keyframes of a ``cameras.json`` (``facecap_core/pose/io.py``):
+
+1. **Detection**: dlib's HOG face box at ``detect_width``, the 68-point ERT predictor at full
+   resolution, on every keyframe (:func:`facecap_core.landmarks.detect_68`).
+2. **First triangulation** of all 68 points from every detection (robust,
+   :mod:`.triangulate`). It gives the head frame (:func:`facecap_core.template.head_frame`),
+   hence each keyframe's **yaw** around the head — for every keyframe, detected or not — and
+   each detection's **agreement**: the median reprojection error of its inner points against
+   the landmarks triangulated from all views, relative to the face box size.
+3. **Gate** (the paper: high-confidence, near-frontal frames): detector score, |yaw| and
+   agreement within the :class:`~facecap_core.config.LandmarkConfig` limits.
+4. **3D landmarks**: the 51 inner points (iBUG 17–67; the jaw contour 0–16 depends on the
+   view and is left out, as in the paper) triangulated from the gated keyframes, then moved
+   from the detector's image convention to 3D landmarks on the face
+   (:mod:`.convention`, when ``convention_correction``).
+5. **Ears**, when :mod:`facecap_core.landmarks.ears` and its model are installed: each
+   profile-side keyframe (``ear_min_yaw_deg`` ≤ |yaw| ≤ ``ear_max_yaw_deg``) looks for the
+   ear that faces its camera (+yaw: the subject's left), and each ear's contour points are
+   triangulated over the keyframes that found it.
+
+Outputs (``out_dir``): ``landmarks2d.json``, ``landmarks3d.json`` (camera units; the jaw
+contour and any inner point too uncertain to keep — ``max_point_spread`` — are null),
+``ears3d.json`` (possibly empty). Coordinates are full-resolution pixels of the
+cameras' intrinsics (video frames of another size are mapped to it).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from facecap_core.camera import Intrinsics, camera_center
+from facecap_core.config import LandmarkConfig
+from facecap_core.errors import InputError
+from facecap_core.landmarks import Detection, detect_68
+from facecap_core.landmarks.convention import (
+    correct, eye_distance, load_offsets, robust_head_frame,
+)
+from facecap_core.landmarks.triangulate import Triangulation, triangulate
+from facecap_core.template import INNER_LANDMARKS
+
+log = logging.getLogger(__name__)
+
+__all__ = ["main", "Cameras", "load_cameras", "load_landmarks3d", "load_ears3d",
+           "camera_yaw_pitch_deg", "write_gt_keyframe_cameras", "robust_head_frame"]
+
+EAR_TEMPLATE = "menpo3d-bfm"  # the template whose vertex ids ears3d.json refers to
+
+
+# --------------------------------------------------------------------------- cameras
+
+
+@dataclass
+class Cameras:
+    """Keyframe cameras of a ``cameras.json``: intrinsics, frame indices, world-to-camera
+    poses, and the document itself (units, metadata)."""
+
+    intrinsics: Intrinsics
+    frame_indices: list[int]
+    R: np.ndarray  # (K, 3, 3)
+    t: np.ndarray  # (K, 3)
+    doc: dict
+
+    @property
+    def units(self) -> str:
+        return str(self.doc.get("units", "camera units"))
+
+
+def load_cameras(path: str | Path) -> Cameras:
+    """Read a ``cameras.json`` as written by :func:`facecap_core.pose.io.write_cameras_json`."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"cameras file not found: {path} (run the pose stage first)")
+    try:
+        doc = json.loads(path.read_text())
+        intr = Intrinsics.from_dict(doc["intrinsics"])
+        frames = doc["keyframes"]
+        indices = [int(k["frame_index"]) for k in frames]
+        R = np.array([k["R"] for k in frames], float).reshape(-1, 3, 3)
+        t = np.array([k["t"] for k in frames], float).reshape(-1, 3)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path} is not a facecap cameras.json ({type(exc).__name__}: {exc}); "
+                         "expected intrinsics and keyframes with frame_index, R, t") from None
+    if not len(indices):
+        raise InputError(f"{path} lists no keyframes")
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        raise InputError(f"{path} holds non-finite camera poses")
+    return Cameras(intr, indices, R, t, doc)
+
+
+def write_gt_keyframe_cameras(gt_cameras: str | Path, out_path: str | Path,
+                              frame_indices: list[int] | None = None, step: int = 8,
+                              scale: float = 1.0, rotation: np.ndarray | None = None,
+                              translation: np.ndarray | None = None) -> Path:
+    """Convert a synthetic capture's ``gt/cameras.json`` (one pose per video frame) into a
+    keyframe ``cameras.json``, in the world ``x' = scale * rotation @ x + translation``.
+
+    Keyframes are ``frame_indices`` or every ``step``-th frame. The transformed world proves
+    that a stage relies neither on the ground-truth frame nor on its millimetres.
+    """
+    from facecap_core.synthetic import load_gt_cameras
+
+    intr, poses = load_gt_cameras(gt_cameras)
+    Q = np.eye(3) if rotation is None else np.asarray(rotation, float)
+    d = np.zeros(3) if translation is None else np.asarray(translation, float)
+    wanted = set(frame_indices) if frame_indices is not None else None
+    keyframes = []
+    for p in poses:
+        i = int(p["index"])
+        if (wanted is not None and i not in wanted) or (wanted is None and i % step):
+            continue
+        # x_cam' = scale * x_cam = R Q^T (x' - d) + scale * t
+        R = p["R"] @ Q.T
+        keyframes.append({"frame_index": i, "R": R.tolist(),
+                          "t": (scale * p["t"] - R @ d).tolist()})
+    doc = {"convention": "world-to-camera x_cam = R x_world + t (OpenCV); pixel centres at "
+                         "integer coordinates; distortion RADIAL (k1, k2) on normalised "
+                         "coordinates",
+           "units": "arbitrary (ground truth in a transformed world)",
+           "intrinsics": intr.to_dict(), "keyframes": keyframes,
+           "world_from_gt": {"scale": scale, "rotation": Q.tolist(), "translation": d.tolist()}}
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1))
+    return out
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def camera_yaw_pitch_deg(head_R: np.ndarray, head_origin: np.ndarray, R: np.ndarray,
+                         t: np.ndarray) -> tuple[float, float]:
+    """Yaw (+: towards the subject's left) and pitch (+: from above) of a camera around the
+    head, in degrees; 0, 0 is straight in front of the face."""
+    c = head_R @ (camera_center(R, t) - head_origin)
+    return (float(np.degrees(np.arctan2(c[0], c[2]))),
+            float(np.degrees(np.arctan2(c[1], np.hypot(c[0], c[2])))))
+
+
+def _box_size(box) -> float:
+    left, top, right, bottom = box
+    return float(np.sqrt(max(right - left, 1) * max(bottom - top, 1)))
+
+
+def _box_diagonal(box) -> float:
+    left, top, right, bottom = box
+    return float(np.hypot(right - left, bottom - top))
+
+
+def _to_intrinsics(points: np.ndarray, image_shape, intr: Intrinsics) -> np.ndarray:
+    """Pixels of a decoded frame to pixels of the intrinsics' resolution."""
+    h, w = image_shape[:2]
+    if (w, h) == (intr.width, intr.height):
+        return np.asarray(points, float)
+    s = np.array([intr.width / w, intr.height / h])
+    return (np.asarray(points, float) + 0.5) * s - 0.5
+
+
+# --------------------------------------------------------------------------- detection
+
+
+def detect_keyframes(video: str | Path, cams: Cameras, config: LandmarkConfig
+                     ) -> list[Detection | None]:
+    """One :class:`Detection` (points at the intrinsics' resolution) or None per keyframe."""
+    from facecap_core.video import iter_frames
+
+    found: dict[int, Detection | None] = {}
+    for frame in iter_frames(video, indices=cams.frame_indices):
+        det = detect_68(frame.image, config.upsample, config.detect_width,
+                        config.min_detector_score)
+        if det is not None:
+            pts = _to_intrinsics(det.points, frame.image.shape, cams.intrinsics)
+            box = _to_intrinsics(np.reshape(det.box, (2, 2)), frame.image.shape,
+                                 cams.intrinsics).ravel()
+            det = Detection(pts, det.score, tuple(float(b) for b in box), det.view)
+        found[frame.index] = det
+    missing = [i for i in cams.frame_indices if i not in found]
+    if missing:
+        raise InputError(f"{video} has no frames {missing[:5]}{'...' if len(missing) > 5 else ''}"
+                         " that the cameras list: the video and cameras.json do not belong "
+                         "together")
+    return [found[i] for i in cams.frame_indices]
+
+
+def _ear_module():
+    """The ear module when it and its trained model are installed, else None."""
+    import importlib
+
+    try:
+        ears = importlib.import_module("facecap_core.landmarks.ears")
+    except ModuleNotFoundError as exc:
+        if exc.name == "facecap_core.landmarks.ears":
+            return None
+        raise
+    return ears if ears.model_available() else None
+
+
+# --------------------------------------------------------------------------- main
+
+
+def _observations(dets: list[Detection | None], ids: np.ndarray, points: np.ndarray):
+    """(V, P, 2) observations of the landmarks ``points`` over the views ``ids``."""
+    uv = np.full((len(ids), len(points), 2), np.nan)
+    for k, v in enumerate(ids):
+        uv[k] = dets[v].points[points]
+    return uv
+
+
+def _triangulate_faces(dets, views, points, cams: Cameras, config: LandmarkConfig,
+                       min_views: int = 2) -> Triangulation:
+    views = np.asarray(views, int)
+    size = np.array([_box_size(dets[v].box) for v in views])
+    return triangulate(_observations(dets, views, points), cams.R[views], cams.t[views],
+                       cams.intrinsics, config.outlier_threshold * size, config.huber * size,
+                       min_views, config.min_parallax_deg)
+
+
+def _gate(records: list[dict], config: LandmarkConfig) -> tuple[list[int], bool]:
+    """Keyframe positions that pass the gate, and whether it had to be widened."""
+    detected = [k for k, r in enumerate(records) if r["detected"]]
+    passed = [k for k in detected
+              if records[k]["score"] >= config.gate_min_score
+              and abs(records[k]["yaw_deg"]) <= config.gate_max_yaw_deg
+              and records[k]["reprojection_rel"] <= config.gate_max_reprojection]
+    if len(passed) >= min(config.min_views, len(detected)):
+        return passed, False
+    # Too few: the best-agreeing detections, nearest to frontal first among equals.
+    order = sorted(detected, key=lambda k: (records[k]["reprojection_rel"],
+                                            abs(records[k]["yaw_deg"])))
+    return sorted(order[:max(config.min_views, 2)]), True
+
+
+def _detect_ears(video, cams: Cameras, records: list[dict], ears, config: LandmarkConfig):
+    """Ear detections of the profile-side keyframes: {side: [(keyframe position, det)]}."""
+    from facecap_core.video import iter_frames
+
+    side_of = {}
+    for k, r in enumerate(records):
+        if config.ear_min_yaw_deg <= abs(r["yaw_deg"]) <= config.ear_max_yaw_deg:
+            side_of[cams.frame_indices[k]] = (k, "left" if r["yaw_deg"] > 0 else "right")
+    found: dict[str, list] = {"left": [], "right": []}
+    for frame in iter_frames(video, indices=list(side_of)):
+        k, side = side_of[frame.index]
+        det = ears.detect_ears(frame.image, side)
+        if det is None:
+            continue
+        pts = _to_intrinsics(det.points, frame.image.shape, cams.intrinsics)
+        box = _to_intrinsics(np.reshape(det.box, (2, 2)), frame.image.shape,
+                             cams.intrinsics).ravel()
+        found[side].append((k, pts, float(det.score), tuple(float(b) for b in box)))
+        records[k]["ears"].append({"side": side, "score": float(det.score),
+                                   "box": [round(float(b), 2) for b in box],
+                                   "points": np.round(pts, 3).tolist()})
+    return found
+
+
+def triangulate_ears(found: dict[str, list], cams: Cameras, vertex_ids: dict[str, np.ndarray],
+                     config: LandmarkConfig) -> dict:
+    """Triangulate each ear's contour points; returns the ears3d.json document."""
+    ids, points, sides, views = [], [], [], {}
+    for side, obs in found.items():
+        views[side] = len(obs)
+        if len(obs) < config.ear_min_views:
+            continue
+        k = np.array([o[0] for o in obs])
+        uv = np.stack([o[1] for o in obs])
+        diag = np.array([_box_diagonal(o[3]) for o in obs])
+        tri = triangulate(uv, cams.R[k], cams.t[k], cams.intrinsics,
+                          config.ear_outlier_threshold * diag, config.ear_huber * diag, 2,
+                          config.min_parallax_deg)
+        ok = np.all(np.isfinite(tri.points), axis=1)
+        ids += np.asarray(vertex_ids[side])[ok].astype(int).tolist()
+        points += tri.points[ok].tolist()
+        sides += [side] * int(ok.sum())
+    return {"template": EAR_TEMPLATE, "units": cams.units, "vertex_ids": ids,
+            "points": points, "sides": sides, "views": views}
+
+
+def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
+         config: LandmarkConfig | None = None) -> Path:
+    """Detect 68 landmarks on every keyframe of ``cameras_json``, score and gate them,
+    triangulate the inner points (robustly) and the ear points when the ear model is
+    installed. Writes ``landmarks2d.json``, ``landmarks3d.json`` and ``ears3d.json`` into
+    ``out_dir``; returns the path of ``landmarks3d.json``."""
+    config = config or LandmarkConfig()
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
+    cams = load_cameras(cameras_json)
+    dets = detect_keyframes(video, cams, config)
+    n = len(dets)
+    detected = [k for k, d in enumerate(dets) if d is not None]
+    if not detected:
+        raise InputError(f"no face was detected in any of {n} keyframes: the video must show "
+                         "a face, frontally lit and unoccluded, from the front as well as the "
+                         "sides")
+    if len(detected) < 2:
+        raise InputError(f"a face was detected in only 1 of {n} keyframes; 3D landmarks need "
+                         "two or more: film the face from the front and both sides")
+    t_detect = time.process_time() - t_cpu
+
+    # First triangulation (all 68, all detections): head frame, yaw and agreement.
+    first = _triangulate_faces(dets, detected, np.arange(68), cams, config)
+    if not np.all(np.isfinite(first.points[np.r_[27, 36:48, 57]])):
+        raise InputError(f"the face landmarks of {len(detected)} of {n} keyframes do not agree "
+                         "in 3D: the cameras do not fit the video, or the face moved")
+    head_R, head_o = robust_head_frame(first.points)
+    inner = INNER_LANDMARKS
+    records = []
+    for k, det in enumerate(dets):
+        yaw, pitch = camera_yaw_pitch_deg(head_R, head_o, cams.R[k], cams.t[k])
+        rec = {"frame_index": cams.frame_indices[k], "detected": det is not None,
+               "yaw_deg": round(yaw, 2), "pitch_deg": round(pitch, 2), "ears": []}
+        if det is not None:
+            v = detected.index(k)
+            err = first.errors[v, inner]
+            med = float(np.nanmedian(err)) if np.isfinite(err).any() else float("inf")
+            rec.update(score=round(det.score, 4), detector_view=det.view,
+                       box=[round(b, 2) for b in det.box],
+                       points=np.round(det.points, 3).tolist(),
+                       reprojection_px=round(med, 3),
+                       reprojection_rel=round(med / _box_size(det.box), 5))
+        records.append(rec)
+
+    gated, widened = _gate(records, config)
+    for k, rec in enumerate(records):
+        rec["gated"] = k in gated
+    final = _triangulate_faces(dets, gated, inner, cams, config)
+    triangulated = np.full((68, 3), np.nan)
+    triangulated[inner] = final.points
+    if np.sum(np.all(np.isfinite(triangulated[inner]), axis=1)) < len(inner) // 2:
+        raise InputError(f"the landmarks of the {len(gated)} confident keyframes do not "
+                         "triangulate: the cameras do not fit the video")
+    # Head frame and eye distance from the final inner points (as in the calibration), a
+    # missing one from the first pass.
+    frame_from = triangulated.copy()
+    lost = inner[~np.all(np.isfinite(triangulated[inner]), axis=1)]
+    frame_from[lost] = first.points[lost]
+    landmarks, correction = triangulated.copy(), None
+    if config.convention_correction:
+        offsets, correction = load_offsets()
+        landmarks = correct(triangulated, offsets, frame_from)
+    # A point whose inlier views barely differ in direction is uncertain along their rays
+    # (a brow end seen from one side only): the coarse template stands in for it.
+    noise_px = float(np.nanmedian(final.errors[final.inliers])) if final.inliers.any() else 1.0
+    spread = final.spread(noise_px) / eye_distance(frame_from)
+    uncertain = inner[~(spread <= config.max_point_spread)]
+    landmarks[uncertain] = np.nan
+
+    ears_doc = {"template": EAR_TEMPLATE, "units": cams.units, "vertex_ids": [],
+                "points": [], "sides": [], "views": {}}
+    ears = _ear_module()
+    if ears is not None:
+        found = _detect_ears(video, cams, records, ears, config)
+        ears_doc = triangulate_ears(found, cams, ears.EAR_VERTEX_IDS, config)
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    errs = final.errors[final.inliers]
+    doc2d = {"image_size": [cams.intrinsics.width, cams.intrinsics.height],
+             "detector": "dlib HOG face detector + 68-point ERT predictor (iBUG 300-W)",
+             "ear_model": ears is not None, "gate_widened": widened,
+             "config": config.model_dump(mode="json"), "keyframes": records}
+    _write_json(out / "landmarks2d.json", doc2d)
+    _write_json(out / "ears3d.json", ears_doc)
+    doc3d = {"convention": "ibug68", "units": cams.units,
+             "landmarks": [None if not np.all(np.isfinite(p)) else [round(float(x), 6)
+                                                                     for x in p]
+                           for p in landmarks],
+             "convention_correction": correction,
+             "triangulated": [None if not np.all(np.isfinite(p)) else [round(float(x), 6)
+                                                                        for x in p]
+                              for p in triangulated],
+             "views": [cams.frame_indices[k] for k in gated],
+             "dropped_uncertain": uncertain.tolist(),
+             "spread_rel": [None] * 17 + [round(float(x), 5) if np.isfinite(x) else None
+                                          for x in spread],
+             "inlier_views": [int(v) for v in np.r_[np.zeros(17, int), final.views]],
+             "reprojection_px": {"median": float(np.median(errs)) if errs.size else None,
+                                 "rms": float(np.sqrt(np.mean(errs ** 2))) if errs.size
+                                 else None},
+             "head_frame": {"R": head_R.tolist(), "origin": head_o.tolist()},
+             "detected": len(detected), "keyframes": n,
+             "seconds": {"wall": round(time.perf_counter() - t_wall, 3),
+                         "cpu": round(time.process_time() - t_cpu, 3),
+                         "cpu_detection": round(t_detect, 3)}}
+    return _write_json(out / "landmarks3d.json", doc3d)
+
+
+def _write_json(path: Path, doc: dict) -> Path:
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(json.dumps(doc, indent=1))
+    tmp.replace(path)
+    return path
+
+
+# --------------------------------------------------------------------------- readers
+
+
+def load_landmarks3d(path: str | Path) -> tuple[np.ndarray, dict]:
+    """(68, 3) points (NaN where null) and the document of a ``landmarks3d.json``."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"3D landmark file not found: {path} (run the landmark stage first)")
+    try:
+        doc = json.loads(path.read_text())
+        pts = np.array([[np.nan] * 3 if p is None else p for p in doc["landmarks"]], float)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path} is not a landmarks3d.json ({type(exc).__name__})") from None
+    if pts.shape != (68, 3):
+        raise InputError(f"{path} holds {pts.shape} landmarks; expected 68 3D points")
+    return pts, doc
+
+
+def load_ears3d(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Vertex ids (k,), points (k, 3) and the document of an ``ears3d.json`` (empty when
+    the file is missing)."""
+    path = Path(path)
+    if not path.is_file():
+        return np.zeros(0, np.int64), np.zeros((0, 3)), {"vertex_ids": [], "points": []}
+    try:
+        doc = json.loads(path.read_text())
+        ids = np.asarray(doc["vertex_ids"], np.int64).reshape(-1)
+        pts = np.asarray(doc["points"], float).reshape(-1, 3)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path} is not an ears3d.json ({type(exc).__name__})") from None
+    if len(ids) != len(pts):
+        raise InputError(f"{path}: {len(ids)} vertex ids for {len(pts)} points")
+    return ids, pts, doc

@@ -1,0 +1,131 @@
+"""Coarse template and metric scale (issue 4): robust similarity, the RBF deformation, the
+size prior, and the stage's files, against an ICT identity as ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from facecap_core import coarse
+from facecap_core.camera import rotation_matrix
+from facecap_core.config import CoarseConfig
+from facecap_core.errors import InputError
+from facecap_core.evaluation import distances
+from facecap_core.landmarks.stage import load_cameras
+from facecap_core.meshio import load_landmarks, load_mesh
+from facecap_core.template import INNER_LANDMARKS, Template
+
+
+def test_robust_similarity_ignores_outliers():
+    rng = np.random.default_rng(0)
+    src = rng.normal(0, 40, (51, 3))
+    R = rotation_matrix([1.0, 2.0, 0.5], 0.8)
+    dst = 0.02 * src @ R.T + [1.0, -2.0, 3.0]
+    dst[:6] += rng.normal(0, 0.5, (6, 3))  # 6 of 51 points 25 template-mm off
+    s, R_est, t, w = coarse.robust_similarity(src, dst, iterations=10, cauchy_mm=2.0)
+    assert s == pytest.approx(0.02, rel=2e-3) and np.allclose(R_est, R, atol=2e-3)
+    assert np.all(w[:6] < 0.05) and np.all(w[6:] > 0.8)
+    s_plain, _, _ = coarse.weighted_similarity(src, dst, np.ones(51))
+    assert abs(s_plain - 0.02) > 10 * abs(s - 0.02)
+
+
+def test_rbf_meets_anchors_and_leaves_far_vertices():
+    rng = np.random.default_rng(1)
+    anchors = rng.normal(0, 20, (10, 3))
+    disp = rng.normal(0, 2, (10, 3))
+    far = np.array([[400.0, 0.0, 0.0]])
+    out = coarse.rbf_deform(np.r_[anchors, far], anchors, disp, kernel_mm=30.0, smoothing=0.0)
+    assert np.allclose(out[:10], anchors + disp, atol=1e-6)
+    assert np.allclose(out[10], far[0], atol=1e-9)
+    stiff = coarse.rbf_deform(anchors, anchors, disp, kernel_mm=30.0, smoothing=5.0)
+    assert np.all(np.linalg.norm(stiff - anchors - disp, axis=1).mean() > 0.3)
+
+
+@pytest.fixture(scope="module")
+def template():
+    return Template.default()
+
+
+@pytest.fixture(scope="module")
+def subject(ict_model):
+    """An ICT identity's skin (mm) and 68 landmarks."""
+    coeffs = np.random.default_rng([21, 1]).standard_normal(100)
+    s = Template.from_ict(ict_model, coeffs)
+    return s.vertices, s.faces, s.landmark_points
+
+
+def test_size_prior_gives_millimetres(template):
+    """Landmarks of a face of exactly the prior's size in a world of unknown scale: the
+    estimate is that scale; ears on both sides refine it by the ear-to-ear width."""
+    config = CoarseConfig()
+    truth_mm_per_unit = 37.0
+    rot = rotation_matrix([0.1, 1.0, 0.0], 1.1)
+    face = template.landmark_points * config.landmark_size
+    L = (face @ rot.T + 5.0) / truth_mm_per_unit
+    L[:17] = np.nan
+    none = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, str)
+    doc = coarse.metric_scale(template, L, *none, config)
+    assert doc["metric_scale"] == pytest.approx(truth_mm_per_unit, rel=1e-6)
+    # Ears 5 % wider than the template's pull the estimate up by half of that (equal spreads).
+    ids = np.array([100, 200, 300, 400])
+    sides = np.array(["left", "left", "right", "right"])
+    ear_pts = (1.05 * template.vertices[ids] @ rot.T + 5.0) / truth_mm_per_unit
+    doc = coarse.metric_scale(template, L, ids, ear_pts, sides, config)
+    assert doc["from_ears"] == pytest.approx(truth_mm_per_unit / 1.05, rel=1e-6)
+    assert doc["metric_scale"] == pytest.approx(truth_mm_per_unit / 1.05 ** 0.5, rel=1e-6)
+    fixed = coarse.metric_scale(template, L, *none, CoarseConfig(scale_method="fixed",
+                                                                 fixed_scale=2.5))
+    assert fixed["metric_scale"] == 2.5
+
+
+def _write_inputs(folder, landmarks_units, mm_per_unit):
+    folder.mkdir(parents=True, exist_ok=True)
+    L = [None if not np.all(np.isfinite(p)) else p.tolist() for p in landmarks_units]
+    (folder / "landmarks3d.json").write_text(json.dumps({"landmarks": L, "units": "arbitrary"}))
+    cams = {"intrinsics": {"width": 640, "height": 360, "fx": 500.0, "fy": 500.0, "cx": 320.0,
+                           "cy": 180.0, "k1": 0.0, "k2": 0.0}, "units": "arbitrary",
+            "keyframes": [{"frame_index": 3, "R": np.eye(3).tolist(),
+                           "t": [0.0, 0.0, 400.0 / mm_per_unit]}]}
+    (folder / "cameras.json").write_text(json.dumps(cams))
+    return folder / "cameras.json"
+
+
+def test_coarse_stage_writes_a_metric_mesh_on_the_landmarks(template, subject, tmp_path):
+    V, F, Lmm = subject
+    mm_per_unit = 40.0
+    L = Lmm / mm_per_unit
+    L[:17] = np.nan  # the landmark stage leaves the jaw contour out
+    cams = _write_inputs(tmp_path / "lm", L, mm_per_unit)
+    ply = coarse.main(tmp_path / "lm", cams, tmp_path / "coarse", template)
+    mesh = load_mesh(ply)
+    assert len(mesh.vertices) == len(template.vertices)
+    assert np.array_equal(np.asarray(mesh.faces), template.faces)
+    doc = json.loads((tmp_path / "coarse" / "coarse.json").read_text())
+    m = doc["scale"]["metric_scale"]
+    # The prior's error is this identity's size against the average face (a few %).
+    assert m == pytest.approx(mm_per_unit, rel=0.08)
+    out_cams = load_cameras(tmp_path / "coarse" / "cameras.json")
+    assert out_cams.units == "mm" and out_cams.doc["metric_scale"] == m
+    assert np.allclose(out_cams.t[0], [0, 0, 400.0 / mm_per_unit * m])
+    lm = load_landmarks(tmp_path / "coarse" / "landmarks3d.json")  # all 68 finite
+    assert np.allclose(lm[INNER_LANDMARKS], L[INNER_LANDMARKS] * m)
+    # In the metric world (up to the scale error), the coarse mesh's face lies near the
+    # subject's skin; the inner landmark vertices near their targets.
+    Vm = mesh.vertices * (mm_per_unit / m)
+    face = template.regions["face"]
+    near = np.linalg.norm(Vm - Lmm[30], axis=1) < 60
+    d = np.abs(distances(Vm[face & near], V, F))
+    assert np.median(d) < 2.5, np.median(d)
+    fit = doc["fit"]
+    assert fit["residual_mm_after"]["median"] < fit["residual_mm_before"]["median"]
+
+
+def test_coarse_needs_landmarks(template, tmp_path):
+    L = np.full((68, 3), np.nan)
+    cams = _write_inputs(tmp_path / "lm", L, 1.0)
+    with pytest.raises(InputError, match="fewer than 6 inner landmarks"):
+        coarse.main(tmp_path / "lm", cams, tmp_path / "out", template)
+    with pytest.raises(InputError, match="not found"):
+        coarse.main(tmp_path / "nothing", cams, tmp_path / "out", template)
