@@ -12,9 +12,18 @@ import numpy as np
 
 
 def _slug(text: str) -> str:
-    # Artifact keys: lowercase letters, digits and dashes only.
-    out = "".join(c if c.isalnum() else "-" for c in text.lower())
-    return "-".join(p for p in out.split("-") if p)[:80] or "capture"
+    # Artifact keys: lowercase ASCII letters, digits and dashes only. Accents are dropped
+    # ("Zoë" -> "zoe"); a name that loses characters gets a hash of itself, so that two
+    # captures whose names differ only there keep apart.
+    import hashlib
+    import unicodedata
+
+    plain = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode()
+    out = "".join(c if c.isalnum() else "-" for c in plain.lower())
+    slug = "-".join(p for p in out.split("-") if p)[:80] or "capture"
+    if not text.isascii():
+        slug = f"{slug[:71]}-{hashlib.sha256(text.encode()).hexdigest()[:8]}"
+    return slug
 
 
 def png_data_uri(path: Path, max_width: int = 960) -> str:
@@ -34,9 +43,17 @@ def mesh_preview(mesh_path: Path, out_png: Path) -> Path:
     from facecap_core.evaluation import error_heatmap
     from facecap_core.meshio import load_mesh
 
+    from facecap_core.template import Template, head_frame
+
     mesh = load_mesh(mesh_path, "mesh")
-    nan = np.full(len(mesh.vertices), np.nan)
-    return error_heatmap(mesh.vertices, mesh.faces, nan, out_png, size=320)
+    vertices = np.asarray(mesh.vertices, float)
+    template = Template.default()
+    if len(vertices) == len(template.vertices):
+        # The reconstruction's world frame is the cameras'; turn the face to the viewer.
+        R, origin = head_frame(vertices[template.landmarks])
+        vertices = (vertices - origin) @ R.T
+    nan = np.full(len(vertices), np.nan)
+    return error_heatmap(vertices, mesh.faces, nan, out_png, size=320)
 
 
 def stage_rows(report: dict) -> list[dict]:
