@@ -33,6 +33,16 @@ MENPO3D_SHA256 = "96ad2c8b55b74e026cdc190cf6b1564ad7c8e6c53976cf897d6a1bf4940f08
 MENPO3D_FILES = (
     "template.ply", "template.ljson", "james.obj", "james.obj.mtl", "james.jpg", "james.ljson",
 )
+MENPO3D_FILE_SHA256 = {
+    "template.ply": "2c9898e9582ac2fd76131e5757f063315cbe8781ffbd036e2bb5f1bd1fa8215e",
+    "template.ljson": "15d5af3e496d10a71306d9a5d41b3ef0bbf1d603a2aee0fc723a17c9284395fd",
+    "james.obj": "80cb729b6a751b25794d9d571668ff3c022f111119b307dd93dc8fbed6eed110",
+    "james.obj.mtl": "90aa99e8d939fa6e9849e15c7b39a3364b8814a494a7fe59baca0484104c9ca4",
+    "james.jpg": "829589c076a9cb7b8904b08cc0b301a01e75d6096bf2ca01ed7a8e9d4a615a77",
+    "james.ljson": "02a9e32271c47db90ec51ec0027eb302b68e52f974d6b2856a3f7e55b13b0ee2",
+}
+"""sha256 of each unpacked file: a cached copy damaged later (disk fault, an edit) is
+refused instead of silently changing every reconstruction."""
 
 
 def facecap_home() -> Path:
@@ -64,6 +74,11 @@ def menpo3d_data() -> Path:
     """Folder holding the menpo3d data files (fetched and verified on first use)."""
     target = facecap_home() / "assets" / "menpo3d-0.8.6"
     if all((target / name).is_file() for name in MENPO3D_FILES):
+        for name in MENPO3D_FILES:  # ~70 ms for the 5 MB
+            if file_digest(target / name) != MENPO3D_FILE_SHA256[name]:
+                raise FacecapError(
+                    f"the asset {target / name} is damaged (its sha256 is not the pinned one); "
+                    f"delete {target} and run `facecap assets` to fetch it again")
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent) as tmp:

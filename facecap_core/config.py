@@ -133,14 +133,15 @@ def load_yaml(model: type[M], path: str | Path, overrides: dict | None = None) -
     """Read a YAML config (``{}`` for an empty file) and apply ``overrides`` on top."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"config file not found: {path}")
+        raise InputError(f"config file not found: {path}; check the path")
     try:
         values = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as exc:
-        raise InputError(f"config file {path} is not valid YAML ({str(exc).splitlines()[0]})"
-                         ) from None
+        raise InputError(f"config file {path} is not valid YAML ({str(exc).splitlines()[0]});"
+                         " fix its syntax") from None
     if not isinstance(values, dict):
-        raise InputError(f"config file {path} must hold a mapping of settings")
+        raise InputError(f"config file {path} must hold a mapping of settings, such as "
+                         "'mvs: {iterations: 4}'")
     return build(model, {**values, **(overrides or {})}, source=f"config {path}")
 
 
@@ -493,9 +494,9 @@ class CoarseConfig(StrictModel):
     deformation: Literal["rbf", "nicp", "none"] = "rbf"
     """Landmark-driven deformation after the similarity: a smooth radial-basis displacement
     field (``rbf``), the landmarks-only optimal-step NICP (``nicp``), or none."""
-    rbf_kernel_mm: float = Field(30.0, gt=0)
+    rbf_kernel_mm: float = Field(60.0, gt=0)
     """Width of the Gaussian displacement kernel of ``rbf`` (large: stiff, global bends)."""
-    rbf_smoothing: float = Field(0.05, ge=0)
+    rbf_smoothing: float = Field(0.3, ge=0)
     """Regularisation of ``rbf`` (0: the landmarks are met exactly; larger: stiffer)."""
     nicp_stiffness: list[float] = Field(default_factory=lambda: [10.0, 5.0, 2.0], min_length=1)
     """Stiffness levels of ``nicp`` (high: the coarse mesh stays smooth); each level's
@@ -535,6 +536,8 @@ class EarTrainingConfig(StrictModel):
     """Range of the ear contour's image height; the focal length is set to give it."""
     min_visible_fraction: float = Field(0.6, ge=0, le=1)
     """A view is kept when at least this fraction of its contour points is visible."""
+    hair_probability: float = Field(0.6, ge=0, le=1)
+    """Fraction of views with hair painted around the ears (random hairline, colour)."""
     rooms: int = Field(6, ge=1, le=100)
     """Random textured rooms (backgrounds) shared among the identities."""
     box_aspect: float = Field(0.75, gt=0.2, le=2)
@@ -543,7 +546,7 @@ class EarTrainingConfig(StrictModel):
     """Margin added on each side of the contour's extent, as a fraction of the box height."""
     detector_window_px: int = Field(80, ge=24, le=256)
     """Height of the HOG detection window (its width follows ``box_aspect``)."""
-    detector_c: float = Field(5.0, gt=0)
+    detector_c: float = Field(30.0, gt=0)
     """SVM regularisation C of the HOG detector (larger: fits the training set harder)."""
     detector_epsilon: float = Field(0.01, gt=0)
     """Stopping tolerance of the detector's SVM solver."""

@@ -63,7 +63,7 @@ def scan_dataset(root: str | Path) -> list[CaptureEntry]:
     """Every capture under ``root`` (sorted by subject, capture)."""
     root = Path(root)
     if not root.is_dir():
-        raise InputError(f"dataset folder not found: {root}")
+        raise InputError(f"dataset folder not found: {root}; check the path")
     entries = []
     for subject in _visible(root):
         if not subject.is_dir():

@@ -8,14 +8,22 @@ stage whose key is already in the store does not need to run again.
 Layout under the store root (a local folder or any fsspec URL)::
 
     <root>/artifacts/<key>/manifest.json    commit marker: checksums, inputs, config, meta
-    <root>/artifacts/<key>/<file name>      the artifact's files, sub-folders allowed
+    <root>/artifacts/<key>/<file name>      local backend: the artifact's files (sub-folders
+                                            allowed)
+    <root>/artifacts/<key>/<writer>/<file name>   remote backends: the files, in the folder of
+                                            the writer that committed them (``w-<uuid4>``,
+                                            named by the manifest's ``folder``)
     <root>/.tmp/<uuid4>/                    local backend only: writes in progress
 
 ``manifest.json`` is written last and is the commit marker: an artifact exists only once
 its manifest does, and readers trust nothing in a folder without one. On the local backend
 the whole artifact is first written to ``.tmp/<uuid4>/`` and then renamed into place in one
-atomic step. Object stores such as S3 have no atomic rename, so there the files are uploaded
-to their final place first and the manifest after them.
+atomic step. Object stores such as S3 have no atomic rename, so there each writer uploads
+the files into a folder of its own, then commits the manifest create-only (S3's
+``If-None-Match: *``): of two writers of one key (two hosts), the first manifest wins, the
+other writer removes its own folder and returns the winner's manifest. A writer that dies
+midway leaves only its own folder, which no manifest names: it is never read and never
+touches a committed artifact.
 
 Backends
     * A local folder, the default: a plain path (``/data/store``, ``relative/dir``) or a
@@ -72,6 +80,7 @@ CHUNK_SIZE = 1024 * 1024  # 1 MiB: keeps memory flat when hashing or copying lar
 KEY_DIGEST_LENGTH = 32  # 128 bits of sha256 is plenty to avoid collisions, and keeps paths short
 
 _STAGE_PATTERN = re.compile(r"[a-z0-9_]+")
+_WRITER_PATTERN = re.compile(r"w-[0-9a-f]{32}")
 _KEY_PATTERN = re.compile(r"([a-z0-9_]+)-[0-9a-f]{%d}" % KEY_DIGEST_LENGTH)
 
 # What put() accepts for one file: its bytes, a path to copy, or an open binary file.
@@ -108,6 +117,9 @@ class Manifest(BaseModel):
     files: dict[str, FileEntry]
     created: str  # ISO-8601 UTC; a string so that a manifest round-trips through JSON unchanged
     meta: dict[str, Any] = Field(default_factory=dict)
+    folder: str | None = None
+    """Remote stores: the writer's sub-folder of the artifact folder that holds the files;
+    None where the files lie in the artifact folder itself (the local backend)."""
 
 
 # --------------------------------------------------------------------------- keys
@@ -373,8 +385,13 @@ class ArtifactStore:
     def _artifact_path(self, key: str) -> str:
         return f"{self._root}/artifacts/{key}"
 
-    def _file_path(self, key: str, name: str) -> str:
-        return f"{self._artifact_path(key)}/{name}"
+    def _file_path(self, key: str, name: str, folder: str | None = None) -> str:
+        """Where a file lies: in the artifact folder, or in a writer's folder inside it."""
+        base = self._artifact_path(key)
+        return f"{base}/{folder}/{name}" if folder else f"{base}/{name}"
+
+    def _stored_path(self, manifest: Manifest, name: str) -> str:
+        return self._file_path(manifest.key, name, manifest.folder)
 
     def _manifest_path(self, key: str) -> str:
         return self._file_path(key, MANIFEST_NAME)
@@ -404,6 +421,9 @@ class ArtifactStore:
             raise self._corrupt(key, MANIFEST_NAME, "is not a valid manifest") from exc
         if manifest.key != key:
             raise self._corrupt(key, MANIFEST_NAME, f"belongs to artifact {manifest.key}")
+        if manifest.folder is not None and not _WRITER_PATTERN.fullmatch(manifest.folder):
+            # The folder becomes part of a path: nothing but a writer's name may be there.
+            raise self._corrupt(key, MANIFEST_NAME, f"names an invalid folder {manifest.folder!r}")
         return manifest
 
     def read_bytes(self, key: str, name: str, verify: bool = True) -> bytes:
@@ -411,7 +431,7 @@ class ArtifactStore:
         manifest = self.manifest(key)
         entry = self._entry(manifest, name)
         try:
-            data = self._fs.cat_file(self._file_path(key, name))
+            data = self._fs.cat_file(self._stored_path(manifest, name))
         except FileNotFoundError:
             raise self._corrupt(key, name, "is missing") from None
         if verify:
@@ -425,7 +445,7 @@ class ArtifactStore:
         """Check every file of an artifact against its manifest; CorruptArtifactError if not."""
         manifest = self.manifest(key)
         for name, entry in manifest.files.items():
-            problem = self._stored_file_problem(key, name, entry)
+            problem = self._stored_file_problem(manifest, name, entry)
             if problem:
                 raise self._corrupt(key, name, problem)
 
@@ -534,10 +554,11 @@ class ArtifactStore:
             )
         return entry
 
-    def _stored_file_problem(self, key: str, name: str, entry: FileEntry) -> str | None:
+    def _stored_file_problem(self, manifest: Manifest, name: str,
+                             entry: FileEntry) -> str | None:
         """How a stored file differs from its manifest entry, or None if it matches."""
         try:
-            with self._fs.open(self._file_path(key, name), "rb") as stored:
+            with self._fs.open(self._stored_path(manifest, name), "rb") as stored:
                 return _mismatch(_hash_stream(stored), entry)
         except FileNotFoundError:
             return "is missing"
@@ -607,28 +628,49 @@ class ArtifactStore:
         files: Mapping[str, FileSource],
         make_manifest: Callable[[dict[str, FileEntry]], Manifest],
     ) -> Manifest:
-        """Upload files to their final place, then the manifest, which commits them."""
+        """Upload the files into a folder of this writer's own, then commit the manifest
+        create-only; a writer that loses the race removes its folder and returns the
+        winner's manifest."""
+        folder = f"w-{uuid.uuid4().hex}"
         try:
             try:
                 entries = {}
                 for name, source in files.items():
-                    with self._fs.open(self._file_path(key, name), "wb") as target:
+                    with self._fs.open(self._file_path(key, name, folder), "wb") as target:
                         entries[name] = _copy_hashing(_source_chunks(name, source), target)
-                manifest = make_manifest(entries)
-                self._fs.pipe_file(self._manifest_path(key), _manifest_bytes(manifest))
+                manifest = make_manifest(entries).model_copy(update={"folder": folder})
+                committed = self._commit_manifest(key, manifest)
             except OSError as exc:
                 raise self._write_error(key, self.url, exc) from exc
         except BaseException:
-            self._remove_uncommitted(key)
+            self._remove_writer_folder(key, folder)
             raise
-        return manifest
+        if committed is not manifest:
+            self._remove_writer_folder(key, folder)
+        return committed
 
-    def _remove_uncommitted(self, key: str) -> None:
-        """Best-effort removal of files a failed remote put left without a manifest."""
+    def _commit_manifest(self, key: str, manifest: Manifest) -> Manifest:
+        """Write the manifest unless one exists; returns the manifest that is committed."""
+        path = self._manifest_path(key)
         try:
-            # A concurrent writer may have committed the same key meanwhile: leave it alone.
-            if not self._fs.exists(self._manifest_path(key)):
-                self._fs.rm(self._artifact_path(key), recursive=True)
+            self._fs.pipe_file(path, _manifest_bytes(manifest), mode="create")
+            return manifest
+        except OSError as exc:
+            # FileExistsError where the backend says so; S3 servers that report a failed
+            # If-None-Match differently land here too. Either way: who holds the key now?
+            self._fs.invalidate_cache(path)
+            try:
+                existing = self.manifest(key)
+            except ArtifactNotFoundError:
+                raise exc from None  # no manifest: the write itself failed
+            if existing.folder == manifest.folder:
+                return manifest  # ours: the request succeeded, its answer was lost and retried
+            return existing
+
+    def _remove_writer_folder(self, key: str, folder: str) -> None:
+        """Best-effort removal of one writer's uploads (never another writer's files)."""
+        try:
+            self._fs.rm(f"{self._artifact_path(key)}/{folder}", recursive=True)
         except Exception:  # noqa: BLE001 - cleanup must not hide the original error
             pass
 
@@ -665,7 +707,7 @@ class ArtifactStore:
             try:
                 temp_folder.mkdir(parents=True)
                 for name, entry in manifest.files.items():
-                    actual = self._download_file(key, name, temp_folder / name)
+                    actual = self._download_file(manifest, name, temp_folder / name)
                     problem = _mismatch(actual, entry) if verify else None
                     if problem:
                         raise self._corrupt(key, name, problem)
@@ -678,9 +720,10 @@ class ArtifactStore:
             shutil.rmtree(temp_folder, ignore_errors=True)
         return destination
 
-    def _download_file(self, key: str, name: str, target_path: Path) -> FileEntry:
+    def _download_file(self, manifest: Manifest, name: str, target_path: Path) -> FileEntry:
+        key = manifest.key
         try:
-            remote = self._fs.open(self._file_path(key, name), "rb")
+            remote = self._fs.open(self._stored_path(manifest, name), "rb")
         except FileNotFoundError:
             raise self._corrupt(key, name, "is missing") from None
         with remote:

@@ -119,9 +119,7 @@ def reconstruct_capture(video: str, out: str, config: str | None = None,
     """
     logger = get_run_logger()
     start = time.perf_counter()
-    if not Path(video).is_file():
-        raise InputError(f"video not found: {video}")
-    cfg: PipelineConfig = load_pipeline_config(config)
+    cfg = preflight(video, config, scan, scan_landmarks, out)
     store = store or default_store_url()
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -192,6 +190,83 @@ def _publish(report: dict, out: Path, label: str) -> None:
     from flows.ui import publish_capture
 
     publish_capture(report, out, label)
+
+
+MIN_VIDEO_SIDE_PX = 120
+"""Shortest video side accepted: below it a face is too few pixels to find landmarks on."""
+MAX_VIDEO_SIDE_PX = 8192
+"""Longest video side accepted (8K); the stages work on downscaled frames, but the keyframe
+images are kept at full resolution."""
+
+
+def preflight(video: str | Path, config: str | Path | None = None, scan: str | None = None,
+              scan_landmarks: str | None = None, out: str | Path | None = None
+              ) -> PipelineConfig:
+    """Checks that need no stage: the files exist, the video decodes and is long and large
+    enough, the config is valid, the output folder is writable. Run before anything is
+    started so bad input fails in a second with one line."""
+    from facecap_core.video import probe, stored_frame_count
+
+    if not Path(video).is_file():
+        raise InputError(f"video not found: {video}; check the path")
+    info = probe(video)
+    stored = stored_frame_count(video)
+    if stored <= 1:
+        raise InputError(f"{video} is a single image ({info.codec}), not a video; give the "
+                         "capture's video file")
+    if info.frame_count and stored < info.frame_count:
+        raise InputError(f"{video} is truncated: it holds {stored} of its {info.frame_count} "
+                         "frames; copy the whole file again")
+    cfg = load_pipeline_config(config)
+    size = f"{info.width}x{info.height}"
+    if min(info.width, info.height) < MIN_VIDEO_SIDE_PX:
+        raise InputError(f"{video} is {size} pixels, too small to find a face in; record at "
+                         f"least {MIN_VIDEO_SIDE_PX} pixels on the short side (720p or more)")
+    if max(info.width, info.height) > MAX_VIDEO_SIDE_PX:
+        raise InputError(f"{video} is {size} pixels, larger than 8K ({MAX_VIDEO_SIDE_PX}); "
+                         "record at 8K or less (4K is plenty)")
+    if stored < cfg.keyframes.min_frames:
+        raise InputError(f"{video} has {stored} frames; an ear-to-ear capture needs "
+                         f"at least {cfg.keyframes.min_frames} (record a slow sweep of several "
+                         "seconds)")
+    for what, path in (("scan", scan), ("scan landmarks", scan_landmarks)):
+        if path and not Path(path).is_file():
+            raise InputError(f"{what} not found: {path}")
+    if scan and not scan_landmarks:
+        raise InputError(f"scan {scan} needs its 68 3D landmarks (--scan-landmarks) to cut the "
+                         "face region it is scored on")
+    from facecap_core import assets
+
+    assets.default_template_files()  # fetched once; a damaged copy fails here, not at fitting
+    if out is not None:
+        check_output_folder(Path(out))
+    return cfg
+
+
+def as_user_sees_it(message: str, video: str | Path) -> str:
+    """A stage's message with the store's copy of the video named as the user gave it
+    (stages read the video from the artifact store, so they name the stored copy)."""
+    import re
+
+    stored = re.compile(r"\S*/input-[0-9a-f]{32}/video\.mp4")
+    return " ".join(stored.sub(lambda _: str(video), message).split())
+
+
+def check_output_folder(folder: Path) -> None:
+    """Create the output folder if needed and write a scratch file into it."""
+    import tempfile
+
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"the output folder {folder} is a file; give the path of a folder "
+                         "(--out)")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        raise InputError(f"cannot write to the output folder {folder} ({reason}); choose a "
+                         "writable folder with free space (--out)") from None
 
 
 def dense_and_fit(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str,

@@ -77,13 +77,62 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
-def _prefect_env() -> None:
-    """Defaults for running flows on the embedded server of a 2-core machine."""
+def _prefect_defaults() -> None:
+    """Defaults for running flows on the embedded server of a 2-core machine. Prefect reads
+    its settings when it is first imported, so :func:`main` sets them before anything else."""
     import os
 
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
-    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    # No PREFECT_LOGGING_LEVEL: the UI keeps every log line; the console is quieted by its
+    # handlers (see _quiet_console).
+
+
+def _prefect_env(console_level: str = "WARNING") -> None:
+    """Quiet consoles for a command that runs flows."""
+    import os
+
+    _prefect_defaults()
+    # COLMAP (pose stage) logs through glog straight to stderr; its failures reach the user
+    # as the pose stage's one-line message.
+    os.environ.setdefault("GLOG_minloglevel", "3")
+    if "pycolmap" in sys.modules:  # already loaded: glog read its environment then
+        sys.modules["pycolmap"].logging.minloglevel = int(os.environ["GLOG_minloglevel"])
+    _quiet_console(console_level)
+
+
+def _quiet_console(level: str = "WARNING") -> None:
+    """Bad input is reported once, as one line, by :func:`main`: keep Prefect's console
+    handler from also printing its traceback or the failed state that carries it, and
+    below ``level`` from printing at all (the UI and the API logs still get everything).
+    Prefect is imported before the environment defaults are set, so the handlers are set
+    here rather than through ``PREFECT_LOGGING_LEVEL``."""
+    import logging
+    import re
+
+    from prefect.logging.configuration import setup_logging
+    from prefect.logging.handlers import PrefectConsoleHandler
+
+    setup_logging()
+
+    def facecap_errors(cls=FacecapError) -> set[str]:
+        return {cls.__name__}.union(*(facecap_errors(sub) for sub in cls.__subclasses__()))
+
+    def not_bad_input(record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        if isinstance(exc, FacecapError):
+            return False
+        # "Finished in state Failed('Task run encountered an exception InputError: ...')"
+        failed = re.search(r"encountered an exception (\w+):", record.getMessage())
+        return not (failed and failed.group(1) in facecap_errors())
+
+    loggers = [logging.getLogger()] + [logging.getLogger(name) for name in
+                                       logging.Logger.manager.loggerDict]
+    for logger in loggers:
+        for handler in logger.handlers:
+            if isinstance(handler, PrefectConsoleHandler):
+                handler.addFilter(not_bad_input)
+                handler.setLevel(max(handler.level, logging.getLevelName(level)))
 
 
 def _print_report(report: dict, out: Path) -> None:
@@ -108,6 +157,9 @@ def _print_report(report: dict, out: Path) -> None:
 
 
 def _cmd_reconstruct(args) -> int:
+    from flows.capture import preflight
+
+    preflight(args.video, args.config, args.scan, args.scan_landmarks, args.out)
     _prefect_env()
     from flows.capture import reconstruct_capture
 
@@ -119,6 +171,11 @@ def _cmd_reconstruct(args) -> int:
 
 
 def _cmd_dataset(args) -> int:
+    from facecap_core.dataset import scan_dataset
+    from flows.capture import check_output_folder
+
+    scan_dataset(args.root)  # a bad dataset folder fails here, before any flow starts
+    check_output_folder(Path(args.out))
     _prefect_env()
     from flows.dataset import reconstruct_dataset
 
@@ -146,7 +203,7 @@ def _cmd_evaluate_dataset(args) -> int:
 
 
 def _cmd_serve(args) -> int:
-    _prefect_env()
+    _prefect_env("INFO")  # a server's console is its log
     from deploy.serve import serve
 
     print(f"serving reconstruct-dataset, reconstruct-capture and nightly-evaluation "
@@ -277,20 +334,28 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="out/demo")
     d.add_argument("--ict-model", help="ICT Face Model .npz (or set FACECAP_ICT_MODEL)")
     d.add_argument("--config", help="PipelineConfig YAML")
-    d.add_argument("--width", type=int, default=960)
-    d.add_argument("--height", type=int, default=540)
+    d.add_argument("--width", type=int, default=640)
+    d.add_argument("--height", type=int, default=360)
     d.add_argument("--fps", type=float, default=30.0)
     d.add_argument("--seconds", type=float, default=6.0)
     d.set_defaults(func=_cmd_demo)
     return p
 
 
+def _as_user_sees_it(exc: FacecapError, args) -> str:
+    """One line, naming the user's video where a stage named the store's copy of it."""
+    from flows.capture import as_user_sees_it
+
+    return as_user_sees_it(str(exc), getattr(args, "video", None) or "the video")
+
+
 def main(argv: list[str] | None = None) -> int:
+    _prefect_defaults()
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
     except FacecapError as exc:
-        print(f"facecap: error: {exc}", file=sys.stderr)
+        print(f"facecap: error: {_as_user_sees_it(exc, args)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("facecap: interrupted", file=sys.stderr)

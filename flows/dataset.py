@@ -16,7 +16,7 @@ from prefect import flow, get_run_logger
 
 from facecap_core.dataset import mesh_consistency, scan_dataset
 from facecap_core.errors import FacecapError
-from flows.capture import reconstruct_capture
+from flows.capture import as_user_sees_it, reconstruct_capture
 
 
 def _run_name() -> str:
@@ -65,8 +65,9 @@ def reconstruct_dataset(root: str, out: str, config: str | None = None,
                                 store=store)
             done[(entry.subject, entry.capture)] = folder
         except FacecapError as exc:
-            failed[f"{entry.subject}/{entry.capture}"] = str(exc)
-            logger.error(f"{entry.subject}/{entry.capture}: {exc}")
+            failed[f"{entry.subject}/{entry.capture}"] = as_user_sees_it(str(exc), entry.video)
+            # exc_info marks it as bad input: the CLI prints it once, in its summary line.
+            logger.error(f"{entry.subject}/{entry.capture}: {exc}", exc_info=exc)
     rows = consistency_report(out_root, done)
     if rows:
         create_table_artifact(rows, key="cross-capture-consistency",

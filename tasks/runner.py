@@ -14,11 +14,13 @@ input name to a local folder holding that input artifact; it writes its files in
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
 import resource
 import shutil
 import tempfile
+import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -120,11 +122,44 @@ def run_stage(store_url: str, stage: str, inputs: dict[str, str], config: dict |
                      for p in sorted(work.rglob("*")) if p.is_file()}
             if not files:
                 raise FacecapError(f"stage {stage} wrote no files")
+            inject_fault(stage, work)
             store.put(key, files, stage=stage, inputs=inputs, config=config,
                       version=VERSIONS[stage], meta=meta)
         finally:
             shutil.rmtree(work, ignore_errors=True)
     return key, True
+
+
+_FAULT_COUNTS: dict[str, int] = {}
+_FAULT_LOCK = threading.Lock()
+
+
+def inject_fault(stage: str, work: Path) -> None:
+    """Fault injection for the robustness tests: ``FACECAP_FAULT=STAGE[:N[:HOW]]`` makes the
+    N-th computation (default 1) of STAGE in this process fail after its files are written
+    and before they are committed, the moment that loses the most work. HOW is ``exit``
+    (default: the process dies at once with code 137, as if killed by SIGKILL, no cleanup),
+    ``interrupt`` (KeyboardInterrupt, as Ctrl-C) or ``oserror`` (a transient I/O error that
+    the task's retries absorb)."""
+    spec = os.environ.get("FACECAP_FAULT")
+    if not spec:
+        return
+    parts = spec.split(":")
+    if parts[0] != stage:
+        return
+    count = int(parts[1]) if len(parts) > 1 else 1
+    how = parts[2] if len(parts) > 2 else "exit"
+    with _FAULT_LOCK:
+        _FAULT_COUNTS[stage] = _FAULT_COUNTS.get(stage, 0) + 1
+        if _FAULT_COUNTS[stage] != count:
+            return
+    if how == "interrupt":
+        raise KeyboardInterrupt(f"fault injected in stage {stage}")
+    if how == "oserror":
+        raise OSError(errno.EIO, f"fault injected in stage {stage}")
+    os.write(2, f"facecap fault: {stage} killed before its commit; its files are in {work}\n"
+             .encode())
+    os._exit(137)
 
 
 def ingest(store_url: str, path: str | os.PathLike, name: str) -> str:
@@ -136,6 +171,7 @@ def ingest(store_url: str, path: str | os.PathLike, name: str) -> str:
     key = input_key(path)
     if not store.exists(key):
         with key_lock(store, key):
+            inject_fault("input", path)
             store.put(key, {name: path}, stage="input", inputs={}, config=None,
                       version=VERSIONS["input"], meta={"source": path.name})
     return key
@@ -162,8 +198,16 @@ def _network_errors() -> tuple[type[BaseException], ...]:
     return (BotoConnectionError, HTTPClientError)
 
 
+LASTING_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM})
+"""A full disk, a read-only or forbidden location: retrying seconds later cannot help."""
+
+
 def is_transient(exc: BaseException) -> bool:
-    """Bad input is never retried; store, network and OS faults are."""
+    """Bad input is never retried; store, network and OS faults are, unless the disk is
+    full or the location is read-only or forbidden."""
+    cause = exc.__cause__ if isinstance(exc, StoreWriteError) else exc
+    if isinstance(cause, OSError) and cause.errno in LASTING_ERRNOS:
+        return False
     if isinstance(exc, TRANSIENT + _network_errors()):
         return True
     if isinstance(exc, FacecapError):

@@ -16,7 +16,7 @@ from prefect import task
 from prefect.futures import PrefectFuture
 
 from tasks.runner import (
-    default_store_url, ingest, open_store, retry_condition, run_stage, stage_key,
+    default_store_url, ingest, is_transient, open_store, retry_condition, run_stage, stage_key,
 )
 
 VIDEO = "video.mp4"
@@ -170,12 +170,23 @@ def ingest_task(store: str, path: str, name: str, label: str = "") -> str:
     return ingest(store, path, name)
 
 
+def _in_store(store: str, key: str) -> bool:
+    """Whether the artifact is stored; an unreachable store counts as "no", so the task
+    runs and meets the fault where its retries apply (a flow body has none)."""
+    try:
+        return open_store(store).exists(key)
+    except Exception as exc:  # noqa: BLE001 - only transient faults are let through
+        if is_transient(exc):
+            return False
+        raise
+
+
 def call_stage(stage_task, store: str, inputs: dict[str, str], config: dict | None,
                label: str = "", submit: bool = False) -> str | PrefectFuture:
     """Run (or ``submit``) a stage task. The Prefect cache is trusted only while the artifact
     is in the store: a deleted or lost artifact is recomputed, not served from the cache."""
     key = stage_key(stage_task.name, inputs, config)
-    fresh = not open_store(store).exists(key)
+    fresh = not _in_store(store, key)
     runner = stage_task.with_options(refresh_cache=fresh)
     if submit:
         return runner.submit(store, inputs, config, label)
@@ -185,7 +196,7 @@ def call_stage(stage_task, store: str, inputs: dict[str, str], config: dict | No
 def call_ingest(store: str, path: str | Path, name: str, label: str = "") -> str:
     from facecap_core.store import input_key
 
-    fresh = not open_store(store).exists(input_key(path))
+    fresh = not _in_store(store, input_key(path))
     return ingest_task.with_options(refresh_cache=fresh)(store, str(path), name, label)
 
 

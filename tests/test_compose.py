@@ -279,8 +279,9 @@ def test_worker_image_installs_the_project_as_a_non_root_user():
     # Every package of the project, and the README pyproject names, is copied in.
     pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
     copied = " ".join(args for word, args in instructions if word == "COPY")
-    for package in pyproject["tool"]["setuptools"]["packages"]:
-        assert re.search(rf"(^|\s){package}(\s|$)", copied), f"{package} not copied"
+    for pattern in pyproject["tool"]["setuptools"]["packages"]["find"]["include"]:
+        package = pattern.rstrip("*")
+        assert re.search(rf"(^|\s){package}/?(\s|$)", copied), f"{package} not copied"
     assert pyproject["project"]["readme"] in copied
 
     # No credential is baked in.

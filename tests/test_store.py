@@ -45,7 +45,13 @@ def put_mesh(store: ArtifactStore, files, key: str | None = None) -> Manifest:
 
 
 def stored_file_url(store_url: str, key: str, name: str) -> str:
-    """Where the documented layout puts an artifact's file (used to damage it on purpose)."""
+    """Where the documented layout puts an artifact's file (used to damage it on purpose):
+    the artifact folder, or on a remote backend the committing writer's folder in it."""
+    folder = ArtifactStore(store_url).manifest(key).folder
+    if "://" in store_url:
+        assert folder is not None and folder.startswith("w-")
+        return f"{store_url}/artifacts/{key}/{folder}/{name}"
+    assert folder is None
     return f"{store_url}/artifacts/{key}/{name}"
 
 

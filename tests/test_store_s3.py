@@ -156,11 +156,15 @@ def test_round_trip_through_the_endpoint_from_the_environment(store, bucket, pre
 
     key = mesh_key()
     assert store.url == f"s3://{BUCKET}/{prefix}"
-    # The objects are on the S3 server, in the documented layout, byte for byte.
+    # The objects are on the S3 server, in the documented layout, byte for byte: the
+    # manifest in the artifact folder, the files in the committing writer's folder.
     stored = objects(bucket, prefix)
-    assert set(stored) == {f"artifacts/{key}/{name}"
-                           for name in ("manifest.json", "mesh.ply", "maps/depth.npy")}
-    assert stored[f"artifacts/{key}/maps/depth.npy"] == depth.read_bytes()
+    writer = manifest.folder
+    assert re.fullmatch(r"w-[0-9a-f]{32}", writer)
+    assert set(stored) == {f"artifacts/{key}/manifest.json",
+                           *(f"artifacts/{key}/{writer}/{name}"
+                             for name in ("mesh.ply", "maps/depth.npy"))}
+    assert stored[f"artifacts/{key}/{writer}/maps/depth.npy"] == depth.read_bytes()
     assert manifest.files["maps/depth.npy"].sha256 == hashlib.sha256(depth.read_bytes()).hexdigest()
 
     assert store.exists(key) and store.keys() == [key] and store.keys("mesh") == [key]
@@ -196,7 +200,9 @@ def test_a_missing_bucket_is_a_store_write_error(s3):
 def test_a_corrupt_object_is_detected(store, bucket, prefix, damaged):
     put_mesh(store, {"mesh.ply": b"ply data"})
     key = mesh_key()
-    bucket.put_object(Bucket=BUCKET, Key=f"{prefix}/artifacts/{key}/mesh.ply", Body=damaged)
+    writer = store.manifest(key).folder
+    bucket.put_object(Bucket=BUCKET, Key=f"{prefix}/artifacts/{key}/{writer}/mesh.ply",
+                      Body=damaged)
 
     for check in (lambda: store.verify(key), lambda: store.read_bytes(key, "mesh.ply"),
                   lambda: store.get(key)):
@@ -225,7 +231,8 @@ def test_a_missing_artifact_or_object_raises_the_stores_errors(store, bucket, pr
         assert key in one_line(caught.value)
 
     put_mesh(store, {"mesh.ply": b"ply data", "texture.png": b"png"})
-    bucket.delete_object(Bucket=BUCKET, Key=f"{prefix}/artifacts/{key}/texture.png")
+    writer = store.manifest(key).folder
+    bucket.delete_object(Bucket=BUCKET, Key=f"{prefix}/artifacts/{key}/{writer}/texture.png")
     with pytest.raises(CorruptArtifactError, match="texture.png' is missing"):
         store.verify(key)
     with pytest.raises(CorruptArtifactError, match="is missing"):
@@ -243,15 +250,18 @@ def test_delete_removes_every_object(store, bucket, prefix):
 
 def test_an_upload_without_manifest_is_invisible_and_is_completed_by_the_next_put(
         store, bucket, prefix):
-    # What a writer that died mid-upload leaves: files, no manifest.
+    # What a writer that died mid-upload leaves: files in its own folder, no manifest.
     key = mesh_key()
-    bucket.put_object(Bucket=BUCKET, Key=f"{prefix}/artifacts/{key}/mesh.ply", Body=b"half")
+    dead = f"w-{uuid.uuid4().hex}"
+    bucket.put_object(Bucket=BUCKET, Key=f"{prefix}/artifacts/{key}/{dead}/mesh.ply",
+                      Body=b"half")
     assert not store.exists(key)
     assert store.keys() == []
     with pytest.raises(ArtifactNotFoundError):
         store.get(key)
 
-    put_mesh(store, {"mesh.ply": b"whole mesh"})
+    manifest = put_mesh(store, {"mesh.ply": b"whole mesh"})
+    assert manifest.folder != dead
     assert store.read_bytes(key, "mesh.ply") == b"whole mesh"
     store.verify(key)
 
@@ -347,13 +357,7 @@ def test_outage_errors_are_ones_the_service_retries(s3, store):
     assert not_retried == {}
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="on S3 a writer uploads files in place before its manifest, so a second writer "
-    "of the same key (another host) that dies midway leaves the first one's committed "
-    "artifact with a foreign file",
-)
-def test_a_second_writer_that_dies_cannot_damage_a_committed_artifact(store):
+def test_a_second_writer_that_dies_cannot_damage_a_committed_artifact(store, bucket, prefix):
     uploading = threading.Event()
     released = threading.Event()
     failures: list[BaseException] = []
@@ -389,6 +393,49 @@ def test_a_second_writer_that_dies_cannot_damage_a_committed_artifact(store):
     assert len(failures) == 1 and "writer B killed" in str(failures[0])
     store.verify(mesh_key())
     assert store.read_bytes(mesh_key(), "mesh.ply") == b"A" * 64
+    # B cleaned up after itself: only A's manifest and A's files are left.
+    writer = store.manifest(mesh_key()).folder
+    assert set(objects(bucket, prefix)) == {
+        f"artifacts/{mesh_key()}/manifest.json", f"artifacts/{mesh_key()}/{writer}/mesh.ply",
+        f"artifacts/{mesh_key()}/{writer}/texture.png"}
+
+
+def test_of_two_writers_that_both_finish_the_first_manifest_wins(store, bucket, prefix):
+    """Two hosts compute the same artifact at once (locks are per machine): the second
+    commit is refused by S3's create-only write; that writer removes its own files and
+    returns the winner's manifest, so both see one artifact."""
+    uploaded = threading.Event()
+    released = threading.Event()
+    results: list = []
+
+    class WaitsAfterUpload:
+        """Writer B's only file: uploaded, then B stalls until A has committed."""
+
+        def __init__(self):
+            self.done = False
+
+        def read(self, size: int = -1) -> bytes:
+            if self.done:
+                uploaded.set()
+                released.wait(timeout=30)
+                return b""
+            self.done = True
+            return b"B" * 64
+
+    thread = threading.Thread(target=lambda: results.append(
+        put_mesh(ArtifactStore(store.url), {"mesh.ply": WaitsAfterUpload()})))
+    thread.start()
+    try:
+        assert uploaded.wait(timeout=30)
+        winner = put_mesh(store, {"mesh.ply": b"A" * 64})
+    finally:
+        released.set()
+        thread.join(timeout=60)
+    assert results == [winner]  # B returns A's manifest, not its own
+    assert store.read_bytes(mesh_key(), "mesh.ply") == b"A" * 64
+    store.verify(mesh_key())
+    assert set(objects(bucket, prefix)) == {f"artifacts/{mesh_key()}/manifest.json",
+                                            f"artifacts/{mesh_key()}/{winner.folder}/mesh.ply"}
 
 
 # --------------------------------------------------------------------------- worker setup

@@ -1,0 +1,535 @@
+"""The bad-input corpus, through the ``facecap`` command line.
+
+Every input below is generated on the fly (tiny videos of a cheap 3D scene: coloured dots on a
+head-sized blob in front of a wall, filmed by an orbiting camera) and given to ``facecap`` as a
+user would. A refused input must end with exit code 2 and exactly one stderr line
+``facecap: error: <what is wrong>; <what to do>``, no traceback, and nothing that was already
+in the artifact store or the output folder removed or changed. Inputs a phone legitimately
+produces (240 fps, portrait rotation, a variable frame rate, 8K, odd folder names) are accepted
+instead, and the test checks that they are handled right.
+
+Most refusals happen in the preflight checks (``flows.capture.preflight``), before a Prefect
+server is needed; the few only a stage can see (a static camera, no face, a full disk) run the
+real flow on one Prefect test server shared by the module. :data:`CORPUS` maps each input to
+the words its message must contain (docs/robustness.md lists the messages).
+"""
+
+from __future__ import annotations
+
+import errno
+import fractions
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import av
+import cv2
+import numpy as np
+import pytest
+
+from facecap_core.camera import look_at
+from facecap_core.store import ArtifactStore, artifact_key
+from flows.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+W, H = 224, 128  # the smallest 16:9 size above the preflight's 120-pixel floor
+
+
+# --------------------------------------------------------------------------- media
+
+
+def orbit_frames(n: int, yaw_deg=(-40.0, 40.0), width: int = W, height: int = H,
+                 seed: int = 0) -> list[np.ndarray]:
+    """A camera circling a head-sized blob of coloured dots in front of a wall: real
+    parallax for the keyframe tracker and the pose stage, and no face."""
+    rng = np.random.default_rng(seed)
+    blob = rng.normal(size=(700, 3))
+    blob *= rng.uniform(70, 100, (700, 1)) / np.linalg.norm(blob, axis=1, keepdims=True)
+    wall = np.column_stack([rng.uniform(-600, 600, 1100), rng.uniform(-400, 400, 1100),
+                            np.full(1100, -500.0)])
+    points = np.vstack([blob, wall])
+    colours = rng.integers(30, 255, (len(points), 3)).tolist()
+    f, cx, cy = 0.9 * width, (width - 1) / 2, (height - 1) / 2
+    frames = []
+    for yaw in np.radians(np.linspace(*yaw_deg, n)):
+        R, t = look_at(450 * np.array([np.sin(yaw), 0.0, np.cos(yaw)]), np.zeros(3),
+                       np.array([0.0, -1.0, 0.0]))
+        cam = points @ R.T + t
+        image = np.full((height, width, 3), 90, np.uint8)
+        for i in np.argsort(-cam[:, 2]):  # far to near
+            x, y, z = cam[i]
+            u, v = f * x / z + cx, f * y / z + cy
+            if -4 < u < width + 4 and -4 < v < height + 4:
+                cv2.circle(image, (int(u * 4), int(v * 4)), 4 * max(1, round(900 / z)),
+                           colours[i], -1, cv2.LINE_AA, shift=2)
+        frames.append(image)
+    return frames
+
+
+def write_video(path: Path, frames, fps: float = 30, rotation: int = 0, times=None,
+                faststart: bool = False, codec: str = "libx264") -> Path:
+    """An MP4 (H.264 unless ``codec``); ``times`` (seconds) gives a variable frame rate."""
+    options = {"movflags": "faststart"} if faststart else {}
+    with av.open(str(path), "w", format="mp4", options=options) as container:
+        stream = container.add_stream(codec, rate=fps)
+        stream.height, stream.width = frames[0].shape[:2]
+        stream.pix_fmt = "yuvj420p" if codec == "mjpeg" else "yuv420p"
+        if codec == "libx264":
+            stream.options = {"preset": "ultrafast", "crf": "0"}  # lossless: same pixels at any rate
+        if times is not None:
+            stream.codec_context.time_base = fractions.Fraction(1, 1000)
+        if rotation:
+            stream.set_display_rotation(rotation)
+        for i, image in enumerate(frames):
+            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
+            if times is not None:
+                frame.pts, frame.time_base = round(times[i] * 1000), fractions.Fraction(1, 1000)
+            else:
+                frame.pts = i
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path
+
+
+def write_audio_only(path: Path) -> Path:
+    with av.open(str(path), "w", format="mp4") as container:
+        stream = container.add_stream("aac", rate=44100)
+        for i in range(20):
+            frame = av.AudioFrame.from_ndarray(np.zeros((1, 1024), np.float32), format="fltp",
+                                               layout="mono")
+            frame.sample_rate, frame.pts = 44100, i * 1024
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path
+
+
+VFR_TIMES = np.cumsum(np.r_[0.0, np.where(np.arange(39) % 3 == 0, 0.050, 0.021)])
+"""Frame times of the variable-frame-rate video: gaps of 21 and 50 ms."""
+
+
+@pytest.fixture(scope="module")
+def media(tmp_path_factory) -> dict[str, Path]:
+    """Every corpus video, written once (about 5 s of CPU)."""
+    d = tmp_path_factory.mktemp("media")
+    orbit = orbit_frames(40)
+    m = {"orbit": write_video(d / "orbit.mp4", orbit)}
+    m["static"] = write_video(d / "static.mp4", orbit_frames(20, yaw_deg=(0.0, 0.0)))
+    m["frontal"] = write_video(d / "frontal.mp4", orbit_frames(20, yaw_deg=(-3.0, 3.0)))
+    (d / "empty.mp4").write_bytes(b"")
+    m["empty"] = d / "empty.mp4"
+    whole = write_video(d / "whole.mp4", orbit[:30]).read_bytes()  # index (moov) at the end
+    (d / "truncated.mp4").write_bytes(whole[: len(whole) // 2])
+    m["truncated"] = d / "truncated.mp4"
+    first = write_video(d / "indexed.mp4", orbit[:30], faststart=True).read_bytes()
+    (d / "truncated_indexed.mp4").write_bytes(first[: len(first) // 2])
+    m["truncated_indexed"] = d / "truncated_indexed.mp4"
+    ok, jpeg = cv2.imencode(".jpg", orbit[0])
+    (d / "photo.mp4").write_bytes(jpeg.tobytes())
+    m["photo"] = d / "photo.mp4"
+    m["audio"] = write_audio_only(d / "audio.mp4")
+    m["three_frames"] = write_video(d / "three.mp4", orbit[:3])
+    m["tiny"] = write_video(d / "tiny.mp4", [cv2.resize(f, (64, 64)) for f in orbit[:20]])
+    m["fps240"] = write_video(d / "fast.mp4", orbit, fps=240)
+    m["portrait"] = write_video(d / "portrait.mp4", orbit, rotation=90)
+    m["vfr"] = write_video(d / "vfr.mp4", orbit, times=VFR_TIMES)
+    texture = cv2.resize(orbit[0], (7680, 4320), interpolation=cv2.INTER_NEAREST)
+    m["8k"] = write_video(d / "8k.mp4", [texture, texture], codec="mpeg4")
+    black = np.zeros((4752, 8448, 3), np.uint8)
+    m["over_8k"] = write_video(d / "9k.mp4", [black, black], codec="mjpeg")
+    return m
+
+
+# --------------------------------------------------------------------------- what is kept
+
+
+@pytest.fixture
+def home(tmp_path, monkeypatch) -> Path:
+    """A FACECAP_HOME of the test's own, holding a copy of the template assets."""
+    from facecap_core import assets
+
+    source = assets.menpo3d_data()
+    home = tmp_path / "home"
+    shutil.copytree(source, home / "assets" / source.name)
+    monkeypatch.setenv("FACECAP_HOME", str(home))
+    return home
+
+
+@pytest.fixture
+def kept(tmp_path, home) -> dict[str, Path]:
+    """A store and an output folder that already hold results of an earlier run."""
+    store_dir, out = tmp_path / "store", tmp_path / "out"
+    store = ArtifactStore(store_dir)
+    key = artifact_key("fitting", {"fusion": "fusion-" + "0" * 32}, {"a": 1}, "1")
+    store.put(key, {"mesh.ply": b"ply of an earlier run", "fit.json": b"{}"}, stage="fitting",
+              inputs={"fusion": "fusion-" + "0" * 32}, config={"a": 1}, version="1")
+    out.mkdir()
+    (out / "mesh.ply").write_bytes(b"mesh of an earlier run")
+    (out / "report.json").write_text(json.dumps({"earlier": True}))
+    return {"store": store_dir, "out": out}
+
+
+def snapshot(*folders: Path) -> dict[str, str]:
+    """sha256 of every file under the folders (the store's committed artifacts only)."""
+    files = {}
+    for folder in folders:
+        root = folder / "artifacts" if (folder / "artifacts").is_dir() else folder
+        for path in sorted(root.rglob("*")):
+            if path.is_file():
+                files[str(path)] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return files
+
+
+def assert_kept(before: dict[str, str], after: dict[str, str]) -> None:
+    assert {p: after.get(p) for p in before} == before, "an earlier result was removed or changed"
+
+
+def assert_one_line_error(code: int, err: str, expected: list[str]) -> str:
+    assert code == 2, err
+    assert "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("facecap: error: "), err
+    for word in expected:
+        assert word.lower() in lines[0].lower(), (word, lines[0])
+    return lines[0]
+
+
+def facecap(capfd, *argv) -> tuple[int, str, str]:
+    """``facecap ARGV`` in this process; output captured at the file descriptors, so that
+    whatever Prefect's log handlers print is seen too."""
+    code = main([str(a) for a in argv])
+    out, err = capfd.readouterr()
+    return code, out, err
+
+
+# --------------------------------------------------------------------------- the corpus
+
+
+def _config(tmp: Path, text: str) -> Path:
+    (tmp / "pipeline.yaml").write_text(text)
+    return tmp / "pipeline.yaml"
+
+
+def _scan(tmp: Path) -> Path:
+    (tmp / "scan.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
+    return tmp / "scan.ply"
+
+
+def _corrupt_template(tmp: Path) -> None:
+    template = Path(os.environ["FACECAP_HOME"]) / "assets" / "menpo3d-0.8.6" / "template.ply"
+    data = bytearray(template.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one flipped byte: still parses, silently wrong
+    template.write_bytes(bytes(data))
+
+
+def _output_is_a_file(tmp: Path) -> Path:
+    (tmp / "results").write_text("a file where the output folder should be")
+    return tmp / "results"
+
+
+def _dataset_with_escaping_link(tmp: Path) -> Path:
+    outside = tmp / "elsewhere" / "subject"
+    outside.mkdir(parents=True)
+    (outside / "take.mp4").write_bytes(b"")
+    root = tmp / "dataset"
+    root.mkdir()
+    (root / "escape").symlink_to(outside, target_is_directory=True)
+    return root
+
+
+def _dataset_without_captures(tmp: Path) -> Path:
+    (tmp / "dataset" / "subject a").mkdir(parents=True)
+    (tmp / "dataset" / "subject a" / "notes.txt").write_text("no video here")
+    return tmp / "dataset"
+
+
+CORPUS = {
+    # name: (argv builder (media, tmp, kept) -> facecap arguments, words the message holds)
+    "missing video": (lambda m, t, k: ["reconstruct", t / "nope.mp4"], ["video not found"]),
+    "empty file": (lambda m, t, k: ["reconstruct", m["empty"]],
+                   ["not a readable video", "give an mp4"]),
+    "truncated MP4, index at the end": (lambda m, t, k: ["reconstruct", m["truncated"]],
+                                        ["not a readable video", "give an mp4"]),
+    "truncated MP4, index first": (lambda m, t, k: ["reconstruct", m["truncated_indexed"]],
+                                   ["truncated", "of its 30 frames", "copy the whole file"]),
+    "JPEG renamed .mp4": (lambda m, t, k: ["reconstruct", m["photo"]],
+                          ["single image (mjpeg)", "not a video", "give the capture"]),
+    "audio-only file": (lambda m, t, k: ["reconstruct", m["audio"]],
+                        ["no video stream", "give a video file"]),
+    "3-frame video": (lambda m, t, k: ["reconstruct", m["three_frames"]],
+                      ["has 3 frames", "at least 15", "record a slow sweep"]),
+    "64x64 video": (lambda m, t, k: ["reconstruct", m["tiny"]],
+                    ["64x64 pixels", "too small", "record at least 120"]),
+    "larger than 8K (8448x4752)": (lambda m, t, k: ["reconstruct", m["over_8k"]],
+                                   ["8448x4752", "larger than 8k", "record at 8k or less"]),
+    "config: NaN": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                     _config(t, "mvs: {sigma_color: .nan}\n")],
+                    ["mvs.sigma_color", "finite number", "correct or remove"]),
+    "config: NaN in a list": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                               _config(t, "fitting: {stiffness: [.nan, 1]}\n")],
+                              ["fitting.stiffness.0", "finite number"]),
+    "config: infinity": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                          _config(t, "coarse: {rbf_kernel_mm: .inf}\n")],
+                         ["coarse.rbf_kernel_mm", "finite number"]),
+    "config: negative value": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                                _config(t, "mvs: {iterations: -3}\n")],
+                               ["mvs.iterations", "greater than or equal to 1"]),
+    "config: unknown key": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                             _config(t, "fitting: {stifness: [1.0]}\n")],
+                            ["fitting.stifness", "extra inputs are not permitted",
+                             "correct or remove"]),
+    "config: unknown section": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                                 _config(t, "meshing: {depth: 9}\n")],
+                                ["meshing", "extra inputs"]),
+    "config: not YAML": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                          _config(t, "mvs: {iterations: [\n")],
+                         ["not valid yaml"]),
+    "config: not a mapping": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                               _config(t, "- mvs\n- fitting\n")],
+                              ["must hold a mapping"]),
+    "config file missing": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                             t / "none.yaml"], ["config file not found"]),
+    "scan without landmarks": (lambda m, t, k: ["reconstruct", m["orbit"], "--scan", _scan(t)],
+                               ["needs its 68 3d landmarks", "--scan-landmarks"]),
+    "corrupt template": (lambda m, t, k: (_corrupt_template(t), ["reconstruct", m["orbit"]])[1],
+                         ["template.ply is damaged", "delete", "facecap assets"]),
+    "output folder is a file": (lambda m, t, k: ["reconstruct", m["orbit"], "--out",
+                                                 _output_is_a_file(t)],
+                                ["output folder", "is a file", "give the path of a folder"]),
+    "dataset: a link out of the root": (lambda m, t, k: ["dataset", _dataset_with_escaping_link(t),
+                                                         "--out", k["out"]],
+                                        ["lies outside the dataset folder", "remove the link"]),
+    "dataset: no captures": (lambda m, t, k: ["dataset", _dataset_without_captures(t),
+                                              "--out", k["out"]],
+                             ["no captures in", "<subject>/<capture>.mp4"]),
+    "dataset folder missing": (lambda m, t, k: ["dataset", t / "nowhere", "--out", k["out"]],
+                               ["dataset folder not found"]),
+}
+
+
+def _with_defaults(argv: list, kept: dict[str, Path]) -> list:
+    """``--out`` and ``--store`` of the kept results unless the case gives its own."""
+    argv = list(argv)
+    if "--out" not in argv:
+        argv += ["--out", kept["out"]]
+    if argv[0] == "reconstruct":
+        argv += ["--store", kept["store"]]
+    return argv
+
+
+@pytest.mark.parametrize("case", list(CORPUS))
+def test_refused_before_anything_runs(case, media, kept, tmp_path, capfd):
+    build, expected = CORPUS[case]
+    argv = _with_defaults(build(media, tmp_path, kept), kept)
+    before = snapshot(kept["store"], kept["out"])
+    code, out, err = facecap(capfd, *argv)
+    assert_one_line_error(code, err, expected)
+    assert_kept(before, snapshot(kept["store"], kept["out"]))
+
+
+def test_read_only_output_folder(media, kept, tmp_path):
+    """A real permission failure: root ignores file modes, so as root the command runs
+    without the capability that lets it (CAP_DAC_OVERRIDE)."""
+    os.chmod(kept["out"], 0o555)
+    try:
+        prefix = []
+        if os.geteuid() == 0:
+            if not shutil.which("setpriv"):
+                pytest.skip("running as root without setpriv to drop CAP_DAC_OVERRIDE")
+            prefix = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"]
+        before = snapshot(kept["store"], kept["out"])
+        proc = subprocess.run(
+            [*prefix, sys.executable, "-m", "flows.cli", "reconstruct", str(media["orbit"]),
+             "--out", str(kept["out"]), "--store", str(kept["store"])],
+            capture_output=True, text=True, cwd=ROOT, timeout=300)
+        assert_one_line_error(proc.returncode, proc.stderr,
+                              ["cannot write to the output folder", "permission denied",
+                               "choose a writable folder"])
+        assert_kept(before, snapshot(kept["store"], kept["out"]))
+    finally:
+        os.chmod(kept["out"], 0o755)
+
+
+def test_8k_is_accepted_and_streamed_at_processing_width(media, tmp_path):
+    """8K passes the preflight checks; the stages read it one frame at a time at their own
+    processing width (the 2-frame file needs ``min_frames: 2``)."""
+    from flows.capture import preflight
+    from facecap_core.video import iter_frames
+
+    config = _config(tmp_path, "keyframes: {min_frames: 2}\n")
+    cfg = preflight(media["8k"], config, out=tmp_path / "out")
+    frames = list(iter_frames(media["8k"], width=cfg.keyframes.track_width, grey=True))
+    assert [f.image.shape for f in frames] == [(360, 640), (360, 640)]
+
+
+# --------------------------------------------------------------------------- in a flow
+
+
+@pytest.fixture(scope="module")
+def prefect_server():
+    from prefect.testing.utilities import prefect_test_harness
+
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    with prefect_test_harness(server_startup_timeout=120):
+        yield
+
+
+CHEAP_POSES = "keyframes: {keyframe_angle_deg: 10}\nposes: {method: geometric, use_tracks: false}\n"
+"""Fewer keyframes and no photometric refinement: the pose stage in ~5 s on 224x128."""
+
+IN_A_FLOW = {
+    "static camera": (lambda m, t: ["reconstruct", m["static"]],
+                      ["static.mp4: only 1 keyframe", "barely moves", "sweep the phone"]),
+    "frontal only (the face never turns)": (lambda m, t: ["reconstruct", m["frontal"]],
+                                            ["frontal.mp4: only", "barely moves",
+                                             "ear to ear"]),
+    "no face": (lambda m, t: ["reconstruct", m["orbit"], "--config", _config(t, CHEAP_POSES)],
+                ["no face was detected", "the video must show a face"]),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(IN_A_FLOW))
+def test_refused_by_a_stage(case, media, kept, tmp_path, capfd, prefect_server):
+    build, expected = IN_A_FLOW[case]
+    argv = _with_defaults(build(media, tmp_path), kept)
+    before = snapshot(kept["store"], kept["out"])
+    code, out, err = facecap(capfd, *argv)
+    line = assert_one_line_error(code, err, expected)
+    assert "/artifacts/" not in line  # the user's video is named, not the store's copy
+    assert_kept(before, snapshot(kept["store"], kept["out"]))
+
+
+def test_full_disk(media, kept, capfd, monkeypatch, prefect_server):
+    """The store's disk fills up (ENOSPC on every write): one line, not retried, nothing
+    half-written left in the store."""
+    from facecap_core.store import ArtifactStore as Store
+
+    def disk_full(path, chunks):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    monkeypatch.setattr(Store, "_write_local_file", staticmethod(disk_full))
+    before = snapshot(kept["store"], kept["out"])
+    code, out, err = facecap(capfd, *_with_defaults(["reconstruct", media["orbit"]], kept))
+    assert_one_line_error(code, err, ["no space left on device", "free space"])
+    assert_kept(before, snapshot(kept["store"], kept["out"]))
+    assert not any((kept["store"] / ".tmp").iterdir())  # no debris of the failed write
+
+
+def test_dataset_with_odd_names(media, kept, tmp_path, capfd, prefect_server):
+    """Spaces, Unicode and '..' inside names are ordinary names: each capture gets its own
+    output folder inside OUT and is named in the report; a hidden '..mp4' is skipped. The
+    captures here are static, so each fails in its keyframe stage, and the dataset run ends
+    with one line naming both."""
+    root = tmp_path / "dataset"
+    names = [("Zoë Ångström", "take 1"), ("a..b", "x..y")]
+    for subject, capture in names:
+        (root / subject).mkdir(parents=True)
+        shutil.copyfile(media["static"], root / subject / f"{capture}.mp4")
+    shutil.copyfile(media["static"], root / "a..b" / "..mp4")
+    out = kept["out"] / "dataset out"
+    before = snapshot(kept["store"], kept["out"])
+    code, _, err = facecap(capfd, "dataset", root, "--out", out, "--store", kept["store"])
+    line = assert_one_line_error(code, err, ["2 of 2 captures failed", "barely moves"])
+    for subject, capture in names:
+        video = (root / subject / f"{capture}.mp4").resolve()
+        assert f"{subject}/{capture}: {video}: only 1 keyframe" in line
+        assert (out / subject / capture).is_dir()
+    summary = json.loads((out / "dataset.json").read_text())
+    assert sorted(summary["failed"]) == sorted(f"{s}/{c}" for s, c in names)
+    assert_kept(before, snapshot(kept["store"], kept["out"]))
+
+
+# --------------------------------------------------------------------------- accepted
+
+
+def _keyframes_of(store: Path, out: Path) -> dict:
+    report = json.loads((out / "report.json").read_text())
+    key = report["stages"]["keyframes"]["key"]
+    return json.loads((ArtifactStore(store).get(key) / "keyframes.json").read_text())
+
+
+@pytest.mark.slow
+def test_phone_videos_are_accepted(media, kept, tmp_path, capfd, prefect_server):
+    """240 fps, a portrait video stored as landscape + rotation, a variable frame rate and a
+    Unicode path: all reach and pass the keyframe stage, with the right sizes and times."""
+    from facecap_core.keyframes import select_keyframes
+
+    reference = select_keyframes(media["orbit"])  # the same 40 frames at 30 fps
+    unicode_dir = tmp_path / "Zoë Ångström" / "séance 1"
+    unicode_dir.mkdir(parents=True)
+    shutil.copyfile(media["orbit"], unicode_dir / "prise n°1.mp4")
+    results = {}
+    for name, video in [("fps240", media["fps240"]), ("portrait", media["portrait"]),
+                        ("vfr", media["vfr"]), ("unicode", unicode_dir / "prise n°1.mp4")]:
+        out = tmp_path / f"out {name}"
+        code, stdout, err = facecap(capfd, "reconstruct", video, "--out", out, "--store",
+                                    kept["store"], "--until", "keyframes")
+        assert code == 0, err
+        results[name] = _keyframes_of(kept["store"], out)
+    fast = results["fps240"]
+    # The keyframes follow the angle swept, not the frame rate; times are the video's own.
+    assert fast["frame_indices"] == reference.indices
+    assert np.allclose(fast["times"], np.array(reference.indices) / 240, atol=1e-4)
+    assert results["portrait"]["video_size"] == [H, W]  # upright: portrait
+    assert len(results["portrait"]["frame_indices"]) >= 5
+    vfr = results["vfr"]
+    assert np.allclose(vfr["times"], VFR_TIMES[vfr["frame_indices"]], atol=2e-3)
+    report = json.loads((tmp_path / "out unicode" / "report.json").read_text())
+    assert (report["subject"], report["capture"]) == ("séance 1", "prise n°1")
+    assert results["unicode"]["frame_indices"] == reference.indices
+
+
+# --------------------------------------------------------------------------- security
+
+
+def test_credentials_come_only_from_the_environment():
+    """No store or flow entry point takes a credential; an S3 store is made from its URL
+    alone and leaves authentication to botocore's environment."""
+    import inspect
+
+    from flows.capture import reconstruct_capture
+    from flows.dataset import reconstruct_dataset
+    from flows.evaluate import evaluate_dataset
+    from tasks.runner import open_store
+
+    secretive = ("key", "secret", "password", "token", "credential", "auth")
+    entry_points = [ArtifactStore.__init__, open_store, reconstruct_capture.fn,
+                    reconstruct_dataset.fn, evaluate_dataset.fn]
+    for function in entry_points:
+        names = [p.lower() for p in inspect.signature(function).parameters]
+        assert not [n for n in names if any(s in n for s in secretive)], function
+    source = (ROOT / "facecap_core" / "store.py").read_text()
+    assert "url_to_fs(text)" in source  # no storage options: nothing but the URL is passed
+
+
+def test_served_flows_validate_their_parameters():
+    """What a deployment run hands the flow is validated by pydantic before it starts: an
+    unknown parameter or a wrong type is refused."""
+    from prefect.exceptions import ParameterTypeError, SignatureMismatchError
+
+    from flows.capture import reconstruct_capture
+    from flows.dataset import reconstruct_dataset
+    from flows.evaluate import evaluate_dataset
+
+    good = reconstruct_capture.validate_parameters({"video": "v.mp4", "out": "o"})
+    assert good["video"] == "v.mp4"
+    bad = [
+        (reconstruct_capture, {"video": "v.mp4", "out": "o", "shell": "rm -rf /"}),
+        (reconstruct_capture, {"video": "v.mp4", "out": "o", "until": "everything"}),
+        (reconstruct_capture, {"video": ["v.mp4"], "out": "o"}),
+        (reconstruct_capture, {"out": "o"}),
+        (reconstruct_dataset, {"root": "r", "out": "o", "workers": 64}),
+        (reconstruct_dataset, {"root": {"path": "r"}, "out": "o"}),
+        (evaluate_dataset, {"root": "r", "out": "o", "tolerance_mm": "lots"}),
+    ]
+    for flow, parameters in bad:
+        with pytest.raises((ParameterTypeError, SignatureMismatchError, TypeError)):
+            flow.validate_parameters(parameters)
