@@ -25,6 +25,8 @@ __all__ = ["vertex_colours"]
 
 def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     img = image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
+    if len(uv) == 0:  # cv2.remap refuses an empty map
+        return np.zeros((0, 3), np.float32)
     mx = uv[:, 0].astype(np.float32).reshape(-1, 1)
     my = uv[:, 1].astype(np.float32).reshape(-1, 1)
     out = cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR,

@@ -267,3 +267,12 @@ def test_bad_input_raises_one_line(setup, cloud, landmarks, match):
 def test_config_rejects_bad_schedule():
     with pytest.raises(ValueError, match="same"):
         FittingConfig(stiffness=[10.0, 1.0], landmark_weight=[1.0])
+
+
+def test_texture_sampling_of_no_pixel_is_empty():
+    """A keyframe that colours no vertex (all seen better elsewhere) samples nothing."""
+    from facecap_core.texture import _bilinear
+
+    image = np.zeros((4, 4, 3), np.uint8)
+    assert _bilinear(image, np.zeros((0, 2))).shape == (0, 3)
+    assert _bilinear(image + 7, np.array([[1.5, 2.0]])).tolist() == [[7.0, 7.0, 7.0]]
