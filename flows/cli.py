@@ -230,7 +230,7 @@ def _cmd_demo(args) -> int:
     from facecap_core.template import Template
 
     ict_model = args.ict_model or os.environ.get("FACECAP_ICT_MODEL")
-    subject = "ict:0" if ict_model else "james"
+    subject = "ict:3" if ict_model else "james"
     config = SynthConfig(subject=subject, ict_model=ict_model, width=args.width,
                          height=args.height, fps=args.fps, duration_s=args.seconds)
     out = Path(args.out)
