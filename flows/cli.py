@@ -213,7 +213,7 @@ def _cmd_serve(args) -> int:
 
 
 def _cmd_train_ears(args) -> int:
-    from facecap_core.landmarks.ears import train
+    from facecap_core.landmarks.ear_training import train
 
     path = train(args.out, progress=True)
     print(f"ear model written to {path}")
