@@ -60,6 +60,17 @@ def test_finds_a_held_out_ear_in_profile(held_out_renderer, side):
     score = et.score_detection(sample, det)
     assert score["detected"], score
     assert score["nme"] < 0.08, score
+    # The model is side-specific: asked for the other ear, it finds none in this view.
+    assert ears.detect_ears(sample.image, "right" if side == "left" else "left") is None
+
+
+def test_rendered_set_is_reused_only_for_the_same_rendering_settings():
+    from facecap_core.config import EarTrainingConfig
+
+    base = EarTrainingConfig()
+    assert et.render_key(base) == et.render_key(EarTrainingConfig(detector_c=5.0, threads=1))
+    assert et.render_key(base) != et.render_key(EarTrainingConfig(yaw_deg=(40.0, 100.0)))
+    assert et.render_key(base) != et.render_key(EarTrainingConfig(seed=1))
 
 
 def test_no_ear_in_a_plain_image():

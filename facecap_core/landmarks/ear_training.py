@@ -666,12 +666,13 @@ def train(out_dir: str | Path, config: EarTrainingConfig | None = None,
     except OSError as exc:
         raise InputError(f"cannot create output folder {out}: {exc.strerror}") from None
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    timings = {}
+    timings: dict[str, dict] = {}
+    last = [wall0, cpu0]
 
-    def lap(name, t=[wall0, cpu0]):  # noqa: B006 (running lap timer)
+    def lap(name: str) -> None:
         w, c = time.perf_counter(), time.process_time()
-        timings[name] = {"wall_s": round(w - t[0], 2), "cpu_s": round(c - t[1], 2)}
-        t[0], t[1] = w, c
+        timings[name] = {"wall_s": round(w - last[0], 2), "cpu_s": round(c - last[1], 2)}
+        last[:] = [w, c]
 
     write_contour_file(out / CONTOUR_FILE, config, ict_model)
     transfer = load_contour_file(out / CONTOUR_FILE)["ict"]
