@@ -17,7 +17,6 @@ the words its message must contain (docs/robustness.md lists the messages).
 from __future__ import annotations
 
 import errno
-import fractions
 import hashlib
 import json
 import os
@@ -34,6 +33,7 @@ import pytest
 from facecap_core.camera import look_at
 from facecap_core.store import ArtifactStore, artifact_key
 from flows.cli import main
+from tests.media import write_video
 
 ROOT = Path(__file__).resolve().parents[1]
 W, H = 224, 128  # the smallest 16:9 size above the preflight's 120-pixel floor
@@ -68,33 +68,6 @@ def orbit_frames(n: int, yaw_deg=(-40.0, 40.0), width: int = W, height: int = H,
                            colours[i], -1, cv2.LINE_AA, shift=2)
         frames.append(image)
     return frames
-
-
-def write_video(path: Path, frames, fps: float = 30, rotation: int = 0, times=None,
-                faststart: bool = False, codec: str = "libx264") -> Path:
-    """An MP4 (H.264 unless ``codec``); ``times`` (seconds) gives a variable frame rate."""
-    options = {"movflags": "faststart"} if faststart else {}
-    with av.open(str(path), "w", format="mp4", options=options) as container:
-        stream = container.add_stream(codec, rate=fps)
-        stream.height, stream.width = frames[0].shape[:2]
-        stream.pix_fmt = "yuvj420p" if codec == "mjpeg" else "yuv420p"
-        if codec == "libx264":
-            stream.options = {"preset": "ultrafast", "crf": "0"}  # lossless: same pixels at any rate
-        if times is not None:
-            stream.codec_context.time_base = fractions.Fraction(1, 1000)
-        if rotation:
-            stream.set_display_rotation(rotation)
-        for i, image in enumerate(frames):
-            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
-            if times is not None:
-                frame.pts, frame.time_base = round(times[i] * 1000), fractions.Fraction(1, 1000)
-            else:
-                frame.pts = i
-            for packet in stream.encode(frame):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
-    return path
 
 
 def write_audio_only(path: Path) -> Path:

@@ -234,7 +234,8 @@ def run_chain(api: str, mode: str, args: dict, store: Path, tmp: Path) -> list[d
 @pytest.fixture(scope="module")
 def chain(prefect_api, capture, tmp_path_factory) -> dict:
     """The three kill chains; the tail's store is used again by later tests."""
-    from tests.test_bad_inputs import orbit_frames, write_video
+    from tests.media import write_video
+    from tests.test_bad_inputs import orbit_frames
     from tests.test_flows import seed_upstream
 
     chains = {}

@@ -1,4 +1,3 @@
-import av
 import numpy as np
 import pytest
 
@@ -7,6 +6,7 @@ from facecap_core.config import KeyframeConfig, SynthConfig
 from facecap_core.errors import InputError
 from facecap_core.keyframes import load_keyframes, main, select_keyframes
 from facecap_core.synthetic import load_gt_cameras, synthesize
+from tests.media import write_video
 
 
 @pytest.fixture(scope="module")
@@ -47,26 +47,12 @@ def test_static_camera_is_refused(tmp_path, ict_model):
         select_keyframes(cap.video)
 
 
-def _write_video(path, frames, fps=30):
-    with av.open(str(path), "w", format="mp4") as c:
-        s = c.add_stream("libx264", rate=fps)
-        s.height, s.width = frames[0].shape[:2]
-        s.pix_fmt = "yuv420p"
-        for i, img in enumerate(frames):
-            f = av.VideoFrame.from_ndarray(img, format="rgb24")
-            f.pts = i
-            for p in s.encode(f):
-                c.mux(p)
-        for p in s.encode():
-            c.mux(p)
-    return path
-
 
 def test_too_short_video_is_refused(tmp_path):
     rng = np.random.default_rng(0)
     texture = rng.integers(0, 255, (90, 160, 3), np.uint8)
     frames = [np.roll(texture, 2 * i, axis=1) for i in range(10)]
-    video = _write_video(tmp_path / "short.mp4", frames)
+    video = write_video(tmp_path / "short.mp4", frames)
     with pytest.raises(InputError, match="10 frames") as err:
         select_keyframes(video)
     assert "\n" not in str(err.value)
@@ -74,7 +60,7 @@ def test_too_short_video_is_refused(tmp_path):
 
 def test_flat_colour_video_is_refused(tmp_path):
     frames = [np.full((180, 320, 3), 120 + i % 3, np.uint8) for i in range(40)]
-    video = _write_video(tmp_path / "flat.mp4", frames)
+    video = write_video(tmp_path / "flat.mp4", frames)
     with pytest.raises(InputError, match="too little texture") as err:
         select_keyframes(video)
     assert "\n" not in str(err.value)

@@ -1,26 +1,9 @@
-import av
 import numpy as np
 import pytest
 
 from facecap_core.errors import InputError
 from facecap_core.video import iter_frames, probe, read_frames
-
-
-def _write(path, frames, fps=30, rotation=0):
-    with av.open(str(path), "w", format="mp4") as c:
-        s = c.add_stream("libx264", rate=fps)
-        s.height, s.width = frames[0].shape[:2]
-        s.pix_fmt = "yuv420p"
-        s.options = {"crf": "0"}
-        if rotation:
-            s.set_display_rotation(rotation)
-        for i, img in enumerate(frames):
-            f = av.VideoFrame.from_ndarray(img, format="rgb24")
-            f.pts = i
-            for p in s.encode(f):
-                c.mux(p)
-        for p in s.encode():
-            c.mux(p)
+from tests.media import write_video
 
 
 @pytest.fixture
@@ -31,7 +14,7 @@ def clip(tmp_path):
         img[:16, :16] = 250  # a marker in the top-left corner
         img[40:48, 8 * i:8 * i + 8] = 200  # a block moving right, one per frame
         frames.append(img)
-    _write(tmp_path / "clip.mp4", frames, fps=60)
+    write_video(tmp_path / "clip.mp4", frames, fps=60)
     return tmp_path / "clip.mp4"
 
 
@@ -52,7 +35,7 @@ def test_probe_and_stream(clip):
 def test_display_rotation_is_applied(tmp_path, rotation, corner):
     img = np.zeros((32, 64, 3), np.uint8)
     img[:8, :8] = 255
-    _write(tmp_path / "r.mp4", [img] * 3, rotation=rotation)
+    write_video(tmp_path / "r.mp4", [img] * 3, rotation=rotation)
     info = probe(tmp_path / "r.mp4")
     up = next(iter_frames(tmp_path / "r.mp4")).image
     assert up.shape[:2] == (info.height, info.width)
