@@ -2,6 +2,7 @@
 
     python benchmarks/bench_mvs.py [--subjects ict:0 ict:1 james] [--width 1280 --height 720]
         [--keyframes 40] [--proc-width 640] [--out out/bench_mvs] [--no-peer]
+        [--pipeline out/bench_pipeline [--pipeline-only]]
 
 Per subject a synthetic capture is rendered once (cached under OUT/captures). The stage is
 fed ground-truth cameras, keyframes evenly spaced over the sweep, sparse points = GT mesh
@@ -9,6 +10,12 @@ vertices (subsampled, visibility by ray casting) and a coarse mesh = the GT mesh
 and offset by a ~2.5 mm low-frequency field, so that MVS is judged alone. A fronto-parallel
 plane sweep (numpy/OpenCV) on the same inputs, filtered and fused the same way, is the peer.
 Prints a table and writes OUT/report.md.
+
+With ``--pipeline`` the stage is judged a second time on the pipeline's own inputs: the
+depth maps, views and coarse mesh that ``benchmarks/bench_pipeline.py`` left in its store
+(PBA cameras, landmark-fitted coarse mesh), scored against the ground truth moved into the
+run's frame by the similarity that best maps the true camera centres onto the estimated ones
+(so the figures hold the pose stage's errors, not its gauge). The peer runs on the same inputs.
 """
 
 from __future__ import annotations
@@ -168,6 +175,83 @@ def run_subject(subject, args, config, out):
     return rows, len(views)
 
 
+def pipeline_subject(result: Path, config, peer: bool):
+    """Scores of a bench_pipeline run (``result``: its ``<subject>/full`` folder)."""
+    import json
+    from types import SimpleNamespace
+
+    from facecap_core.camera import camera_center, read_cameras_json
+    from facecap_core.evaluation import umeyama
+    from facecap_core.mvs.stage import load_depth_map, load_view, read_views
+    from tasks.runner import open_store
+
+    report = json.loads((result / "report.json").read_text())
+    store, stages = open_store(report["store"]), report["stages"]
+    frames, coarse_dir, views_dir = (store.get(stages[n]["key"]) for n in ("frames", "coarse",
+                                                                            "views"))
+    cams = read_cameras_json(coarse_dir / "cameras.json")
+    gt_dir = Path(report["video"]).parent / "gt"
+    _, gt_frames = load_gt_cameras(gt_dir / "cameras.json")
+    indices = sorted(read_views(views_dir / "views.json"))
+    est = np.array([camera_center(*cams.pose(i)) for i in indices])
+    true = np.array([camera_center(gt_frames[i]["R"], gt_frames[i]["t"]) for i in indices])
+    s, R, t = umeyama(true, est)  # ground truth -> the run's frame
+    gt = load_mesh(gt_dir / "mesh.ply")
+    V, F = np.asarray(gt.vertices, float), np.asarray(gt.faces)
+    Vp = s * V @ R.T + t
+    centre, radius = region_sphere(load_landmarks(gt_dir / "landmarks.json"))
+    centre_p, radius_p = s * R @ centre + t, s * radius
+    maps = [load_depth_map(store.get(stages[f"depth_{i:05d}"]["key"]) / f"depth_{i:05d}.npz")
+            for i in indices]
+    width = int(round(maps[0].intr.width))
+    views = [load_view(frames, cams, i, width) for i in indices]
+    coarse = load_mesh(coarse_dir / "coarse.ply")
+    samples = face_samples(V, F, centre, radius)
+
+    def to_gt(cloud):
+        return SimpleNamespace(points=((cloud.points - t) @ R) / s)
+
+    def scores(filtered, raw=None):
+        geo, cloud = consistent_and_fused(filtered, views, config)
+        return {"raw": depth_scores(raw or filtered, views, Vp, F, centre_p, radius_p),
+                "filtered": depth_scores(filtered, views, Vp, F, centre_p, radius_p),
+                "geometric": depth_scores(geo, views, Vp, F, centre_p, radius_p),
+                "cloud": cloud_scores(to_gt(cloud), V, F, centre, radius, samples),
+                "points": len(cloud)}
+
+    metas = [json.loads((store.get(stages[f"depth_{i:05d}"]["key"]) /
+                         f"depth_{i:05d}.json").read_text()) for i in indices]
+    rows = {"patchmatch (pipeline inputs)": {
+        **scores(maps), "wall_1core": float("nan"),
+        "cpu_per_map": float(np.median([m["cpu_seconds"] for m in metas])),
+        "total_s": sum(stages[f"depth_{i:05d}"]["seconds"] for i in indices) / config.workers,
+        "fuse_s": float(stages["fusion"]["seconds"])}}
+    if peer:
+        sources = read_views(views_dir / "views.json")
+        by_index = dict(zip(indices, views))
+        all_views = {**by_index, **{j: load_view(frames, cams, j, width)
+                                    for js in sources.values() for j in js if j not in by_index}}
+
+        def sweep(i):
+            prior = coarse_prior(by_index[i], coarse.vertices, coarse.faces,
+                                 config.depth_margin_mm, config.head_dilation_px)
+            dm = plane_sweep(by_index[i], [all_views[j] for j in sources[i]], prior,
+                             config.depth_margin_mm, radius=config.window_radius,
+                             nbest=config.num_best_views)
+            return dm, filter_with_prior(dm, prior, config.max_cost,
+                                         config.coarse_max_distance_mm, config.depth_margin_mm)
+
+        t0 = time.perf_counter()
+        with ThreadPoolExecutor(config.workers) as pool:
+            pres = list(pool.map(sweep, indices))
+        total = time.perf_counter() - t0
+        rows["plane sweep (peer)"] = {
+            **scores([r[1] for r in pres], [r[0] for r in pres]), "wall_1core": float("nan"),
+            "cpu_per_map": float(np.median([r[0].cpu_seconds for r in pres])),
+            "total_s": total, "fuse_s": float("nan")}
+    return rows, len(indices)
+
+
 def table(results, args, config) -> str:
     head = ("| subject | method | depth med mm (raw / filtered) | coverage % filtered (min) "
             "| after geo-filter: med mm, cov % | cloud acc med mm | completion % ≤2 mm | points "
@@ -195,6 +279,11 @@ def main(argv=None) -> Path:
     p.add_argument("--out", type=Path, default=Path("out/bench_mvs"))
     p.add_argument("--ict-model", default=None)
     p.add_argument("--no-peer", dest="peer", action="store_false")
+    p.add_argument("--pipeline", type=Path, metavar="BENCH_PIPELINE_OUT",
+                   help="also score the depth maps and cloud of this bench_pipeline output "
+                        "(its <subject>/full runs) on the pipeline's own inputs")
+    p.add_argument("--pipeline-only", action="store_true",
+                   help="skip the run on ground-truth inputs")
     p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                    help="MVSConfig overrides, e.g. --set iterations=6 window_radius=4")
     args = p.parse_args(argv)
@@ -202,9 +291,17 @@ def main(argv=None) -> Path:
     config = MVSConfig(processing_width=args.proc_width, **overrides)
     args.out.mkdir(parents=True, exist_ok=True)
     results = {}
-    for subject in args.subjects:
+    for subject in args.subjects if not args.pipeline_only else ():
         results[subject] = run_subject(subject, args, config, args.out)
         print(table({subject: results[subject]}, args, config), flush=True)
+    piped = {}
+    for subject in args.subjects if args.pipeline else ():
+        result = args.pipeline / subject.replace(":", "_") / "full"
+        if not (result / "report.json").is_file():
+            print(f"{result}/report.json missing: run benchmarks/bench_pipeline.py first")
+            continue
+        piped[subject] = pipeline_subject(result, config, args.peer)
+        print(table({subject: piped[subject]}, args, config), flush=True)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     report = (f"# bench_mvs\n\n{len(args.subjects)} subjects, {args.width}x{args.height} "
               f"captures, {args.keyframes} keyframes, processing width {args.proc_width}, "
@@ -216,8 +313,15 @@ def main(argv=None) -> Path:
               f"{BARS['coverage_pct']} %, cloud accuracy median ≤ {BARS['accuracy_median_mm']}"
               f" mm, completion ≥ {BARS['completion_pct']} %, ≤ {BARS['s_per_map']} s/map on "
               "one core.\n")
+    if piped:
+        report += ("\n## On the pipeline's own inputs\n\nThe depth maps, views and coarse "
+                   f"mesh of {args.pipeline} (PBA cameras, landmark-fitted coarse mesh; "
+                   "CPU s/map and total from the run's artifacts, total = sum / workers); "
+                   "ground truth moved into the run's frame by the similarity of the camera "
+                   "centres. Depth errors in the run's millimetres, cloud figures in the "
+                   f"true ones.\n\n{table(piped, args, config)}\n")
     print("\n" + report)
-    path = args.out / "report.md"
+    path = args.out / ("report_pipeline.md" if args.pipeline_only else "report.md")
     path.write_text(report)
     return path
 

@@ -28,7 +28,9 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from facecap_core.config import PipelineConfig, load_pipeline_config
 from facecap_core.errors import InputError
-from facecap_core.mvs.stage import DEPTH_FIELDS, FUSION_FIELDS, VIEW_FIELDS, config_part
+from facecap_core.mvs.stage import (
+    DEPTH_FIELDS, FUSION_FIELDS, VIEW_FIELDS, config_part, read_views,
+)
 from tasks.runner import default_store_url, open_store, stage_meta
 from tasks.stages import (
     call_ingest, call_stage, coarse_task, depth_task, evaluation_task, fitting_task,
@@ -283,8 +285,7 @@ def dense_and_fit(store: str, keys: dict[str, str], cfg: PipelineConfig, label: 
     base = {"frames": keys["frames"], "coarse": keys["coarse"]}
     keys["views"] = call_stage(views_task, store, {**base, "poses": keys["poses"]},
                                config_part(cfg.mvs, VIEW_FIELDS), label)
-    indices = json.loads(
-        (st.get(keys["frames"], verify=False) / "frames.json").read_text())["frame_indices"]
+    indices = sorted(read_views(st.get(keys["views"], verify=False) / "views.json"))
     depth = _mvs_fan_out(store, {**base, "views": keys["views"]},
                          config_part(cfg.mvs, DEPTH_FIELDS), indices, label, progress)
     keys.update({f"depth_{i:05d}": k for i, k in depth.items()})

@@ -66,7 +66,17 @@ def stage_key(stage: str, inputs: dict[str, str], config: dict | None) -> str:
     """The artifact key (= Prefect cache key) of a stage call."""
     if stage not in VERSIONS:
         raise ValueError(f"unknown stage {stage!r}")
-    return artifact_key(stage, inputs, config, VERSIONS[stage])
+    return artifact_key(stage, inputs, config, stage_version(stage))
+
+
+def stage_version(stage: str) -> str:
+    """:data:`VERSIONS` of ``stage``, with the digest of the trained model it reads (the ear
+    model can be retrained, or replaced through ``$FACECAP_EAR_MODELS``)."""
+    if stage == "landmarks":
+        from facecap_core.landmarks.ears import model_digest
+
+        return f"{VERSIONS[stage]}+ears-{model_digest()}"
+    return VERSIONS[stage]
 
 
 def _lock_dir(store: ArtifactStore) -> Path:
@@ -124,7 +134,7 @@ def run_stage(store_url: str, stage: str, inputs: dict[str, str], config: dict |
                 raise FacecapError(f"stage {stage} wrote no files")
             inject_fault(stage, work)
             store.put(key, files, stage=stage, inputs=inputs, config=config,
-                      version=VERSIONS[stage], meta=meta)
+                      version=stage_version(stage), meta=meta)
         finally:
             shutil.rmtree(work, ignore_errors=True)
     return key, True

@@ -52,6 +52,17 @@ def scene(tmp_path_factory, ict_model):
 # --------------------------------------------------------------------------- view selection
 
 
+def test_reference_views_are_evenly_spread_over_the_sweep():
+    from facecap_core.mvs.stage import reference_views
+
+    picked = reference_views(73, 40)
+    assert len(picked) == 40 and picked[0] == 0 and picked[-1] == 72
+    assert set(np.diff(picked)) <= {1, 2}
+    assert reference_views(12, 40) == list(range(12))
+    assert reference_views(5, 2) == [0, 4]
+
+
+
 def test_gaussian_score_matches_the_paper():
     g = gaussian_score(np.array([10.0, 5.0, 20.0, 0.0, 30.0]))
     assert g[0] == pytest.approx(1.0)

@@ -23,6 +23,23 @@ def test_key_depends_on_inputs_config_and_version(monkeypatch):
     assert base != stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 1})
 
 
+def test_landmark_key_depends_on_the_ear_model(tmp_path, monkeypatch):
+    """A retrained ear model (or none) makes new landmark artifacts instead of reusing ones
+    computed with another model."""
+    from facecap_core.landmarks.ears import MODELS_DIR
+
+    inputs = {"video": "input-" + "0" * 32, "poses": "poses-" + "0" * 32}
+    shipped = stage_key("landmarks", inputs, {})
+    monkeypatch.setenv("FACECAP_EAR_MODELS", str(tmp_path))
+    absent = stage_key("landmarks", inputs, {})
+    for path in MODELS_DIR.iterdir():
+        (tmp_path / path.name).write_bytes(path.read_bytes())
+    assert stage_key("landmarks", inputs, {}) == shipped  # the same files: the same key
+    (tmp_path / "ear_predictor.dat").write_bytes(b"retrained")
+    retrained = stage_key("landmarks", inputs, {})
+    assert len({shipped, absent, retrained}) == 3
+
+
 def test_concurrent_runs_compute_once(tmp_path):
     store = str(tmp_path / "store")
     calls = []

@@ -43,6 +43,27 @@ def models_dir() -> Path:
     return Path(env) if env else MODELS_DIR
 
 
+def model_digest() -> str:
+    """Digest of the model files in use ("none" without them): part of the landmark stage's
+    artifact key, so a retrained or newly installed model is never hidden by a cached result."""
+    folder = models_dir()
+    if not model_available():
+        return "none"
+    stats = tuple((name, (folder / name).stat().st_mtime_ns, (folder / name).stat().st_size)
+                  for name in (DETECTOR_FILE, PREDICTOR_FILE, CONTOUR_FILE))
+    return _digest(str(folder), stats)
+
+
+@lru_cache(maxsize=8)
+def _digest(folder: str, stats: tuple) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    for name, _, _ in stats:
+        h.update((Path(folder) / name).read_bytes())
+    return h.hexdigest()[:16]
+
+
 def _load_vertex_ids() -> dict[str, np.ndarray]:
     # The contour definition ships with the package even where a user's model folder is used.
     path = MODELS_DIR / CONTOUR_FILE

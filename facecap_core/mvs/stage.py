@@ -35,7 +35,8 @@ DEPTH_FIELDS = {
     "presmooth_sigma", "sigma_color", "sigma_spatial", "num_best_views", "seed", "max_cost",
     "coarse_max_distance_mm"}
 """MVSConfig fields a single depth map depends on (its cache key holds only these)."""
-VIEW_FIELDS = {"processing_width", "num_sources", "view_theta0_deg", "view_sigma1", "view_sigma2"}
+VIEW_FIELDS = {"processing_width", "num_sources", "view_theta0_deg", "view_sigma1", "view_sigma2",
+               "max_reference_views"}
 """MVSConfig fields the view selection depends on."""
 FUSION_FIELDS = {"processing_width", "fusion_max_depth_mm", "fusion_max_reprojection_px",
                  "fusion_max_normal_deg", "min_consistent_views"}
@@ -63,7 +64,8 @@ def _metric_cameras(cameras_json: str | Path) -> CameraSet:
 def views_main(frames_dir: str | Path, cameras_json: str | Path, coarse_ply: str | Path,
                out_dir: str | Path, config: MVSConfig | None = None,
                sparse_npz: str | Path | None = None) -> Path:
-    """Choose each keyframe's sources by the paper's score; writes ``views.json``."""
+    """The reference keyframes (:func:`reference_views`) and each one's sources by the
+    paper's score; writes ``views.json``."""
     config = config or MVSConfig()
     cams = _metric_cameras(cameras_json)
     if len(cams.frame_indices) < 2:
@@ -85,17 +87,24 @@ def views_main(frames_dir: str | Path, cameras_json: str | Path, coarse_ply: str
         points, visibility = sparse_from_mesh(views, coarse.vertices, coarse.faces)
         source = "coarse mesh vertices"
     sources = choose_sources(views, points, visibility, config)
-    for i, s in enumerate(sources):
-        if len(s) == 0:
+    references = reference_views(len(views), config.max_reference_views)
+    for i in references:
+        if len(sources[i]) == 0:
             raise InputError(f"keyframe {views[i].index} shares no sparse point with any other "
                              "keyframe; it cannot be matched")
     path = Path(out_dir) / "views.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({
         "scored_with": source,
-        "sources": {str(views[i].index): [int(views[j].index) for j in s]
-                    for i, s in enumerate(sources)}}, indent=1))
+        "sources": {str(views[i].index): [int(views[j].index) for j in sources[i]]
+                    for i in references}}, indent=1))
     return path
+
+
+def reference_views(count: int, limit: int) -> list[int]:
+    """At most ``limit`` of ``count`` keyframes (positions in sweep order), evenly spaced
+    and including both ends."""
+    return sorted({int(round(x)) for x in np.linspace(0, count - 1, min(count, limit))})
 
 
 def read_views(views_json: str | Path) -> dict[int, list[int]]:

@@ -42,8 +42,11 @@ class Poses:
 
 def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tuple[int, int],
             overlap: int = 10, refine_principal_point: bool = False,
-            threads: int = 2) -> Poses:
+            threads: int = 1, seed: int = 0) -> Poses:
     """SfM over keyframe images ({video frame index: RGB uint8}, all one size).
+
+    With one thread and a fixed ``seed`` the result is the same on every run; with more,
+    COLMAP's threaded SIFT and matching give slightly different cameras each time.
 
     With the defaults this is what a COLMAP user gets (principal point held at the image
     centre); sequential matching pairs each keyframe with the next ``overlap``."""
@@ -65,13 +68,24 @@ def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tup
     db = work / "database.db"
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "RADIAL"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = threads
     pycolmap.extract_features(db, img_dir, camera_mode=pycolmap.CameraMode.SINGLE,
-                              reader_options=reader, device=pycolmap.Device.cpu)
+                              reader_options=reader, extraction_options=extraction,
+                              device=pycolmap.Device.cpu)
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = overlap
-    pycolmap.match_sequential(db, pairing_options=pairing, device=pycolmap.Device.cpu)
+    # Fixed seeds: a stage rerun (a retry, a killed worker's successor) gives the same cameras.
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = seed
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                              verification_options=verification,
+                              device=pycolmap.Device.cpu)
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = threads
+    options.random_seed = seed
     options.ba_refine_principal_point = refine_principal_point
     maps = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options)
     if not maps:
