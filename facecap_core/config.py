@@ -350,10 +350,10 @@ class MVSConfig(StrictModel):
     num_sources: int = Field(12, ge=1, le=64)
     """Source views per reference view, the best by the view-selection score."""
     max_reference_views: int = Field(40, ge=2, le=4096)
-    """Depth maps are computed for at most this many keyframes, evenly spaced along the
-    sweep (every keyframe stays a candidate source). Neighbouring keyframes of a dense sweep
-    see nearly the same surface: beyond about 40 maps the cloud gains little and the stage,
-    the pipeline's slowest, grows linearly."""
+    """MVS uses at most this many keyframes, evenly spaced along the sweep: one depth map
+    each, sources among them. Neighbouring keyframes of a dense sweep see nearly the same
+    surface: beyond about 40 maps the cloud gains little, and the stage, the pipeline's
+    slowest, grows linearly."""
     view_theta0_deg: float = Field(10.0, gt=0, lt=90)
     """Preferred baseline angle theta0 of the view-selection score."""
     view_sigma1: float = Field(5.0, gt=0)

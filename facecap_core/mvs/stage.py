@@ -64,8 +64,8 @@ def _metric_cameras(cameras_json: str | Path) -> CameraSet:
 def views_main(frames_dir: str | Path, cameras_json: str | Path, coarse_ply: str | Path,
                out_dir: str | Path, config: MVSConfig | None = None,
                sparse_npz: str | Path | None = None) -> Path:
-    """The reference keyframes (:func:`reference_views`) and each one's sources by the
-    paper's score; writes ``views.json``."""
+    """The keyframes MVS works on (:func:`reference_views`) and each one's sources among
+    them by the paper's score; writes ``views.json``."""
     config = config or MVSConfig()
     cams = _metric_cameras(cameras_json)
     if len(cams.frame_indices) < 2:
@@ -86,18 +86,21 @@ def views_main(frames_dir: str | Path, cameras_json: str | Path, coarse_ply: str
         coarse = load_mesh(coarse_ply, "coarse mesh")
         points, visibility = sparse_from_mesh(views, coarse.vertices, coarse.faces)
         source = "coarse mesh vertices"
-    sources = choose_sources(views, points, visibility, config)
+    # MVS works on the references alone: every depth map's sources then have depth maps too,
+    # which the consistency filter and the fusion check it against.
     references = reference_views(len(views), config.max_reference_views)
-    for i in references:
-        if len(sources[i]) == 0:
+    views, visibility = [views[i] for i in references], visibility[references]
+    sources = choose_sources(views, points, visibility, config)
+    for i, s in enumerate(sources):
+        if len(s) == 0:
             raise InputError(f"keyframe {views[i].index} shares no sparse point with any other "
                              "keyframe; it cannot be matched")
     path = Path(out_dir) / "views.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({
         "scored_with": source,
-        "sources": {str(views[i].index): [int(views[j].index) for j in sources[i]]
-                    for i in references}}, indent=1))
+        "sources": {str(views[i].index): [int(views[j].index) for j in s]
+                    for i, s in enumerate(sources)}}, indent=1))
     return path
 
 
