@@ -44,6 +44,7 @@ call :meth:`ArtifactStore.delete`).
 from __future__ import annotations
 
 import errno
+import functools
 import hashlib
 import json
 import os
@@ -158,6 +159,17 @@ def file_digest(path: str | os.PathLike[str]) -> str:
 
 def input_key(path: str | os.PathLike[str]) -> str:
     """Key of a raw input file (such as a video), derived from its content alone."""
+    try:
+        stat = os.stat(path)
+    except OSError:  # reading it raises the store's own error for the path
+        return f"input-{file_digest(path)[:KEY_DIGEST_LENGTH]}"
+    return _input_key(os.path.realpath(path), stat.st_ino, stat.st_size, stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=256)
+def _input_key(path: str, inode: int, size: int, mtime_ns: int) -> str:
+    # A capture flow asks for its video's key several times; a long video takes seconds to
+    # hash. A rewritten file has a new mtime (or inode), hence a new cache entry.
     return f"input-{file_digest(path)[:KEY_DIGEST_LENGTH]}"
 
 
