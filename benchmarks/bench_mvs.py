@@ -42,6 +42,7 @@ from facecap_core.mvs.pipeline import MVSConfig, choose_sources, compute_depth_m
 from facecap_core.mvs.planesweep import plane_sweep
 from facecap_core.mvs.prior import coarse_prior
 from facecap_core.mvs.testing import coarse_from_gt, even_keyframes, gt_depth, load_views
+from facecap_core.mvs.views import visible_points
 from facecap_core.synthetic import load_gt_cameras, synthesize
 
 BARS = {"depth_median_mm": 0.5, "coverage_pct": 90.0, "accuracy_median_mm": 0.5,
@@ -76,15 +77,24 @@ def depth_scores(maps, views, V, F, centre, radius, region=None):
     return float(np.nanmedian(errs)), float(np.median(covs)), float(np.min(covs))
 
 
-def cloud_scores(cloud, V, F, centre, radius, samples):
-    """Accuracy median (cloud points in the sphere -> GT surface) and completion (% of GT face
-    area samples within 2 mm of the cloud)."""
+def cloud_scores(cloud, V, F, centre, radius, samples, seen):
+    """Accuracy median (cloud points in the sphere -> GT surface), completion (% of GT face
+    area samples within 2 mm of the cloud), points in the sphere, and the completion of the
+    samples ``seen`` by at least two views (the mouth's inside, the nostrils and the skin
+    under the chin are in the sphere but no keyframe sees them well)."""
     inside = np.linalg.norm(cloud.points - centre, axis=1) <= radius
     acc = distances(cloud.points[inside], V, F)
     if len(cloud.points) == 0:
-        return np.nan, 0.0, 0
+        return np.nan, 0.0, 0, 0.0
     dist, _ = cKDTree(cloud.points).query(samples)
-    return float(np.median(acc)), float(100.0 * np.mean(dist <= 2.0)), int(inside.sum())
+    near = dist <= 2.0
+    return (float(np.median(acc)), float(100.0 * np.mean(near)), int(inside.sum()),
+            float(100.0 * np.mean(near[seen])))
+
+
+def seen_twice(samples, views, V, F):
+    """Which samples at least two of the views see (in the image, not occluded)."""
+    return visible_points(samples, [(v.intr, v.R, v.t) for v in views], V, F).sum(0) >= 2
 
 
 def face_samples(V, F, centre, radius, count=20000, seed=0):
@@ -115,6 +125,7 @@ def run_subject(subject, args, config, out):
     points, vis = sparse_from_mesh(views, V, F, count=4000)
     sources = choose_sources(views, points, vis, config)
     samples = face_samples(V, F, centre, radius)
+    seen = seen_twice(samples, views, V, F)
     rows = {}
 
     # Speed on one core: a few maps one after another on this thread.
@@ -140,7 +151,8 @@ def run_subject(subject, args, config, out):
         "raw": depth_scores(raw, views, V, F, centre, radius),
         "filtered": depth_scores(filt, views, V, F, centre, radius),
         "geometric": depth_scores(geo, views, V, F, centre, radius),
-        "cloud": cloud_scores(cloud, V, F, centre, radius, samples), "points": len(cloud),
+        "cloud": cloud_scores(cloud, V, F, centre, radius, samples, seen),
+        "points": len(cloud),
         "wall_1core": float(np.median([m.seconds for m in single])),
         "cpu_per_map": float(np.median([m.cpu_seconds for m in raw])),
         "total_s": t_maps, "fuse_s": t_fuse,
@@ -169,7 +181,8 @@ def run_subject(subject, args, config, out):
             "raw": depth_scores([r[0] for r in pres], views, V, F, centre, radius),
             "filtered": depth_scores(pfilt, views, V, F, centre, radius),
             "geometric": depth_scores(pgeo, views, V, F, centre, radius),
-            "cloud": cloud_scores(pcloud, V, F, centre, radius, samples), "points": len(pcloud),
+            "cloud": cloud_scores(pcloud, V, F, centre, radius, samples, seen),
+            "points": len(pcloud),
             "wall_1core": float("nan"),
             "cpu_per_map": float(np.median([r[0].cpu_seconds for r in pres])),
             "total_s": t_maps, "fuse_s": time.perf_counter() - t1,
@@ -194,7 +207,7 @@ def pipeline_subject(result: Path, config, peer: bool):
                                                                             "views"))
     cams = read_cameras_json(coarse_dir / "cameras.json")
     gt_dir = Path(report["video"]).parent / "gt"
-    _, gt_frames = load_gt_cameras(gt_dir / "cameras.json")
+    gt_intr, gt_frames = load_gt_cameras(gt_dir / "cameras.json")
     indices = sorted(read_views(views_dir / "views.json"))
     est = np.array([camera_center(*cams.pose(i)) for i in indices])
     true = np.array([camera_center(gt_frames[i]["R"], gt_frames[i]["t"]) for i in indices])
@@ -222,17 +235,22 @@ def pipeline_subject(result: Path, config, peer: bool):
     def in_template(points_run_frame):
         return near_coarse.query(points_run_frame)[0] <= 10.0
 
-    template_samples = samples[in_template(s * samples @ R.T + t)]
+    in_region = in_template(s * samples @ R.T + t)
+    # Seen by the true cameras of the same keyframes.
+    true_views = [SimpleNamespace(intr=gt_intr, R=gt_frames[i]["R"], t=gt_frames[i]["t"])
+                  for i in indices]
+    seen = seen_twice(samples, true_views, V, F)
 
     def scores(filtered, raw=None):
         geo, cloud = consistent_and_fused(filtered, views, config)
         out = {}
-        for region, smp in ((None, samples), (in_template, template_samples)):
+        for region, keep in ((None, slice(None)), (in_template, in_region)):
             out[region is not None] = {
                 "raw": depth_scores(raw or filtered, views, Vp, F, centre_p, radius_p, region),
                 "filtered": depth_scores(filtered, views, Vp, F, centre_p, radius_p, region),
                 "geometric": depth_scores(geo, views, Vp, F, centre_p, radius_p, region),
-                "cloud": cloud_scores(to_gt(cloud), V, F, centre, radius, smp),
+                "cloud": cloud_scores(to_gt(cloud), V, F, centre, radius, samples[keep],
+                                      seen[keep]),
                 "points": len(cloud)}
         return out
 
@@ -243,8 +261,8 @@ def pipeline_subject(result: Path, config, peer: bool):
              "total_s": sum(stages[f"depth_{i:05d}"]["seconds"] for i in indices) / config.workers,
              "fuse_s": float(stages["fusion"]["seconds"])}
     rows = {}
-    for in_region, row in scores(maps).items():
-        rows["patchmatch" + (", template region" if in_region else "")] = {**row, **speed}
+    for templated, row in scores(maps).items():
+        rows["patchmatch" + (", template region" if templated else "")] = {**row, **speed}
     if peer:
         sources = read_views(views_dir / "views.json")
         by_index = dict(zip(indices, views))
@@ -267,15 +285,16 @@ def pipeline_subject(result: Path, config, peer: bool):
         speed = {"wall_1core": float("nan"),
                  "cpu_per_map": float(np.median([r[0].cpu_seconds for r in pres])),
                  "total_s": total, "fuse_s": float("nan")}
-        for in_region, row in scores([r[1] for r in pres], [r[0] for r in pres]).items():
-            rows["plane sweep (peer)" + (", template region" if in_region else "")] = {
+        for templated, row in scores([r[1] for r in pres], [r[0] for r in pres]).items():
+            rows["plane sweep (peer)" + (", template region" if templated else "")] = {
                 **row, **speed}
     return rows, len(indices)
 
 
 def table(results, args, config) -> str:
     head = ("| subject | method | depth med mm (raw / filtered) | coverage % filtered (min) "
-            "| after geo-filter: med mm, cov % | cloud acc med mm | completion % ≤2 mm | points "
+            "| after geo-filter: med mm, cov % | cloud acc med mm | completion % ≤2 mm "
+            "(of the surface seen twice) | points "
             "| s/map 1 core wall | CPU s/map | total s (2 workers) | fuse s |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for subject, (rows, n) in results.items():
@@ -283,7 +302,7 @@ def table(results, args, config) -> str:
             raw, fl, ge, cl = r["raw"], r["filtered"], r["geometric"], r["cloud"]
             lines.append(
                 f"| {subject} | {name} | {raw[0]:.3f} / {fl[0]:.3f} | {fl[1]:.1f} ({fl[2]:.1f}) "
-                f"| {ge[0]:.3f}, {ge[1]:.1f} | {cl[0]:.3f} | {cl[1]:.1f} | {r['points']} "
+                f"| {ge[0]:.3f}, {ge[1]:.1f} | {cl[0]:.3f} | {cl[1]:.1f} ({cl[3]:.1f}) | {r['points']} "
                 f"| {r['wall_1core']:.2f} | {r['cpu_per_map']:.2f} | {r['total_s']:.1f} "
                 f"| {r['fuse_s']:.1f} |")
     return "\n".join(lines)
