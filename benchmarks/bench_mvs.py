@@ -60,15 +60,12 @@ def capture_for(subject: str, out: Path, width: int, height: int, ict_model: str
     return folder
 
 
-def depth_scores(maps, views, V, F, centre, radius, region=None):
-    """Per map: (median |depth error| mm, coverage %) on face pixels (GT hit in the sphere,
-    and where ``region(points)`` is true)."""
+def depth_scores(maps, views, V, F, centre, radius):
+    """Per map: (median |depth error| mm, coverage %) on face pixels (GT hit in the sphere)."""
     errs, covs = [], []
     for dm, view in zip(maps, views):
         d, P = gt_depth(view, V, F)
         face = np.isfinite(d) & (np.linalg.norm(np.nan_to_num(P) - centre, axis=-1) <= radius)
-        if region is not None:
-            face[face] = region(P[face])
         if face.sum() < 100:
             continue
         ok = face & (dm.depth > 0)
@@ -227,15 +224,6 @@ def pipeline_subject(result: Path, config, peer: bool):
     def to_gt(cloud):
         return SimpleNamespace(points=((cloud.points - t) @ R) / s)
 
-    # The template covers the face, not the scalp and neck inside the scoring sphere: the
-    # second row of each method counts only the surface within 10 mm of the coarse mesh.
-    coarse_mesh = trimesh.Trimesh(coarse.vertices, coarse.faces, process=False)
-    near_coarse = cKDTree(trimesh.sample.sample_surface_even(coarse_mesh, 200000, seed=0)[0])
-
-    def in_template(points_run_frame):
-        return near_coarse.query(points_run_frame)[0] <= 10.0
-
-    in_region = in_template(s * samples @ R.T + t)
     # Seen by the true cameras of the same keyframes.
     true_views = [SimpleNamespace(intr=gt_intr, R=gt_frames[i]["R"], t=gt_frames[i]["t"])
                   for i in indices]
@@ -243,16 +231,11 @@ def pipeline_subject(result: Path, config, peer: bool):
 
     def scores(filtered, raw=None):
         geo, cloud = consistent_and_fused(filtered, views, config)
-        out = {}
-        for region, keep in ((None, slice(None)), (in_template, in_region)):
-            out[region is not None] = {
-                "raw": depth_scores(raw or filtered, views, Vp, F, centre_p, radius_p, region),
-                "filtered": depth_scores(filtered, views, Vp, F, centre_p, radius_p, region),
-                "geometric": depth_scores(geo, views, Vp, F, centre_p, radius_p, region),
-                "cloud": cloud_scores(to_gt(cloud), V, F, centre, radius, samples[keep],
-                                      seen[keep]),
+        return {"raw": depth_scores(raw or filtered, views, Vp, F, centre_p, radius_p),
+                "filtered": depth_scores(filtered, views, Vp, F, centre_p, radius_p),
+                "geometric": depth_scores(geo, views, Vp, F, centre_p, radius_p),
+                "cloud": cloud_scores(to_gt(cloud), V, F, centre, radius, samples, seen),
                 "points": len(cloud)}
-        return out
 
     metas = [json.loads((store.get(stages[f"depth_{i:05d}"]["key"]) /
                          f"depth_{i:05d}.json").read_text()) for i in indices]
@@ -260,9 +243,7 @@ def pipeline_subject(result: Path, config, peer: bool):
              "cpu_per_map": float(np.median([m["cpu_seconds"] for m in metas])),
              "total_s": sum(stages[f"depth_{i:05d}"]["seconds"] for i in indices) / config.workers,
              "fuse_s": float(stages["fusion"]["seconds"])}
-    rows = {}
-    for templated, row in scores(maps).items():
-        rows["patchmatch" + (", template region" if templated else "")] = {**row, **speed}
+    rows = {"patchmatch": {**scores(maps), **speed}}
     if peer:
         sources = read_views(views_dir / "views.json")
         by_index = dict(zip(indices, views))
@@ -285,9 +266,8 @@ def pipeline_subject(result: Path, config, peer: bool):
         speed = {"wall_1core": float("nan"),
                  "cpu_per_map": float(np.median([r[0].cpu_seconds for r in pres])),
                  "total_s": total, "fuse_s": float("nan")}
-        for templated, row in scores([r[1] for r in pres], [r[0] for r in pres]).items():
-            rows["plane sweep (peer)" + (", template region" if templated else "")] = {
-                **row, **speed}
+        rows["plane sweep (peer)"] = {**scores([r[1] for r in pres], [r[0] for r in pres]),
+                                      **speed}
     return rows, len(indices)
 
 
@@ -359,10 +339,7 @@ def main(argv=None) -> Path:
                    "CPU s/map and total from the run's artifacts, total = sum / workers); "
                    "ground truth moved into the run's frame by the similarity of the camera "
                    "centres. Depth errors in the run's millimetres, cloud figures in the "
-                   "true ones. Rows marked 'template region' count only the face surface "
-                   "within 10 mm of the coarse mesh (the template stops at the forehead and "
-                   "the chin; the scoring sphere reaches the scalp and the neck)."
-                   f"\n\n{table(piped, args, config)}\n")
+                   f"true ones.\n\n{table(piped, args, config)}\n")
     print("\n" + report)
     path = args.out / ("report_pipeline.md" if args.pipeline_only else "report.md")
     path.write_text(report)
