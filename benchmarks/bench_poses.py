@@ -92,7 +92,8 @@ def run_capture(capture: Path, work: Path, config: PoseConfig) -> dict:
 def report(results: list[dict]) -> str:
     lines = ["# Camera tracking benchmark (`benchmarks/bench_poses.py`)", "",
              "Errors after a similarity alignment of the camera centres to ground truth. "
-             "Seconds: wall / CPU (all threads), shared 2-core machine, taken under load. "
+             "Seconds: wall / CPU (all threads) on the 2-core machine; compare wall times only "
+             "between quiet runs. "
              "(b) includes the time of (a); (c) includes (a) and (b).", "",
              "| capture | keyframes | solution | rotation ° | centre % | focal % | pp px | k1 err "
              "| seconds (wall / CPU) |", "|---|---:|---|---:|---:|---:|---:|---:|---:|"]

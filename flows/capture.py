@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Literal
 
@@ -31,7 +32,7 @@ from facecap_core.errors import InputError
 from facecap_core.mvs.stage import (
     DEPTH_FIELDS, FUSION_FIELDS, VIEW_FIELDS, config_part, read_views,
 )
-from tasks.runner import default_store_url, open_store, stage_meta
+from tasks.runner import default_store_url, open_store
 from tasks.stages import (
     call_ingest, call_stage, coarse_task, depth_task, evaluation_task, fitting_task,
     frames_task, fusion_task, keyframes_task, landmarks_task, poses_task, views_task,
@@ -99,12 +100,16 @@ def _export(store: str, keys: dict[str, str], out: Path) -> None:
                 tmp.replace(dst)
 
 
-def _stage_report(store: str, keys: dict[str, str], cached: set[str]) -> dict:
-    report = {}
+def _stage_report(store: str, keys: dict[str, str], started: datetime) -> dict:
+    """Per stage: its key, whether this run found it in the store (committed before the run
+    started), and the seconds its computation took."""
+    st, report = open_store(store), {}
     for name, key in keys.items():
-        meta = stage_meta(store, key)
-        report[name] = {"key": key, "cached": name in cached,
-                        "seconds": meta.get("seconds"), "cpu_seconds": meta.get("cpu_seconds")}
+        manifest = st.manifest(key)
+        report[name] = {"key": key,
+                        "cached": datetime.fromisoformat(manifest.created) < started,
+                        "seconds": manifest.meta.get("seconds"),
+                        "cpu_seconds": manifest.meta.get("cpu_seconds")}
     return report
 
 
@@ -127,9 +132,9 @@ def reconstruct_capture(video: str, out: str, config: str | None = None,
     out_dir.mkdir(parents=True, exist_ok=True)
     subject, capture = capture_name(video)
     label = f"{subject}/{capture}"
-    st = open_store(store)
     keys: dict[str, str] = {}
-    before = set(st.keys())
+    now = datetime.now(timezone.utc)
+    started = now.replace(microsecond=now.microsecond // 1000 * 1000)  # manifests keep ms
 
     def stop(stage: str) -> bool:
         return STAGES.index(stage) >= STAGES.index(until)
@@ -152,13 +157,12 @@ def reconstruct_capture(video: str, out: str, config: str | None = None,
     if not stop("coarse"):
         dense_and_fit(store, keys, cfg, label, until, scan, scan_landmarks, progress)
     _export(store, keys, out_dir)
-    computed = set(st.keys()) - before
-    cached = {name for name, key in keys.items() if key not in computed}
+    stages = _stage_report(store, keys, started)
+    cached = sum(info["cached"] for info in stages.values())
     report = {
         "subject": subject, "capture": capture, "video": str(video), "store": store,
         "until": until, "wall_seconds": round(time.perf_counter() - start, 2),
-        "computed": len(computed & set(keys.values())), "cached": len(cached),
-        "stages": _stage_report(store, keys, cached),
+        "computed": len(stages) - cached, "cached": cached, "stages": stages,
     }
     figures = _figures(out_dir)
     if figures:

@@ -24,7 +24,7 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 from facecap_core.errors import FacecapError, InputError
 from facecap_core.store import (
@@ -185,10 +185,6 @@ def ingest(store_url: str, path: str | os.PathLike, name: str) -> str:
             store.put(key, {name: path}, stage="input", inputs={}, config=None,
                       version=VERSIONS["input"], meta={"source": path.name})
     return key
-
-
-def stage_meta(store_url: str, key: str) -> dict[str, Any]:
-    return open_store(store_url).manifest(key).meta
 
 
 # -- retries ---------------------------------------------------------------------------------

@@ -458,6 +458,14 @@ def test_phone_videos_are_accepted(media, kept, tmp_path, capfd, prefect_server)
     report = json.loads((tmp_path / "out unicode" / "report.json").read_text())
     assert (report["subject"], report["capture"]) == ("séance 1", "prise n°1")
     assert results["unicode"]["frame_indices"] == reference.indices
+    # Run again: everything comes from the store, and the report says so.
+    code, _, err = facecap(capfd, "reconstruct", unicode_dir / "prise n°1.mp4", "--out",
+                           tmp_path / "out unicode", "--store", kept["store"], "--until",
+                           "keyframes")
+    assert code == 0, err
+    again = json.loads((tmp_path / "out unicode" / "report.json").read_text())
+    assert (again["computed"], again["cached"]) == (0, 1)
+    assert again["stages"]["keyframes"] == {**report["stages"]["keyframes"], "cached": True}
 
 
 # --------------------------------------------------------------------------- security
