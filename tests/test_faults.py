@@ -289,7 +289,7 @@ def test_a_worker_killed_in_any_stage_loses_only_that_stage(chain, mode):
         if len(same) > 1:  # the depth maps: the one with the killed worker's file names
             same = [k for k in same if set(digests(store.get(k))) == set(left)]
         assert len(same) == 1, run["fault"]
-        if stage == "poses":  # (its SfM scratch, kept in the artifact, varies as well)
+        if stage == "poses":  # compared as cameras: float sums may differ in the last digits
             assert_same_cameras(work / "cameras.json", store.get(same[0]) / "cameras.json")
         else:
             assert digests(store.get(same[0])) == left, run["fault"]

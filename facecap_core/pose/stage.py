@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import tempfile
 import time
 from pathlib import Path
 
@@ -92,7 +93,10 @@ def main(video: str | Path, keyframes_json: str | Path, out_dir: str | Path,
     keyframes = load_keyframes(keyframes_json)
     out = Path(out_dir)
     start, cpu = time.perf_counter(), time.process_time()
-    steps = estimate_poses(video, keyframes, out / "work", config, progress)
+    # COLMAP's scratch (keyframe PNGs, database: ~100 MB at 720p) stays out of the artifact,
+    # which every later stage downloads.
+    with tempfile.TemporaryDirectory(prefix="facecap-poses-") as work:
+        steps = estimate_poses(video, keyframes, work, config, progress)
     final = list(steps.values())[-1]
     return write_outputs(final, out, method=list(steps)[-1],
                          wall_seconds=round(time.perf_counter() - start, 2),
