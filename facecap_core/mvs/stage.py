@@ -71,25 +71,27 @@ def views_main(frames_dir: str | Path, cameras_json: str | Path, coarse_ply: str
     if len(cams.frame_indices) < 2:
         raise InputError(f"multi-view stereo needs at least 2 keyframes; got "
                          f"{len(cams.frame_indices)}")
+    # MVS works on the references alone: every depth map's sources then have depth maps too,
+    # which the consistency filter and the fusion check it against.
+    count = len(cams.frame_indices)
+    references = reference_views(count, config.max_reference_views)
     # Only cameras matter for the score: views without images are enough.
-    views = [MVSView(i, cams.intrinsics, R, t, np.zeros((1, 1, 3), np.uint8),
-                     np.zeros((1, 1), np.float32))
-             for i, R, t in zip(cams.frame_indices, cams.R, cams.t)]
+    views = [MVSView(cams.frame_indices[k], cams.intrinsics, cams.R[k], cams.t[k],
+                     np.zeros((1, 1, 3), np.uint8), np.zeros((1, 1), np.float32))
+             for k in references]
     source = "sparse points"
     points = visibility = None
     if sparse_npz is not None and Path(sparse_npz).is_file():
         with np.load(sparse_npz) as z:
             points, visibility = z["points"] * float(cams.metric_scale or 1.0), z["visibility"]
-        if visibility.shape != (len(views), len(points)) or len(points) < 10:
+        if visibility.shape != (count, len(points)) or len(points) < 10:
             points = visibility = None
+        else:
+            visibility = visibility[references]
     if points is None:
         coarse = load_mesh(coarse_ply, "coarse mesh")
         points, visibility = sparse_from_mesh(views, coarse.vertices, coarse.faces)
         source = "coarse mesh vertices"
-    # MVS works on the references alone: every depth map's sources then have depth maps too,
-    # which the consistency filter and the fusion check it against.
-    references = reference_views(len(views), config.max_reference_views)
-    views, visibility = [views[i] for i in references], visibility[references]
     sources = choose_sources(views, points, visibility, config)
     for i, s in enumerate(sources):
         if len(s) == 0:
