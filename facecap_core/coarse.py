@@ -203,7 +203,7 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     config = config or CoarseConfig()
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     landmarks_dir = Path(landmarks_dir)
-    L, _ = load_landmarks3d(landmarks_dir / "landmarks3d.json")
+    L, landmarks_doc = load_landmarks3d(landmarks_dir / "landmarks3d.json")
     if np.sum(np.all(np.isfinite(L[INNER_LANDMARKS]), axis=1)) < 6:
         raise InputError(f"{landmarks_dir / 'landmarks3d.json'} has fewer than 6 inner "
                          "landmarks in 3D: the coarse template needs the face's landmarks")
@@ -244,6 +244,7 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     _write(out / "landmarks3d.json", {
         "convention": "ibug68", "units": "mm", "template": template.name,
         "from_coarse_mesh": np.flatnonzero(missing).tolist(),
+        "coverage": landmarks_doc.get("coverage"),
         "landmarks": np.round(L_out, 6).tolist()})
     _write(out / "ears3d.json", {"template": template.name, "units": "mm",
                                  "vertex_ids": ear_ids.tolist(),

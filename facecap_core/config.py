@@ -151,6 +151,11 @@ def dump_yaml(config: BaseModel, path: str | Path) -> Path:
     return path
 
 
+MIN_YAW_SPAN_DEG = 40.0
+"""Fewest degrees round the head a capture's views must span (see
+``LandmarkConfig.min_yaw_span_deg``)."""
+
+
 class KeyframeConfig(StrictModel):
     """Lucas–Kanade tracking and keyframe selection (``facecap_core/keyframes.py``)."""
 
@@ -246,6 +251,11 @@ class PoseConfig(StrictModel):
     """Final refinement: ``pba`` (photometric bundle adjustment) or ``geometric`` only."""
     pba: PBAConfig = Field(default_factory=lambda: PBAConfig())
     """Photometric bundle adjustment settings."""
+    min_registered: int = Field(5, ge=3, le=1000)
+    """Fewest registered keyframes to go on with (unregistered ones are left out)."""
+    min_registered_fraction: float = Field(0.5, ge=0, le=1)
+    """Fewest registered keyframes as a fraction of all: below it the capture is refused, as
+    the views that did register are then as likely a lucky subset as the face."""
     threads: int = Field(1, ge=1, le=256)
     """Threads for SIFT, matching and mapping. One makes the stage reproducible (a rerun
     gives the same cameras, so nightly re-evaluations compare like with like); two save
@@ -324,6 +334,10 @@ class FittingConfig(StrictModel):
     """Template vertices this many edges or fewer from the template's open border never give
     silhouettes (the border is not a real contour)."""
 
+    relax_folds: bool = True
+    """Where the fitted mesh folds over, spikes or cuts through itself (a noisy cloud, a wrong
+    ear point), replace its deformation there by a membrane until it is sound
+    (``facecap_core/fitting/sanity.py``); the figures before and after go to ``fit.json``."""
     texture: bool = True
     """Colour the fitted mesh from the keyframes (per-vertex colour) when keyframes are given."""
     texture_min_cos: float = Field(0.25, ge=0, le=1)
@@ -452,6 +466,10 @@ class LandmarkConfig(StrictModel):
     """Ears are searched in keyframes at least this far from frontal (profile side) ..."""
     ear_max_yaw_deg: float = Field(100.0, ge=0, le=180)
     """... and at most this far."""
+    min_yaw_span_deg: float = Field(MIN_YAW_SPAN_DEG, ge=0, le=360)
+    """Fewest degrees of yaw around the head that the registered keyframes must span (the
+    face's sides are seen from ±20° on; with less, depth from the frontal views alone is too
+    ill-conditioned for a metric face). A full capture spans about 180°."""
     ear_min_views: int = Field(3, ge=2, le=100)
     """Fewest keyframes with an ear detection for that ear's points to be triangulated."""
     ear_outlier_threshold: float = Field(0.1, gt=0, le=1)

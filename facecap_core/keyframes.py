@@ -42,6 +42,8 @@ class Keyframes:
     video_size: tuple[int, int]
     frames_read: int
     angles_deg: list[float] = field(default_factory=list)  # view angle at each new keyframe
+    ordered: bool = True  # video frames in sweep order; photos come in any order
+    focal_px: float | None = None  # initial focal length (the photos' EXIF), full resolution
 
     def tracks_between(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         """Matched pixel positions (N, 2), (N, 2) of tracks seen in keyframes a and b."""
@@ -101,6 +103,61 @@ def view_angle_deg(a: np.ndarray, b: np.ndarray, focal_px: float, size: tuple[in
     return angle if angle < 60 else float("nan")
 
 
+@dataclass
+class HeadMotionProbe:
+    """Whether the head moves against a still scene (the camera on a tripod, the subject
+    turning): features around the face hold still while those on it move. A still head
+    filmed by a moving camera shows the opposite (the scene behind moves more than the
+    face). ``windows`` start at evenly spaced frames; each compares the positions of the
+    tracks on the face box and outside a margin around it ``span`` frames later."""
+
+    starts: set[int]
+    span: int
+    open: dict[int, tuple] = field(default_factory=dict)  # start -> (end, box, {id: xy})
+    ratios: list[float] = field(default_factory=list)  # outside / face median motion
+
+    @classmethod
+    def for_video(cls, frame_count: int, fps: float, windows: int = 12) -> "HeadMotionProbe":
+        span = max(2, int(round(0.2 * (fps or 30))))  # a fifth of a second
+        last = max(1, (frame_count or 30 * windows) - span - 1)
+        return cls(set(np.linspace(0, last, windows).astype(int).tolist()), span)
+
+    def update(self, index: int, grey: np.ndarray, ids: np.ndarray, pts: np.ndarray) -> None:
+        if index in self.starts:
+            from facecap_core.landmarks import face_box
+
+            box = face_box(grey)
+            if box is not None:
+                self.open[index] = (index + self.span, box, dict(zip(ids.tolist(), pts)))
+        for start, (end, box, before) in list(self.open.items()):
+            if index == end:
+                del self.open[start]
+                self._close(box, before, ids, pts)
+
+    def _close(self, box, before: dict, ids: np.ndarray, pts: np.ndarray) -> None:
+        left, top, right, bottom = box
+        w, h = right - left, bottom - top
+        common = [(before[i], p) for i, p in zip(ids.tolist(), pts) if i in before]
+        if not common:
+            return
+        a, b = (np.array(x, float) for x in zip(*common))
+        moved = np.linalg.norm(b - a, axis=1)
+        x, y = a[:, 0], a[:, 1]
+        on_face = (x > left) & (x < right) & (y > top) & (y < bottom)
+        # Hair, ears and neck move with the head: "outside" starts well clear of the box.
+        near = ((x > left - 0.6 * w) & (x < right + 0.6 * w) & (y > top - 0.8 * h)
+                & (y < bottom + 0.4 * h))
+        if on_face.sum() >= 10 and (~near).sum() >= 10:
+            face = float(np.median(moved[on_face]))
+            if face > 1.0:  # the head (or the camera) moved at all
+                self.ratios.append(float(np.median(moved[~near])) / face)
+
+    def head_moves(self) -> bool:
+        """Most measurable windows show a still scene around a moving face."""
+        r = np.array(self.ratios)
+        return len(r) >= 3 and float(np.mean(r < 0.25)) > 0.5
+
+
 def select_keyframes(video: str | Path, config: KeyframeConfig | None = None,
                      progress: bool = False) -> Keyframes:
     """Track through the whole video and pick keyframes (see the module docstring)."""
@@ -132,6 +189,7 @@ def select_keyframes(video: str | Path, config: KeyframeConfig | None = None,
         kf_pos.clear()
         kf_pos.update(zip(entry[3].tolist(), entry[4]))
 
+    probe_motion = HeadMotionProbe.for_video(info.frame_count, info.fps)
     bar = tqdm(total=info.frame_count or None, desc="tracking", unit="frame", disable=not progress)
     for frame in iter_frames(video, width=config.track_width, grey=True):
         grey = frame.image
@@ -147,6 +205,7 @@ def select_keyframes(video: str | Path, config: KeyframeConfig | None = None,
             next_id += len(new)
         prev = grey
         tracked.append(len(pts))
+        probe_motion.update(frame.index, grey, ids, pts)
         if not keyframes:
             make_keyframe((frame.index, frame.time, sharpness(grey), ids.copy(), pts.copy(), 0.0))
             continue
@@ -165,6 +224,12 @@ def select_keyframes(video: str | Path, config: KeyframeConfig | None = None,
             recent = [e for e in recent if e[0] > best[0]]
     bar.close()
 
+    if probe_motion.head_moves():
+        raise InputError(
+            f"{video}: the head moves while the scene around it stands still (the camera "
+            f"was fixed in {sum(r < 0.25 for r in probe_motion.ratios)} of "
+            f"{len(probe_motion.ratios)} sampled moments): facecap needs a still head and a "
+            "moving camera; keep the head still and move the phone round it, ear to ear")
     if frames_read < config.min_frames:
         raise InputError(f"{video} has {frames_read} frames; an ear-to-ear capture needs "
                          f"at least {config.min_frames} (record a slow sweep of several seconds)")
@@ -186,6 +251,24 @@ def select_keyframes(video: str | Path, config: KeyframeConfig | None = None,
         video_size=(info.width, info.height), frames_read=frames_read, angles_deg=angles)
 
 
+def photo_keyframes(folder: str | Path, progress: bool = False) -> Keyframes:
+    """Every photo of a photo folder is a keyframe (a photo set is already a selection of
+    views); there are no tracks between photos, and their order is not a sweep's."""
+    from tqdm import tqdm
+
+    from facecap_core.photos import probe_photos
+
+    info = probe_photos(folder)
+    sharp = [sharpness(f.image) for f in tqdm(iter_frames(folder, width=640, grey=True),
+                                               total=len(info.paths), desc="photos",
+                                               unit="photo", disable=not progress)]
+    n = len(info.paths)
+    return Keyframes(indices=list(range(n)), times=[float(i) for i in range(n)],
+                     sharpness=sharp, observations=np.zeros((0, 4)),
+                     video_size=(info.width, info.height), frames_read=n, ordered=False,
+                     focal_px=info.focal_px)
+
+
 KEYFRAMES_JSON = "keyframes.json"
 TRACKS_NPZ = "keyframe_tracks.npz"
 
@@ -202,6 +285,8 @@ def save_keyframes(keyframes: Keyframes, out_dir: str | Path, **meta) -> Path:
         "sharpness": [round(float(x), 3) for x in keyframes.sharpness],
         "angles_deg": [round(float(x), 4) for x in keyframes.angles_deg],
         "video_size": list(keyframes.video_size),
+        "ordered": keyframes.ordered,
+        "focal_px": keyframes.focal_px,
         "frames_read": int(keyframes.frames_read),
         "tracks": TRACKS_NPZ,
         "observations": "rows (keyframe number, track id, x, y): full-resolution pixels, "
@@ -227,15 +312,22 @@ def load_keyframes(path: str | Path) -> Keyframes:
     return Keyframes(indices=doc["frame_indices"], times=doc["times"],
                      sharpness=doc["sharpness"], observations=observations,
                      video_size=tuple(doc["video_size"]), frames_read=doc["frames_read"],
-                     angles_deg=doc.get("angles_deg", []))
+                     angles_deg=doc.get("angles_deg", []), ordered=doc.get("ordered", True),
+                     focal_px=doc.get("focal_px"))
 
 
 def main(video: str | Path, out_dir: str | Path, config: KeyframeConfig | None = None,
          progress: bool = False) -> Path:
-    """Select the keyframes of ``video``; writes ``out_dir/keyframes.json`` (+ tracks)."""
+    """Select the keyframes of ``video`` (a photo folder: all its photos); writes
+    ``out_dir/keyframes.json`` (+ tracks)."""
     import time
 
+    from facecap_core.video import is_photo_folder
+
     start, cpu = time.perf_counter(), time.process_time()
-    keyframes = select_keyframes(video, config, progress)
+    if is_photo_folder(video):
+        keyframes = photo_keyframes(video, progress)
+    else:
+        keyframes = select_keyframes(video, config, progress)
     return save_keyframes(keyframes, out_dir, seconds=round(time.perf_counter() - start, 2),
                           cpu_seconds=round(time.process_time() - cpu, 2))

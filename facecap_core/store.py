@@ -158,7 +158,16 @@ def file_digest(path: str | os.PathLike[str]) -> str:
 
 
 def input_key(path: str | os.PathLike[str]) -> str:
-    """Key of a raw input file (such as a video), derived from its content alone."""
+    """Key of a raw input file (such as a video) or a folder of photos, derived from its
+    content alone (a folder's: its photos' names and bytes)."""
+    if os.path.isdir(path):
+        from facecap_core.photos import list_photos
+
+        digest = hashlib.sha256(b"photos")
+        for photo in list_photos(path):
+            digest.update(photo.name.encode("utf-8") + b"\0")
+            digest.update(input_key(photo).encode("ascii") + b"\0")
+        return f"input-{digest.hexdigest()[:KEY_DIGEST_LENGTH]}"
     try:
         stat = os.stat(path)
     except OSError:  # reading it raises the store's own error for the path

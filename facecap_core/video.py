@@ -1,8 +1,11 @@
-"""Video access: probing, and frames streamed at a processing resolution.
+"""Capture access: probing, and frames streamed at a processing resolution.
 
-Frames are decoded one at a time (never the whole video in memory), turned upright by the
-container's display rotation (phones store portrait video as landscape + a rotation), and
-resized to a processing width. Any frame rate and resolution FFmpeg decodes is accepted.
+A capture is a video file or a folder of photos (:mod:`facecap_core.photos`); every function
+here takes either, and a photo folder's frames are its photos in file-name order. Frames are
+decoded one at a time (never the whole video in memory), turned upright by the container's
+display rotation (phones store portrait video as landscape + a rotation) or the photo's EXIF
+orientation, and resized to a processing width. Any frame rate and resolution FFmpeg
+decodes is accepted.
 """
 
 from __future__ import annotations
@@ -54,6 +57,18 @@ def _open(path: Path):
     return container
 
 
+def is_photo_folder(path: str | Path) -> bool:
+    """Whether a capture path is a folder of photos (else it is a video file)."""
+    return Path(path).is_dir()
+
+
+def _decoding_errors() -> tuple[type[BaseException], ...]:
+    """What PyAV raises when FFmpeg cannot decode the stream (the file's fault, not ours)."""
+    import av
+
+    return (av.error.FFmpegError, EOFError)
+
+
 def _display_rotation(frame) -> int:
     return int(round(getattr(frame, "rotation", 0) or 0)) % 360
 
@@ -61,6 +76,12 @@ def _display_rotation(frame) -> int:
 def probe(path: str | Path) -> VideoInfo:
     """Size, rate, length and rotation of a video (decodes its first frame)."""
     path = Path(path)
+    if is_photo_folder(path):
+        from facecap_core.photos import probe_photos
+
+        photos = probe_photos(path)
+        return VideoInfo(path, photos.width, photos.height, 0.0, len(photos.paths), 0.0, 0,
+                         "photos")
     container = _open(path)
     try:
         stream = container.streams.video[0]
@@ -68,7 +89,7 @@ def probe(path: str | Path) -> VideoInfo:
             first = next(container.decode(stream))
         except StopIteration:
             raise InputError(f"{path} holds no decodable frames") from None
-        except Exception as exc:
+        except _decoding_errors() as exc:
             raise InputError(f"{path}: the first frame cannot be decoded ({type(exc).__name__});"
                              " the file is damaged or truncated") from None
         rotation = _display_rotation(first)
@@ -88,10 +109,14 @@ def stored_frame_count(path: str | Path) -> int:
     """Video frames the file really holds: its packets, read without decoding (fast). A
     file cut short holds fewer than its header's count, which :func:`probe` reports."""
     path = Path(path)
+    if is_photo_folder(path):
+        from facecap_core.photos import list_photos
+
+        return len(list_photos(path))
     container = _open(path)
     try:
         return sum(1 for packet in container.demux(container.streams.video[0]) if packet.size)
-    except Exception as exc:
+    except _decoding_errors() as exc:
         raise InputError(f"{path}: reading stopped ({type(exc).__name__}); the file is damaged "
                          "or truncated") from None
     finally:
@@ -114,6 +139,11 @@ def iter_frames(path: str | Path, width: int | None = None, grey: bool = False,
     """Frames in order, upright, at most ``width`` pixels wide; only ``indices`` if given."""
     path = Path(path)
     wanted = None if indices is None else sorted(set(int(i) for i in indices))
+    if wanted == []:
+        return
+    if is_photo_folder(path):
+        yield from _iter_photos(path, width, grey, wanted)
+        return
     container = _open(path)
     try:
         stream = container.streams.video[0]
@@ -127,22 +157,35 @@ def iter_frames(path: str | Path, width: int | None = None, grey: bool = False,
                 if index != wanted[pos]:
                     continue
                 pos += 1
-            image = _upright(frame.to_ndarray(format="gray" if grey else "rgb24"),
-                             _display_rotation(frame))
-            w, h = processing_size(image.shape[1], image.shape[0], width)
-            if (w, h) != (image.shape[1], image.shape[0]):
-                image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+            image = _resize(_upright(frame.to_ndarray(format="gray" if grey else "rgb24"),
+                                     _display_rotation(frame)), width)
             t = float(frame.time) if frame.time is not None else index / float(stream.average_rate or 30)
             yield Frame(index, t, image)
             if wanted is not None and pos == len(wanted):
                 break
-    except InputError:
-        raise
-    except Exception as exc:
+    except _decoding_errors() as exc:
         raise InputError(f"{path}: decoding stopped ({type(exc).__name__}); the file is "
                          "damaged or truncated") from None
     finally:
         container.close()
+
+
+def _resize(image: np.ndarray, width: int | None) -> np.ndarray:
+    w, h = processing_size(image.shape[1], image.shape[0], width)
+    if (w, h) != (image.shape[1], image.shape[0]):
+        image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+    return image
+
+
+def _iter_photos(folder: Path, width: int | None, grey: bool,
+                 wanted: list[int] | None) -> Iterator[Frame]:
+    from facecap_core.photos import list_photos, read_photo
+
+    paths = list_photos(folder)
+    for index in range(len(paths)) if wanted is None else wanted:
+        if index >= len(paths):
+            break  # as a video ends: callers report the frames they did not get
+        yield Frame(index, float(index), _resize(read_photo(paths[index], grey), width))
 
 
 def read_frames(path: str | Path, indices: Iterable[int], width: int | None = None,

@@ -34,7 +34,7 @@ from facecap_core.mvs.stage import (
 )
 from tasks.runner import default_store_url, open_store
 from tasks.stages import (
-    call_ingest, call_stage, coarse_task, depth_task, evaluation_task, fitting_task,
+    call_ingest, call_stage, capture_input_name, coarse_task, depth_task, evaluation_task, fitting_task,
     frames_task, fusion_task, keyframes_task, landmarks_task, poses_task, views_task,
 )
 
@@ -139,7 +139,7 @@ def reconstruct_capture(video: str, out: str, config: str | None = None,
     def stop(stage: str) -> bool:
         return STAGES.index(stage) >= STAGES.index(until)
 
-    v = call_ingest(store, video, "video.mp4", label)
+    v = call_ingest(store, video, capture_input_name(video), label)
     keys["keyframes"] = call_stage(keyframes_task, store, {"video": v},
                                    cfg.keyframes.model_dump(mode="json"), label)
     if not stop("keyframes"):
@@ -183,9 +183,16 @@ def _figures(out: Path) -> dict:
         fig["focal_px"] = round(doc["intrinsics"]["fx"], 2)
         if doc.get("metric_scale") is not None:
             fig["metric_scale"] = doc["metric_scale"]
+        fig["dropped_keyframes"] = doc.get("dropped", [])
+    if (out / "landmarks3d.json").is_file():
+        doc = json.loads((out / "landmarks3d.json").read_text())
+        if doc.get("coverage"):
+            fig["coverage"] = doc["coverage"]
     if (out / "fit.json").is_file():
         fit = json.loads((out / "fit.json").read_text())
         fig["fit_seconds"] = round(fit["timing"].get("wall_s", 0.0), 2)
+        if fit.get("sanity"):
+            fig["mesh_sanity"] = fit["sanity"]
     if (out / "evaluation.json").is_file():
         fig["evaluation"] = json.loads((out / "evaluation.json").read_text())
     return fig
@@ -213,14 +220,15 @@ def preflight(video: str | Path, config: str | Path | None = None, scan: str | N
     started so bad input fails in a second with one line."""
     from facecap_core.video import probe, stored_frame_count
 
-    if not Path(video).is_file():
-        raise InputError(f"video not found: {video}; check the path")
-    info = probe(video)
+    photos = Path(video).is_dir()
+    if not photos and not Path(video).is_file():
+        raise InputError(f"capture not found: {video}; give a video file or a folder of photos")
+    info = probe(video)  # a photo folder: too few photos or mixed sizes fail here
     stored = stored_frame_count(video)
-    if stored <= 1:
+    if not photos and stored <= 1:
         raise InputError(f"{video} is a single image ({info.codec}), not a video; give the "
-                         "capture's video file")
-    if info.frame_count and stored < info.frame_count:
+                         "capture's video file, or a folder of photos")
+    if not photos and info.frame_count and stored < info.frame_count:
         raise InputError(f"{video} is truncated: it holds {stored} of its {info.frame_count} "
                          "frames; copy the whole file again")
     cfg = load_pipeline_config(config)
@@ -231,7 +239,7 @@ def preflight(video: str | Path, config: str | Path | None = None, scan: str | N
     if max(info.width, info.height) > MAX_VIDEO_SIDE_PX:
         raise InputError(f"{video} is {size} pixels, larger than 8K ({MAX_VIDEO_SIDE_PX}); "
                          "record at 8K or less (4K is plenty)")
-    if stored < cfg.keyframes.min_frames:
+    if not photos and stored < cfg.keyframes.min_frames:
         raise InputError(f"{video} has {stored} frames; an ear-to-ear capture needs "
                          f"at least {cfg.keyframes.min_frames} (record a slow sweep of several "
                          "seconds)")

@@ -115,16 +115,13 @@ def _quiet_console(level: str = "WARNING") -> None:
 
     setup_logging()
 
-    def facecap_errors(cls=FacecapError) -> set[str]:
-        return {cls.__name__}.union(*(facecap_errors(sub) for sub in cls.__subclasses__()))
-
     def not_bad_input(record: logging.LogRecord) -> bool:
-        exc = record.exc_info[1] if record.exc_info else None
-        if isinstance(exc, FacecapError):
+        # Failures reach the user once, from main: bad input as one line, a bug as one line
+        # naming the log file with its traceback.
+        if record.exc_info and record.exc_info[1] is not None:
             return False
         # "Finished in state Failed('Task run encountered an exception InputError: ...')"
-        failed = re.search(r"encountered an exception (\w+):", record.getMessage())
-        return not (failed and failed.group(1) in facecap_errors())
+        return not re.search(r"encountered an exception (\w+):", record.getMessage())
 
     loggers = [logging.getLogger()] + [logging.getLogger(name) for name in
                                        logging.Logger.manager.loggerDict]
@@ -360,6 +357,28 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("facecap: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001 - anything else is a bug: say so, keep the trace
+        log = _write_crash_log(exc, argv)
+        print(f"facecap: internal error (a bug in facecap, not a problem with your input): "
+              f"{type(exc).__name__}: {' '.join(str(exc).split())[:200]}; the traceback is in "
+              f"{log}; please report it with that file", file=sys.stderr)
+        return 1
+
+
+def _write_crash_log(exc: BaseException, argv: list[str] | None) -> Path:
+    """The traceback of an unexpected exception, in ``$FACECAP_HOME/logs``."""
+    import os
+    import time
+    import traceback
+
+    from tasks.runner import facecap_home
+
+    folder = facecap_home() / "logs"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"crash-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.log"
+    path.write_text(f"facecap {' '.join(sys.argv[1:] if argv is None else argv)}\n\n"
+                    + "".join(traceback.format_exception(exc)))
+    return path
 
 
 if __name__ == "__main__":

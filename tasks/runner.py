@@ -33,15 +33,15 @@ from facecap_core.store import (
 
 VERSIONS = {
     "input": "1",
-    "keyframes": "1",
-    "poses": "1",
+    "keyframes": "2",
+    "poses": "2",
     "frames": "1",
-    "landmarks": "1",
-    "coarse": "1",
+    "landmarks": "2",
+    "coarse": "2",
     "views": "1",
     "depth": "1",
     "fusion": "1",
-    "fitting": "1",
+    "fitting": "2",
     "evaluation": "1",
 }
 """Algorithm version of each stage: part of every artifact key."""
@@ -173,16 +173,23 @@ def inject_fault(stage: str, work: Path) -> None:
 
 
 def ingest(store_url: str, path: str | os.PathLike, name: str) -> str:
-    """Put a raw input file (video, scan) into the store under its content key."""
+    """Put a raw input (video, scan: one file stored as ``name``; a capture's photo folder:
+    its photos stored under ``name/``) into the store under its content key."""
     path = Path(path)
-    if not path.is_file():
+    if path.is_dir():
+        from facecap_core.photos import list_photos
+
+        files = {f"{name}/{photo.name}": photo for photo in list_photos(path)}
+    elif path.is_file():
+        files = {name: path}
+    else:
         raise InputError(f"input file not found: {path}")
     store = open_store(store_url)
     key = input_key(path)
     if not store.exists(key):
         with key_lock(store, key):
             inject_fault("input", path)
-            store.put(key, {name: path}, stage="input", inputs={}, config=None,
+            store.put(key, files, stage="input", inputs={}, config=None,
                       version=VERSIONS["input"], meta={"source": path.name})
     return key
 

@@ -20,6 +20,17 @@ from tasks.runner import (
 )
 
 VIDEO = "video.mp4"
+PHOTOS = "photos"
+
+
+def capture_input_name(path: str | Path) -> str:
+    """Name of a capture in its input artifact: ``video.mp4``, or ``photos`` for a folder."""
+    return PHOTOS if Path(path).is_dir() else VIDEO
+
+
+def _capture(folder: Path) -> Path:
+    """The capture inside its input artifact: the video file or the photo folder."""
+    return folder / PHOTOS if (folder / PHOTOS).is_dir() else folder / VIDEO
 
 
 def _cfg(model_name: str, data: dict):
@@ -37,26 +48,26 @@ def _cfg(model_name: str, data: dict):
 def compute_keyframes(f: dict[str, Path], out: Path, config: dict) -> None:
     from facecap_core import keyframes
 
-    keyframes.main(f["video"] / VIDEO, out, _cfg("KeyframeConfig", config))
+    keyframes.main(_capture(f["video"]), out, _cfg("KeyframeConfig", config))
 
 
 def compute_poses(f: dict[str, Path], out: Path, config: dict) -> None:
     from facecap_core import pose
 
-    pose.main(f["video"] / VIDEO, f["keyframes"] / "keyframes.json", out,
+    pose.main(_capture(f["video"]), f["keyframes"] / "keyframes.json", out,
               _cfg("PoseConfig", config))
 
 
 def compute_frames(f: dict[str, Path], out: Path, config: dict) -> None:
     from facecap_core import frames
 
-    frames.main(f["video"] / VIDEO, f["poses"] / "cameras.json", out)
+    frames.main(_capture(f["video"]), f["poses"] / "cameras.json", out)
 
 
 def compute_landmarks(f: dict[str, Path], out: Path, config: dict) -> None:
     from facecap_core.landmarks import stage
 
-    stage.main(f["video"] / VIDEO, f["poses"] / "cameras.json", out,
+    stage.main(_capture(f["video"]), f["poses"] / "cameras.json", out,
                _cfg("LandmarkConfig", config))
 
 

@@ -225,7 +225,7 @@ def _dataset_without_captures(tmp: Path) -> Path:
 
 CORPUS = {
     # name: (argv builder (media, tmp, kept) -> facecap arguments, words the message holds)
-    "missing video": (lambda m, t, k: ["reconstruct", t / "nope.mp4"], ["video not found"]),
+    "missing video": (lambda m, t, k: ["reconstruct", t / "nope.mp4"], ["capture not found"]),
     "empty file": (lambda m, t, k: ["reconstruct", m["empty"]],
                    ["not a readable video", "give an mp4"]),
     "truncated MP4, index at the end": (lambda m, t, k: ["reconstruct", m["truncated"]],

@@ -90,3 +90,27 @@ def test_bad_input_is_one_clear_line(case, scan, tmp_path):
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("facecap: error: "), err
     assert expected in lines[0] and "Traceback" not in err
+
+
+def test_an_unexpected_exception_is_reported_as_a_bug_with_its_log(tmp_path, monkeypatch,
+                                                                   capsys):
+    """A failure nobody anticipated is not blamed on the input: one line says it is a bug
+    and names the log file that holds its traceback; the exit code is not bad input's 2."""
+    from facecap_core import evaluation
+    from flows import cli
+
+    def broken(*args, **kwargs):
+        raise ZeroDivisionError("float division by zero")
+
+    monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
+    monkeypatch.setattr(evaluation, "evaluate", broken)
+    mesh = tmp_path / "m.ply"
+    mesh.write_text("ply")
+    code = cli.main(["evaluate", str(mesh), "--scan", str(mesh)])
+    err = capsys.readouterr().err.strip()
+    assert code == 1 and "\n" not in err
+    assert err.startswith("facecap: internal error (a bug in facecap") and "ZeroDivisionError" in err
+    log = next((tmp_path / "home" / "logs").glob("crash-*.log"))
+    assert str(log) in err
+    text = log.read_text()
+    assert "Traceback" in text and "in broken" in text and "evaluate" in text.splitlines()[0]

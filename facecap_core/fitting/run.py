@@ -12,6 +12,7 @@ colours it from the keyframes (:func:`facecap_core.texture.vertex_colours`) and 
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -20,10 +21,13 @@ import trimesh
 from facecap_core.errors import InputError
 from facecap_core.fitting.constraints import Keyframe
 from facecap_core.fitting.nicp import FitResult, FittingConfig, fit
+from facecap_core.fitting.sanity import MeshSanity, check_mesh, relax_folds
 from facecap_core.meshio import load_landmarks, save_landmarks
 from facecap_core.template import Template
 
 __all__ = ["main", "write_mesh", "load_cloud", "keyframes_from_video"]
+
+log = logging.getLogger(__name__)
 
 
 def load_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
@@ -99,6 +103,19 @@ def main(cloud, landmarks, out_dir: str | Path, template: Template | None = None
         landmarks = load_landmarks(landmarks)
     template = template or Template.default()
     result = fit(template, cloud, landmarks, keyframes, ear_points, cloud_normals, config)
+    sanity, relaxed = check_mesh(result.vertices, result.faces, template.vertices), None
+    if not sanity.ok and config.relax_folds:
+        found = sanity.to_json()
+        vertices, relaxed = relax_folds(result.vertices, result.faces, template.vertices)
+        result.template = result.template.with_vertices(vertices)
+        sanity = check_mesh(result.vertices, result.faces, template.vertices)
+        relaxed["before"] = found
+        log.info("folds relaxed over %d vertices: %d flipped, %d stretched, %d intersecting "
+                 "before; %d, %d, %d after", relaxed["relaxed_vertices"], found["flipped"],
+                 found["stretched_edges"], found["self_intersecting_pairs"], sanity.flipped,
+                 sanity.stretched_edges, sanity.self_intersecting_pairs)
+    if not sanity.ok:
+        log.warning("the fitted mesh is not sane: %s", sanity.to_json())
     colours = None
     if config.texture and len(keyframes):
         from facecap_core.texture import vertex_colours
@@ -109,12 +126,14 @@ def main(cloud, landmarks, out_dir: str | Path, template: Template | None = None
     ply, _ = write_mesh(out, result.vertices, result.faces, colours)
     save_landmarks(out / "landmarks.json", result.template.landmark_points,
                    template=template.name)
-    write_report(out / "fit.json", result, config)
+    write_report(out / "fit.json", result, config, sanity, relaxed)
     return ply
 
 
-def write_report(path: Path, result: FitResult, config: FittingConfig) -> Path:
+def write_report(path: Path, result: FitResult, config: FittingConfig,
+                 sanity: MeshSanity | None = None, relaxed: dict | None = None) -> Path:
     doc = {"config": config.model_dump(mode="json"), "timing": result.timing(),
-           "vertices": len(result.vertices), "faces": len(result.faces), "steps": result.log}
+           "vertices": len(result.vertices), "faces": len(result.faces), "steps": result.log,
+           "sanity": sanity.to_json() if sanity is not None else None, "relaxed": relaxed}
     path.write_text(json.dumps(doc, indent=1))
     return path

@@ -55,6 +55,17 @@ def _models():
     return dlib.get_frontal_face_detector(), dlib.shape_predictor(str(model_path(PREDICTOR_68)))
 
 
+def face_box(image: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(left, top, right, bottom) of the highest-scoring face in a uint8 image, or None
+    (the box alone, without the 68 points)."""
+    detector, _ = _models()
+    boxes, scores, _ = detector.run(np.ascontiguousarray(image), 0, 0.0)
+    if not boxes:
+        return None
+    b = boxes[int(np.argmax(scores))]
+    return b.left(), b.top(), b.right(), b.bottom()
+
+
 def detect_68(image: np.ndarray, upsample: int = 0, detect_width: int | None = None,
               min_score: float = 0.0) -> Detection | None:
     """The highest-scoring face in an RGB or grey uint8 image, or None.

@@ -283,6 +283,15 @@ def triangulate_ears(found: dict[str, list], cams: Cameras, vertex_ids: dict[str
             "points": points, "sides": sides, "views": views}
 
 
+def yaw_coverage(records: list[dict]) -> dict:
+    """The yaw range around the head that the registered keyframes span (+: the subject's
+    left), and each keyframe's yaw."""
+    yaws = np.array([r["yaw_deg"] for r in records], float)
+    return {"yaw_min_deg": round(float(yaws.min()), 1), "yaw_max_deg": round(float(yaws.max()), 1),
+            "yaw_span_deg": round(float(yaws.max() - yaws.min()), 1),
+            "yaw_by_frame": [[r["frame_index"], r["yaw_deg"]] for r in records]}
+
+
 def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
          config: LandmarkConfig | None = None) -> Path:
     """Detect 68 landmarks on every keyframe of ``cameras_json``, score and gate them,
@@ -327,6 +336,13 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
                        reprojection_rel=round(med / _box_size(det.box), 5))
         records.append(rec)
 
+    coverage = yaw_coverage(records)
+    if coverage["yaw_span_deg"] < config.min_yaw_span_deg:
+        raise InputError(
+            f"the {n} registered views cover yaw {coverage['yaw_min_deg']:+.0f}° to "
+            f"{coverage['yaw_max_deg']:+.0f}° around the head ({coverage['yaw_span_deg']:.0f}°"
+            f"); a face needs at least {config.min_yaw_span_deg:.0f}° and a full capture about "
+            "180°: record again, moving the camera from one ear round the face to the other")
     gated, widened = _gate(records, config)
     for k, rec in enumerate(records):
         rec["gated"] = k in gated
@@ -385,7 +401,7 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
                                  "rms": float(np.sqrt(np.mean(errs ** 2))) if errs.size
                                  else None},
              "head_frame": {"R": head_R.tolist(), "origin": head_o.tolist()},
-             "detected": len(detected), "keyframes": n,
+             "detected": len(detected), "keyframes": n, "coverage": coverage,
              "seconds": {"wall": round(time.perf_counter() - t_wall, 3),
                          "cpu": round(time.process_time() - t_cpu, 3),
                          "cpu_detection": round(t_detect, 3)}}

@@ -40,16 +40,25 @@ class Poses:
         return vis
 
 
+EXHAUSTIVE_MAX_IMAGES = 300
+"""Unordered images up to this many are matched pair by pair; beyond, sequentially with
+COLMAP's quadratic overlap (pairs i, i+1, ..., i+overlap and i+2, i+4, i+8, ...), which also
+links distant parts of a sweep."""
+
+
 def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tuple[int, int],
             overlap: int = 10, refine_principal_point: bool = False,
-            threads: int = 1, seed: int = 0) -> Poses:
+            threads: int = 1, seed: int = 0, ordered: bool = True,
+            focal_px: float | None = None) -> Poses:
     """SfM over keyframe images ({video frame index: RGB uint8}, all one size).
 
     With one thread and a fixed ``seed`` the result is the same on every run; with more,
     COLMAP's threaded SIFT and matching give slightly different cameras each time.
 
     With the defaults this is what a COLMAP user gets (principal point held at the image
-    centre); sequential matching pairs each keyframe with the next ``overlap``."""
+    centre); sequential matching pairs each keyframe with the next ``overlap``. Images not
+    ``ordered`` along a sweep (photos) are matched exhaustively. ``focal_px`` (full
+    resolution), when known, is the initial focal length instead of COLMAP's guess."""
     import time
 
     import pycolmap
@@ -68,21 +77,29 @@ def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tup
     db = work / "database.db"
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "RADIAL"
+    if focal_px:
+        f_sfm = focal_px * w / video_size[0]
+        reader.camera_params = f"{f_sfm!r},{w / 2!r},{h / 2!r},0,0"  # a prior focal length
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
     pycolmap.extract_features(db, img_dir, camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader, extraction_options=extraction,
                               device=pycolmap.Device.cpu)
-    pairing = pycolmap.SequentialPairingOptions()
-    pairing.overlap = overlap
     # Fixed seeds: a stage rerun (a retry, a killed worker's successor) gives the same cameras.
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = seed
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = threads
-    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
-                              verification_options=verification,
-                              device=pycolmap.Device.cpu)
+    if ordered or len(images) > EXHAUSTIVE_MAX_IMAGES:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = overlap
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                  verification_options=verification,
+                                  device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_exhaustive(db, matching_options=matching,
+                                  verification_options=verification,
+                                  device=pycolmap.Device.cpu)
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = threads
     options.random_seed = seed

@@ -10,17 +10,20 @@
 
 from __future__ import annotations
 
+import logging
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from facecap_core.config import PoseConfig
+from facecap_core.config import MIN_YAW_SPAN_DEG, PoseConfig
 from facecap_core.errors import InputError
 from facecap_core.pose.colmap_sfm import Poses, run_sfm
 from facecap_core.pose.geometric import refine_with_tracks, triangulate
 from facecap_core.pose.io import write_outputs
+
+log = logging.getLogger(__name__)
 
 
 def track_hosts(observations: np.ndarray, n_points: int) -> np.ndarray:
@@ -51,25 +54,89 @@ def photometric_refinement(poses: Poses, grey_keyframes: list[np.ndarray], confi
                  poses.seconds + result.seconds, rows)
 
 
+def sweep_order(poses: Poses) -> np.ndarray:
+    """The views of ``poses`` in sweep order: by azimuth around the point their optical
+    axes pass closest to (the head), about the mean camera "up", starting after the widest
+    gap between neighbouring views. Photos come in any order; PBA's neighbourhoods and the
+    depth maps' evenly spaced references need the order of a sweep."""
+    R = np.asarray(poses.R)
+    centres = np.array([-Rk.T @ tk for Rk, tk in zip(R, poses.t)])
+    axes = R[:, 2, :]  # optical axes in the world
+    # The point nearest every optical axis (least squares): sum (I - a a^T)(x - c) = 0.
+    proj = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
+    target = np.linalg.lstsq(proj.sum(0), np.einsum("kij,kj->i", proj, centres), rcond=None)[0]
+    up = -R[:, 1, :].mean(0)  # image y points down
+    up /= np.linalg.norm(up)
+    e1 = np.cross(up, axes.mean(0))
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    d = centres - target
+    azimuth = np.arctan2(d @ e2, d @ e1)
+    order = np.argsort(azimuth)
+    gaps = np.diff(np.r_[azimuth[order], azimuth[order[0]] + 2 * np.pi])
+    return np.roll(order, -(int(np.argmax(gaps)) + 1))
+
+
+def reorder(poses: Poses, order: np.ndarray) -> Poses:
+    """``poses`` with its views in ``order`` (observations renumbered)."""
+    order = np.asarray(order, np.int64)
+    position = np.empty(len(order), np.int64)
+    position[order] = np.arange(len(order))
+    obs = np.asarray(poses.observations, float).copy()
+    if len(obs):
+        obs[:, 1] = position[obs[:, 1].astype(np.int64)]
+    return Poses(poses.intrinsics, [poses.frame_indices[k] for k in order],
+                 [poses.R[k] for k in order], [poses.t[k] for k in order], poses.points,
+                 poses.seconds, obs)
+
+
+def view_span_deg(poses: Poses) -> float:
+    """The widest angle between two views' optical axes (degrees): how far the camera went
+    round the subject."""
+    axes = np.asarray(poses.R)[:, 2, :]
+    if len(axes) < 2:
+        return 0.0
+    return float(np.degrees(np.arccos(np.clip((axes @ axes.T).min(), -1, 1))))
+
+
+def registered_enough(poses: Poses, total: int, config: PoseConfig) -> None:
+    """Refuse a capture of which SfM registered too few keyframes to go on with, saying
+    whether the camera hardly moved round the head or the views did not match."""
+    registered = len(poses.frame_indices)
+    needed = max(config.min_registered, int(np.ceil(config.min_registered_fraction * total)))
+    if registered >= needed:
+        return
+    span = view_span_deg(poses) if registered else 0.0
+    if registered >= 2 and span < MIN_YAW_SPAN_DEG:
+        raise InputError(
+            f"only {registered} of {total} views could be registered, and those span "
+            f"{span:.0f}° round the head: the camera hardly moved around the subject (a face "
+            f"needs at least {MIN_YAW_SPAN_DEG:.0f}°, a full capture about 180°); record "
+            "again, moving the camera from one ear round the face to the other")
+    raise InputError(f"only {registered} of {total} keyframes could be registered (need "
+                     f"{needed}): too little overlap or texture between the views; record "
+                     "a slower, steadier sweep of a well-lit face")
+
+
 def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
                    config: PoseConfig | None = None, progress: bool = False) -> dict[str, Poses]:
     """The cameras of ``keyframes`` after each step: {"sfm", "geometric", "pba"} (the last
-    two as configured). Raises InputError unless SfM registers every keyframe."""
+    two as configured). Keyframes SfM cannot register are left out (the cameras file lists
+    them); too few registered raises InputError. Photos are put in sweep order."""
     from facecap_core.video import read_frames
 
     config = config or PoseConfig()
     work = Path(work_dir)
     images = read_frames(video, keyframes.indices, width=config.sfm_width)
     sfm = run_sfm(images, work / "sfm", keyframes.video_size, overlap=config.match_overlap,
-                  threads=config.threads)
-    missing = len(keyframes.indices) - len(sfm.frame_indices)
-    if missing:
-        raise InputError(f"{missing} of {len(keyframes.indices)} keyframes could not be "
-                         "registered (too little overlap or texture between them); record a "
-                         "slower, steadier sweep of a well-lit face")
+                  threads=config.threads, ordered=keyframes.ordered,
+                  focal_px=keyframes.focal_px)
+    registered_enough(sfm, len(keyframes.indices), config)
+    if not keyframes.ordered:
+        sfm = reorder(sfm, sweep_order(sfm))
     steps = {"sfm": sfm}
     current = sfm
-    if config.use_tracks:
+    if config.use_tracks and len(keyframes.observations):
         current = refine_with_tracks(sfm, keyframes.observations, keyframes.indices,
                                      work / "geometric")
         steps["geometric"] = current
@@ -98,6 +165,12 @@ def main(video: str | Path, keyframes_json: str | Path, out_dir: str | Path,
     with tempfile.TemporaryDirectory(prefix="facecap-poses-") as work:
         steps = estimate_poses(video, keyframes, work, config, progress)
     final = list(steps.values())[-1]
-    return write_outputs(final, out, method=list(steps)[-1],
+    dropped = [{"frame_index": int(i), "reason": "not registered by structure from motion "
+                "(too few features matched to the other views)"}
+               for i in keyframes.indices if i not in set(final.frame_indices)]
+    if dropped:
+        log.warning("%d of %d keyframes could not be registered and are left out",
+                    len(dropped), len(keyframes.indices))
+    return write_outputs(final, out, method=list(steps)[-1], dropped=dropped,
                          wall_seconds=round(time.perf_counter() - start, 2),
                          cpu_seconds=round(time.process_time() - cpu, 2))

@@ -1,0 +1,120 @@
+"""Real captures (no ground truth): does each reconstruct, or is it refused for a true reason?
+
+Runs every capture of ``../shared/data/real`` (or ``--root``) through ``facecap reconstruct``
+as a user would (the CLI, a fresh output folder, a shared store), and prints per capture the
+exit code, the one-line message or the headline figures (keyframes kept and dropped, yaw
+coverage, focal length, metric scale, mesh sanity), and the seconds. For each mesh it renders
+``compare.png``: the shaded mesh seen through the reconstructed camera of a frontal and a
+profile keyframe, beside those photos, to look at.
+
+    python benchmarks/bench_real.py [--root ../shared/data/real] [--out out/bench_real]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+CAPTURES = {
+    # name: (capture path relative to the root, what it should do)
+    "photo_set_31": ("photo_set_31/images", "reconstruct: face and the ear on the side seen"),
+    "frontal_small_motion": ("frontal_small_motion/images",
+                             "a frontal mesh, or refused for too little angular coverage"),
+    "head_turn_fixed_camera": ("head_turn_fixed_camera/video.mp4",
+                               "refused: the head moves against a still background"),
+}
+
+
+def render_beside(out: Path, capture: Path, picks: int = 2) -> Path | None:
+    """The mesh shaded in the cameras of the most frontal and the most profile keyframe,
+    each beside its photo (a blend in the middle)."""
+    from facecap_core.camera import read_cameras_json
+    from facecap_core.meshio import load_mesh
+    from facecap_core.render import RaycastScene, interpolate, vertex_normals
+    from facecap_core.video import read_frames
+
+    if not (out / "mesh.ply").is_file():
+        return None
+    cams = read_cameras_json(out / "cameras.json")
+    mesh = load_mesh(out / "mesh.ply")
+    yaws = {}
+    report = json.loads((out / "report.json").read_text())
+    for rec in report.get("figures", {}).get("coverage", {}).get("yaw_by_frame", []):
+        yaws[rec[0]] = rec[1]
+    order = sorted(range(len(cams.frame_indices)),
+                   key=lambda k: abs(yaws.get(cams.frame_indices[k], 0.0)))
+    chosen = [order[0], order[-1]][:picks]
+    images = read_frames(capture, [cams.frame_indices[k] for k in chosen])
+    scene = RaycastScene()
+    scene.add(mesh.vertices, mesh.faces)
+    normals = vertex_normals(mesh.vertices, mesh.faces)
+    rows = []
+    for k in chosen:
+        photo = images[cams.frame_indices[k]]
+        hits = scene.cast_camera(cams.intrinsics, cams.R[k], cams.t[k])
+        n = interpolate(normals, mesh.faces, hits.triangle, hits.bary)
+        n_cam = n @ np.asarray(cams.R[k]).T
+        shade = np.clip(-n_cam[..., 2], 0, 1) * 0.8 + 0.2
+        render = np.where(hits.valid[..., None], (shade[..., None] * 230).astype(np.uint8), 255)
+        render = np.broadcast_to(render, photo.shape).astype(np.uint8)
+        blend = np.where(hits.valid[..., None], (0.5 * photo + 0.5 * render).astype(np.uint8),
+                         photo)
+        rows.append(np.hstack([photo, blend, render]))
+    path = out / "compare.png"
+    cv2.imwrite(str(path), cv2.cvtColor(np.vstack(rows), cv2.COLOR_RGB2BGR))
+    return path
+
+
+def run(name: str, capture: Path, out: Path, store: Path) -> dict:
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "flows.cli", "reconstruct", str(capture),
+                           "--out", str(out), "--store", str(store)],
+                          cwd=ROOT, capture_output=True, text=True)
+    row = {"capture": name, "exit": proc.returncode, "seconds": round(time.perf_counter()
+                                                                       - start, 1)}
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("facecap:")]
+    if errors:
+        row["message"] = errors[-1]
+    if proc.returncode == 0:
+        report = json.loads((out / "report.json").read_text())
+        fig = report.get("figures", {})
+        cov = fig.get("coverage", {})
+        row.update(keyframes=fig.get("keyframes"), dropped=len(fig.get("dropped_keyframes", [])),
+                   yaw=f"{cov.get('yaw_min_deg')}..{cov.get('yaw_max_deg')}",
+                   focal_px=fig.get("focal_px"), metric_scale=fig.get("metric_scale"),
+                   sanity=fig.get("mesh_sanity"))
+        compare = render_beside(out, capture)
+        row["compare"] = str(compare) if compare else None
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--root", type=Path, default=ROOT.parent / "shared" / "data" / "real")
+    parser.add_argument("--out", type=Path, default=ROOT / "out" / "bench_real")
+    parser.add_argument("--only", nargs="*", help="capture names to run")
+    args = parser.parse_args()
+    if not args.root.is_dir():
+        sys.exit(f"no real captures at {args.root}")
+    store = args.out / "store"
+    rows = []
+    for name, (rel, expected) in CAPTURES.items():
+        if args.only and name not in args.only:
+            continue
+        row = run(name, args.root / rel, args.out / name, store)
+        row["expected"] = expected
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    (args.out / "report.json").write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,192 @@
+"""Checks that a fitted mesh is a sane deformation of its template.
+
+A fit shares the template's topology, so each triangle and each edge can be compared with
+its own template counterpart once the template is moved onto the fit by a similarity
+(least squares over all vertices):
+
+- **flipped**: a triangle whose normal points against its template triangle's normal (the
+  surface folded over itself there);
+- **stretched**: an edge longer than ``max_stretch`` times its template length (a spike);
+- **self-intersections**: pairs of triangles that cut through each other (open3d's exact
+  triangle-triangle test) and do not in the template.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+MAX_EDGE_STRETCH = 3.0
+"""An edge beyond this many times its (similarity-scaled) template length counts as
+stretched: the fit's smooth deformations (landmark pulls, cloud attraction) change edge
+lengths by tens of percent, a torn region by many times."""
+
+
+@dataclass
+class MeshSanity:
+    triangles: int
+    flipped: int
+    degenerate: int  # triangles of (near) zero area in the fit
+    stretched_edges: int
+    max_edge_stretch: float
+    self_intersecting_pairs: int
+
+    @property
+    def ok(self) -> bool:
+        return not (self.flipped or self.stretched_edges or self.self_intersecting_pairs)
+
+    def to_json(self) -> dict:
+        return {**asdict(self), "max_edge_stretch": round(self.max_edge_stretch, 3),
+                "stretch_bound": MAX_EDGE_STRETCH, "ok": self.ok}
+
+
+def _normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    v = vertices[faces]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    area2 = np.linalg.norm(n, axis=1)
+    return n / np.maximum(area2, 1e-300)[:, None], area2
+
+
+def _edges(faces: np.ndarray) -> np.ndarray:
+    e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    return np.unique(e, axis=0)
+
+
+def self_intersecting_pairs(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(P, 2) indices of the triangle pairs that cut through each other (sharing a vertex
+    or an edge is not an intersection)."""
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(vertices, float)),
+                                     o3d.utility.Vector3iVector(np.asarray(faces, np.int32)))
+    pairs = np.asarray(mesh.get_self_intersecting_triangles()).reshape(-1, 2)
+    return np.sort(pairs, axis=1)
+
+
+def new_intersections(vertices: np.ndarray, faces: np.ndarray,
+                      template_vertices: np.ndarray) -> int:
+    """Intersecting triangle pairs of the fit that do not intersect in the template (a
+    template may intersect itself by design, e.g. where the lips or an ear fold meet)."""
+    pairs = self_intersecting_pairs(vertices, faces)
+    if not len(pairs):
+        return 0
+    # Test the template only on the triangles involved: a few, not the whole mesh.
+    involved = np.unique(pairs)
+    local = self_intersecting_pairs(template_vertices, faces[involved])
+    in_template = {tuple(p) for p in np.sort(involved[local], axis=1).tolist()}
+    return sum(tuple(p) not in in_template for p in pairs.tolist())
+
+
+def check_mesh(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.ndarray,
+               max_stretch: float = MAX_EDGE_STRETCH) -> MeshSanity:
+    """Sanity figures of a fit (``vertices``) against its template (same ``faces``)."""
+    from facecap_core.evaluation import umeyama
+
+    vertices = np.asarray(vertices, float)
+    template = np.asarray(template_vertices, float)
+    faces = np.asarray(faces, np.int64)
+    s, R, t = umeyama(template, vertices, with_scale=True)
+    moved = s * template @ R.T + t
+    n_fit, area_fit = _normals(vertices, faces)
+    n_tpl, area_tpl = _normals(moved, faces)
+    scale = np.median(area_tpl)
+    degenerate = area_fit <= 1e-9 * scale
+    valid = ~degenerate & (area_tpl > 1e-9 * scale)
+    flipped = valid & (np.einsum("ij,ij->i", n_fit, n_tpl) < 0)
+    edges = _edges(faces)
+    len_fit = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    len_tpl = np.linalg.norm(moved[edges[:, 0]] - moved[edges[:, 1]], axis=1)
+    ratio = len_fit / np.maximum(len_tpl, 1e-12)
+    return MeshSanity(triangles=len(faces), flipped=int(flipped.sum()),
+                      degenerate=int(degenerate.sum()),
+                      stretched_edges=int((ratio > max_stretch).sum()),
+                      max_edge_stretch=float(ratio.max()) if len(ratio) else 0.0,
+                      self_intersecting_pairs=new_intersections(vertices, faces, template))
+
+
+def _adjacency(faces: np.ndarray, n: int):
+    """Row-normalised vertex adjacency (sparse): A @ x averages x over each one-ring."""
+    import scipy.sparse as sp
+
+    e = _edges(faces)
+    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                      shape=(n, n)).tocsr()
+    degree = np.asarray(A.sum(1)).ravel()
+    return sp.diags(1.0 / np.maximum(degree, 1)) @ A
+
+
+def _bad_faces(vertices, moved, faces, edges, max_stretch) -> np.ndarray:
+    n_fit, area_fit = _normals(vertices, faces)
+    n_tpl, area_tpl = _normals(moved, faces)
+    bad = (np.einsum("ij,ij->i", n_fit, n_tpl) < 0) | (area_fit <= 1e-9 * np.median(area_tpl))
+    ratio = (np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+             / np.maximum(np.linalg.norm(moved[edges[:, 0]] - moved[edges[:, 1]], axis=1),
+                           1e-12))
+    stretched = np.zeros(len(vertices), bool)
+    stretched[edges[ratio > max_stretch].ravel()] = True
+    return bad | stretched[faces].any(1)
+
+
+def relax_folds(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.ndarray,
+                max_stretch: float = MAX_EDGE_STRETCH, rounds: int = 16,
+                check_intersections: bool = True) -> tuple[np.ndarray, dict]:
+    """Undo folds, spikes and self-intersections of a fit where they are: around each bad
+    triangle the deformation (fit minus the similarity-moved template) is replaced by a
+    membrane (each vertex's deformation the mean of its neighbours', the vertices around
+    held), over a neighbourhood that widens by a ring each round the triangle stays bad.
+    Elsewhere the fit is untouched. Returns the vertices and what was done."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    from facecap_core.evaluation import umeyama
+
+    V = np.asarray(vertices, float).copy()
+    T = np.asarray(template_vertices, float)
+    faces = np.asarray(faces, np.int64)
+    s, R, t = umeyama(T, V, with_scale=True)
+    moved = s * T @ R.T + t
+    A = _adjacency(faces, len(V))
+    edges = _edges(faces)
+    region = np.zeros(len(V), bool)
+
+    def relax(bad_faces: np.ndarray, rings: int) -> None:
+        nonlocal region
+        seed = np.zeros(len(V), bool)
+        seed[faces[bad_faces].ravel()] = True
+        for _ in range(rings):
+            seed |= (A @ seed.astype(float)) > 0
+        region |= seed
+        inside, outside = np.flatnonzero(region), np.flatnonzero(~region)
+        D = V - moved
+        L = sp.identity(len(inside), format="csc") - A[inside][:, inside].tocsc()
+        V[inside] = moved[inside] + spla.splu(L).solve(A[inside][:, outside] @ D[outside])
+
+    def new_pairs() -> np.ndarray:
+        pairs = self_intersecting_pairs(V, faces)
+        if not len(pairs):
+            return pairs
+        involved = np.unique(pairs)
+        local = self_intersecting_pairs(T, faces[involved])
+        in_template = {tuple(p) for p in np.sort(involved[local], axis=1).tolist()}
+        keep = [tuple(p) not in in_template for p in pairs.tolist()]
+        return pairs[np.asarray(keep, bool)]
+
+    steps = 0
+    for attempt in range(3 if check_intersections else 1):
+        for r in range(rounds):
+            bad = _bad_faces(V, moved, faces, edges, max_stretch)
+            if not bad.any():
+                break
+            relax(bad, min(r + 1, 12))
+            steps += 1
+        if not check_intersections:
+            break
+        pairs = new_pairs()
+        if not len(pairs):
+            break
+        bad = np.zeros(len(faces), bool)
+        bad[np.unique(pairs)] = True
+        relax(bad, 2 + 2 * attempt)
+        steps += 1
+    return V, {"relaxed_vertices": int(region.sum()), "relax_steps": steps}
