@@ -3,6 +3,7 @@
 Layout::
 
     ROOT/<subject>/<capture>.mp4        one or more captures (.mp4, .mov, .m4v, .mkv)
+    ROOT/<subject>/<capture>/           or a folder of photos (JPEG/PNG/HEIC) as a capture
     ROOT/<subject>/scan.ply             optional ground-truth scan in mm (.ply/.obj/.stl/.off)
     ROOT/<subject>/scan_landmarks.json  68 3D landmarks of the scan (iBUG order); needed
                                         to score against the scan
@@ -20,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from facecap_core.errors import InputError
+from facecap_core.photos import list_photos
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
 SCAN_SUFFIXES = (".ply", ".obj", ".stl", ".off")
@@ -72,15 +74,28 @@ def scan_dataset(root: str | Path) -> list[CaptureEntry]:
         scan = next((p for p in (subject / f"scan{s}" for s in SCAN_SUFFIXES) if p.is_file()),
                     None)
         landmarks = _first(subject, LANDMARK_NAMES)
+        names: dict[str, Path] = {}
         for video in _visible(subject):
-            if video.suffix.lower() in VIDEO_SUFFIXES and video.is_file():
-                entries.append(CaptureEntry(
-                    subject.name, video.stem, inside(root, video),
-                    inside(root, scan) if scan else None,
-                    inside(root, landmarks) if landmarks else None))
+            if video.is_file() and video.suffix.lower() in VIDEO_SUFFIXES:
+                name = video.stem
+            elif video.is_dir() and list_photos(video):
+                name = video.name
+                for photo in list_photos(video):
+                    inside(root, photo)
+            else:
+                continue
+            if name in names:
+                raise InputError(f"{names[name].name} and {video.name} in {subject} are both "
+                                 f"capture '{name}' (their results would share one folder); "
+                                 "rename one")
+            names[name] = video
+            entries.append(CaptureEntry(
+                subject.name, name, inside(root, video),
+                inside(root, scan) if scan else None,
+                inside(root, landmarks) if landmarks else None))
     if not entries:
         raise InputError(f"no captures in {root}: expected ROOT/<subject>/<capture>.mp4 "
-                         f"({', '.join(VIDEO_SUFFIXES)})")
+                         f"({', '.join(VIDEO_SUFFIXES)}) or ROOT/<subject>/<capture>/ of photos")
     return entries
 
 

@@ -287,8 +287,11 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--heatmap", help="write accuracy heat maps to this PNG path")
     e.set_defaults(func=_cmd_evaluate)
 
-    r = sub.add_parser("reconstruct", help="reconstruct one capture: video in, metric mesh out")
-    r.add_argument("video", help="the capture: a handheld ear-to-ear video of a still face")
+    r = sub.add_parser("reconstruct", help="reconstruct one capture: video or photos in, "
+                                           "metric mesh out")
+    r.add_argument("video", metavar="CAPTURE",
+                   help="the capture: a handheld ear-to-ear video of a still face, or a "
+                        "folder of photos of it (JPEG/PNG/HEIC, one camera, any order)")
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--config", help="PipelineConfig YAML (any subset of the stages' settings)")
     r.add_argument("--until", choices=list(_STAGES), default="evaluation",
@@ -299,7 +302,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(default $FACECAP_STORE or ~/.cache/facecap/store)")
     r.set_defaults(func=_cmd_reconstruct)
 
-    ds = sub.add_parser("dataset", help="reconstruct every capture of ROOT/<subject>/<capture>.mp4")
+    ds = sub.add_parser("dataset", help="reconstruct every capture of ROOT/<subject>/<capture>.mp4 "
+                                        "(or ROOT/<subject>/<capture>/ of photos)")
     ds.add_argument("root", help="dataset folder")
     ds.add_argument("--out", required=True, help="results go to OUT/<subject>/<capture>/")
     ds.add_argument("--config", help="PipelineConfig YAML")

@@ -32,6 +32,27 @@ def test_layout_with_odd_names(tmp_path):
     assert out == (tmp_path / "out" / "Zoë Ångström" / "take 1").resolve()
 
 
+def test_photo_folders_are_captures_and_names_do_not_collide(tmp_path):
+    _touch(tmp_path / "ann" / "morning" / "IMG_0001.JPG")
+    _touch(tmp_path / "ann" / "morning" / "IMG_0002.heic")
+    _touch(tmp_path / "ann" / "evening.mp4")
+    _touch(tmp_path / "ann" / "empty folder" / "notes.txt")
+    entries = scan_dataset(tmp_path)
+    assert [(e.capture, e.video.is_dir()) for e in entries] == [("evening", False),
+                                                                 ("morning", True)]
+    _touch(tmp_path / "ann" / "morning.mov")
+    with pytest.raises(InputError, match="both capture 'morning'"):
+        scan_dataset(tmp_path)
+
+
+def test_a_photo_linked_from_outside_the_root_is_refused(tmp_path):
+    _touch(tmp_path / "elsewhere" / "face.jpg")
+    _touch(tmp_path / "root" / "ann" / "take" / "a.jpg")
+    (tmp_path / "root" / "ann" / "take" / "b.jpg").symlink_to(tmp_path / "elsewhere" / "face.jpg")
+    with pytest.raises(InputError, match="outside the dataset folder"):
+        scan_dataset(tmp_path / "root")
+
+
 def test_links_out_of_the_root_are_refused(tmp_path):
     outside = tmp_path / "elsewhere"
     _touch(outside / "secret.mp4")

@@ -112,3 +112,18 @@ def test_shuffled_photos_get_every_camera_in_sweep_order(tmp_path, ict_model):
     # COLMAP's accuracy on 30 views (no LK tracks between photos, so the principal point
     # stays at the image centre, 6 px from the rendered one: rotations tilt to make up).
     assert err["rotation_deg"] < 1.0 and err["centre_pct"] < 0.5 and err["focal_pct"] < 3.0
+
+
+def test_heic_photos_are_read_upright(tmp_path):
+    from pillow_heif import register_heif_opener
+
+    register_heif_opener()
+    folder = tmp_path / "heic"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(5):
+        Image.fromarray(rng.integers(0, 255, (40, 64, 3), np.uint8)).save(
+            folder / f"IMG_{i}.HEIC", quality=90)
+    info = probe(folder)
+    assert (info.width, info.height, info.frame_count) == (64, 40, 5)
+    assert read_frames(folder, [2])[2].shape == (40, 64, 3)
