@@ -3,20 +3,25 @@ SHELL := /bin/bash
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
-# The ICT Face Model copy beside the repository, when there is one (tests and demo use it).
-ICT_MODEL ?= $(abspath ../shared/data/ict_face_model/ict_face_model.npz)
-export FACECAP_ICT_MODEL ?= $(if $(wildcard $(ICT_MODEL)),$(ICT_MODEL),)
+# The ICT Face Model of the synthetic subjects: the trimmed copy in the package (MIT,
+# facecap_core/data/README.md), the same for the tests on every machine. Set FACECAP_ICT_MODEL
+# (e.g. to the full ict_face_model.npz) to use another for the demo and benchmarks.
+ICT_MODEL := $(or $(FACECAP_ICT_MODEL),facecap_core/data/ict_face_model_trimmed.npz)
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # Shared libraries the wheels need but do not ship (open3d: libusb, libgomp).
 SYSTEM_LIBS := libusb-1.0.so.0:libusb-1.0-0 libgomp.so.1:libgomp1
 
-.PHONY: demo test install system-libs compose-tool bench clean
+.PHONY: demo test test-fast install system-libs compose-tool bench clean
 
 demo: install
-	$(PY) -m flows.cli demo --out out/demo
+	$(PY) -m flows.cli demo --out out/demo --ict-model "$(ICT_MODEL)"
 
 test: install compose-tool
 	$(PY) -m pytest -q
+
+# The edit-test loop: everything but the end-to-end renders and stage runs.
+test-fast: install compose-tool
+	$(PY) -m pytest -q -m "not slow"
 
 install: system-libs $(VENV)/.installed
 

@@ -118,6 +118,21 @@ def james_files() -> tuple[Path, Path]:
     return d / "james.obj", d / "james.ljson"
 
 
+ICT_MODEL_ENV = "FACECAP_ICT_MODEL"
+
+
+def packaged_ict_model() -> Path:
+    """The trimmed ICT Face Model that ships in the package (MIT, USC ICT): skin, sockets and
+    eyeballs, the first 30 identity modes in float16 (``facecap_core/data/README.md``)."""
+    return Path(__file__).resolve().parent / "data" / "ict_face_model_trimmed.npz"
+
+
+def default_ict_model() -> Path:
+    """The ICT Face Model to use when none is given: ``$FACECAP_ICT_MODEL`` (e.g. the full
+    100-mode model), else the packaged trimmed one."""
+    return Path(os.environ.get(ICT_MODEL_ENV) or packaged_ict_model())
+
+
 PROVENANCE = """\
 Assets used by facecap
 - menpo3d==0.8.6 sdist from the package index, sha256 {sha}
@@ -127,5 +142,7 @@ Assets used by facecap
 - 68-point landmark model (dlib's shape_predictor_68_face_landmarks, via the
   face-recognition-models package): trained on iBUG 300-W, whose licence excludes
   commercial use. Use a model of your own for commercial work.
-- ICT Face Model Light (MIT, USC ICT) when given with --ict-model: synthetic identities.
+- ICT Face Model Light (MIT, Copyright (c) 2020 USC Institute for Creative Technologies):
+  synthetic identities; a trimmed copy (30 identity modes) ships in facecap_core/data/,
+  --ict-model or FACECAP_ICT_MODEL give another (e.g. the full model).
 """

@@ -283,6 +283,7 @@ def ict_subject(model_path: str | Path, seed: int | None, sigma: float = 1.0) ->
     gt[:n_skin] = True
     optional = kind == 1
     info = {"kind": "ict", "seed": seed, "sigma": sigma,
+            "identity_modes": int(len(model["identity_basis"])),
             "coefficients": None if coeffs is None else coeffs.round(6).tolist(),
             "skin_tone": skin_albedo.tone.round(4).tolist()}
     return Subject(f"ict-{'mean' if seed is None else seed}", verts, faces, lm, albedo, gt,
@@ -330,10 +331,10 @@ def make_subject(config: SynthConfig) -> Subject:
     """The subject a config names (see :attr:`SynthConfig.subject`)."""
     spec = config.subject
     if spec.startswith("ict:"):
-        model = config.ict_model or os.environ.get("FACECAP_ICT_MODEL")
-        if not model:
-            raise InputError("subject 'ict:...' needs the ICT Face Model: pass --ict-model "
-                             "PATH/ict_face_model.npz or set FACECAP_ICT_MODEL")
+        from facecap_core.assets import default_ict_model
+
+        # --ict-model, else $FACECAP_ICT_MODEL, else the trimmed model in the package.
+        model = config.ict_model or default_ict_model()
         arg = spec[4:]
         if arg != "mean" and not arg.lstrip("-").isdigit():
             raise InputError(f"subject {spec!r}: expected ict:SEED (an integer) or ict:mean")

@@ -204,13 +204,19 @@ ICT_EYE_MATERIALS = ("M_ScleraLeft", "M_IrisLeft", "M_ScleraRight", "M_IrisRight
 
 
 def load_ict_model(npz_path: str | Path) -> dict:
-    """Load the ICT Face Model Light npz (see its README) into a dict of arrays."""
+    """Load the ICT Face Model Light npz (see its README) into a dict of arrays.
+
+    Either the full model (100 identity modes, float32) or the trimmed copy that ships in the
+    package (``facecap_core/data/``: the skin, sockets and eyeballs, the first modes in
+    float16); float16 arrays are cast to float32 here."""
     path = Path(npz_path)
     if not path.is_file():
         raise InputError(f"ICT face model not found: {path} (give the path of ict_face_model.npz)")
     try:
         with np.load(path, allow_pickle=False) as z:
             model = {k: z[k] for k in z.files}
+        model = {k: v.astype(np.float32) if v.dtype == np.float16 else v
+                 for k, v in model.items()}
     except Exception as exc:
         raise InputError(f"{path} is not a readable ICT face model npz ({type(exc).__name__})"
                          ) from exc
@@ -222,11 +228,15 @@ def load_ict_model(npz_path: str | Path) -> dict:
 
 
 def ict_identity_vertices(model: dict, coefficients: np.ndarray | None) -> np.ndarray:
-    """Vertices (mm) of the identity ``mean + sum_i c_i mode_i`` (modes are at 1 sigma)."""
+    """Vertices (mm) of the identity ``mean + sum_i c_i mode_i`` (modes are at 1 sigma).
+
+    Coefficients beyond the model's modes are ignored: with the trimmed model (30 modes) the
+    same coefficients give the full model's head without its finer modes."""
     v = model["mean_vertices"].astype(float)
     if coefficients is not None:
-        c = np.asarray(coefficients, float)
-        v = v + np.tensordot(c, model["identity_basis"][: len(c)].astype(float), axes=1)
+        basis = model["identity_basis"]
+        c = np.asarray(coefficients, float)[: len(basis)]
+        v = v + np.tensordot(c, basis[: len(c)].astype(float), axes=1)
     return v * 10.0
 
 

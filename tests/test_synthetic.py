@@ -110,8 +110,8 @@ def test_same_seed_same_capture(tmp_path, ict_model):
 
 
 def test_bad_subjects_are_named(tmp_path, monkeypatch):
-    monkeypatch.delenv("FACECAP_ICT_MODEL", raising=False)
-    with pytest.raises(InputError, match="ICT Face Model"):
+    monkeypatch.setenv("FACECAP_ICT_MODEL", str(tmp_path / "missing.npz"))
+    with pytest.raises(InputError, match="not found"):
         synthesize(SynthConfig(subject="ict:1"), tmp_path, progress=False)
     with pytest.raises(InputError, match="not found"):
         synthesize(SynthConfig(subject="ict:1", ict_model=tmp_path / "none.npz"), tmp_path)
