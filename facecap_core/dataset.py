@@ -76,11 +76,12 @@ def scan_dataset(root: str | Path) -> list[CaptureEntry]:
         landmarks = _first(subject, LANDMARK_NAMES)
         names: dict[str, Path] = {}
         for video in _visible(subject):
+            photos = list_photos(video) if video.is_dir() else []
             if video.is_file() and video.suffix.lower() in VIDEO_SUFFIXES:
                 name = video.stem
-            elif video.is_dir() and list_photos(video):
+            elif photos:
                 name = video.name
-                for photo in list_photos(video):
+                for photo in photos:
                     inside(root, photo)
             else:
                 continue

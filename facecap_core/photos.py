@@ -52,12 +52,15 @@ def list_photos(folder: str | Path) -> list[Path]:
                    and not p.name.startswith(".")), key=lambda p: p.name)
 
 
-def _open(path: Path):
+def _open(path: Path, decode: bool = True):
+    """The photo upright (``decode``), or opened lazily: its header and EXIF only."""
     from PIL import Image, ImageOps, UnidentifiedImageError
 
     _register_heif()
     try:
         image = Image.open(path)
+        if not decode:
+            return image
         image.load()
     except UnidentifiedImageError:
         hint = " (HEIC needs the pillow-heif package)" if path.suffix.lower() in (
@@ -68,6 +71,12 @@ def _open(path: Path):
         raise InputError(f"{path} cannot be decoded ({type(exc).__name__}); the file is "
                          "damaged or truncated") from None
     return ImageOps.exif_transpose(image)
+
+
+def _upright_size(image) -> tuple[int, int]:
+    """Width and height once turned by the EXIF orientation (5-8 swap the axes)."""
+    w, h = image.size
+    return (h, w) if image.getexif().get(0x0112) in (5, 6, 7, 8) else (w, h)
 
 
 def _exif_focal_px(image, width: int, height: int) -> float | None:
@@ -110,9 +119,11 @@ def probe_photos(folder: str | Path) -> PhotoInfo:
     sizes: dict[tuple[int, int], list[str]] = {}
     focals = []
     for path in paths:
-        image = _open(path)
-        sizes.setdefault(image.size, []).append(path.name)
-        focals.append(_exif_focal_px(image, *image.size))
+        # The header is enough: a photo that fails to decode is named when it is read.
+        with _open(path, decode=False) as image:
+            size = _upright_size(image)
+            sizes.setdefault(size, []).append(path.name)
+            focals.append(_exif_focal_px(image, *size))
     if len(sizes) > 1:
         listed = "; ".join(f"{w}x{h}: {len(n)} ({', '.join(n[:2])}{', ...' if len(n) > 2 else ''})"
                            for (w, h), n in sorted(sizes.items(), key=lambda s: -len(s[1])))

@@ -88,11 +88,24 @@ def _prefect_defaults() -> None:
     # handlers (see _quiet_console).
 
 
+_VERBOSE = False
+"""``facecap --verbose``: third-party logs (COLMAP, Prefect) and facecap's own debug log
+on the console."""
+
+
 def _prefect_env(console_level: str = "WARNING") -> None:
-    """Quiet consoles for a command that runs flows."""
+    """Quiet consoles for a command that runs flows (unless ``--verbose``)."""
+    import logging
     import os
 
     _prefect_defaults()
+    if _VERBOSE:
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(asctime)s %(name)s: %(message)s", "%H:%M:%S"))
+        logging.getLogger("facecap_core").addHandler(handler)
+        logging.getLogger("facecap_core").setLevel(logging.DEBUG)
+        _quiet_console("DEBUG")
+        return
     # COLMAP (pose stage) logs through glog straight to stderr; its failures reach the user
     # as the pose stage's one-line message.
     os.environ.setdefault("GLOG_minloglevel", "3")
@@ -132,7 +145,9 @@ def _quiet_console(level: str = "WARNING") -> None:
                 handler.setLevel(max(handler.level, logging.getLevelName(level)))
 
 
-def _print_report(report: dict, out: Path) -> None:
+def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
+    """The stage table, the accuracy table (after ``baseline_rows``) and, last, where the
+    mesh, the report and the preview are."""
     from facecap_core.evaluation import paper_table
 
     print(f"{report['subject']}/{report['capture']}: {report['computed']} artifacts computed, "
@@ -147,10 +162,12 @@ def _print_report(report: dict, out: Path) -> None:
               f"computed, {sum(i['seconds'] or 0 for i in depth):.1f} s in all")
     evaluation = report.get("figures", {}).get("evaluation")
     if evaluation:
-        print(paper_table([(f"facecap ({p})", [s]) for p, s in evaluation.items()]))
-    if (out / "mesh.ply").is_file():
-        print(f"mesh: {out / 'mesh.ply'}")
-    print(f"report: {out / 'report.json'}")
+        rows = [(f"facecap ({p})", [s]) for p, s in evaluation.items()]
+        print(paper_table(list(baseline_rows) + rows))
+    for name, what in (("mesh.ply", "mesh"), ("report.json", "report"),
+                       ("preview.png", "preview")):
+        if (out / name).is_file():
+            print(f"{what}: {out / name}")
 
 
 def _cmd_reconstruct(args) -> int:
@@ -222,7 +239,7 @@ def _cmd_demo(args) -> int:
 
     from facecap_core.baselines import mean_template
     from facecap_core.config import SynthConfig
-    from facecap_core.evaluation import paper_table, score_json
+    from facecap_core.evaluation import score_json
     from facecap_core.synthetic import synthesize
     from facecap_core.template import Template
 
@@ -246,10 +263,7 @@ def _cmd_demo(args) -> int:
     report = reconstruct_capture(str(capture_dir / "video.mp4"), str(out / "result"),
                                  config=args.config, scan=str(gt / "mesh.ply"),
                                  scan_landmarks=str(gt / "landmarks.json"), progress=True)
-    _print_report(report, out / "result")
-    evaluation = report.get("figures", {}).get("evaluation", {})
-    rows += [(f"facecap ({p})", [s]) for p, s in evaluation.items()]
-    print(paper_table(rows))
+    _print_report(report, out / "result", tuple(rows))
     return 0
 
 
@@ -258,6 +272,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="facecap",
         description="Metric 3D face meshes from one handheld phone video, and the tools to "
                     "measure them.")
+    p.add_argument("--verbose", action="store_true",
+                   help="show third-party logs (COLMAP, Prefect) and facecap's debug log")
     sub = p.add_subparsers(dest="command", required=True)
 
     a = sub.add_parser("assets", help="fetch, verify and list the template and sample scan")
@@ -332,13 +348,14 @@ def build_parser() -> argparse.ArgumentParser:
     te.set_defaults(func=_cmd_train_ears)
 
     d = sub.add_parser("demo", help="synthesize a capture, reconstruct it, print its accuracy")
-    d.add_argument("--out", default="out/demo")
-    d.add_argument("--ict-model", help="ICT Face Model .npz (or set FACECAP_ICT_MODEL)")
+    d.add_argument("--out", default="out/demo", help="output folder (capture/ and result/)")
+    d.add_argument("--ict-model", help="ICT Face Model .npz: the subject is then ICT identity 3 "
+                                       "(default: $FACECAP_ICT_MODEL, else the james head scan)")
     d.add_argument("--config", help="PipelineConfig YAML")
-    d.add_argument("--width", type=int, default=640)
-    d.add_argument("--height", type=int, default=360)
-    d.add_argument("--fps", type=float, default=30.0)
-    d.add_argument("--seconds", type=float, default=6.0)
+    d.add_argument("--width", type=int, default=640, help="video width (pixels)")
+    d.add_argument("--height", type=int, default=360, help="video height (pixels)")
+    d.add_argument("--fps", type=float, default=30.0, help="video frame rate")
+    d.add_argument("--seconds", type=float, default=6.0, help="sweep duration")
     d.set_defaults(func=_cmd_demo)
     return p
 
@@ -353,6 +370,8 @@ def _as_user_sees_it(exc: FacecapError, args) -> str:
 def main(argv: list[str] | None = None) -> int:
     _prefect_defaults()
     args = build_parser().parse_args(argv)
+    global _VERBOSE
+    _VERBOSE = args.verbose
     try:
         return args.func(args)
     except FacecapError as exc:

@@ -38,22 +38,32 @@ def png_data_uri(path: Path, max_width: int = 960) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode() if ok else ""
 
 
-def mesh_preview(mesh_path: Path, out_png: Path) -> Path:
-    """Front and profile renders of a mesh (grey, shaded)."""
-    from facecap_core.evaluation import error_heatmap
-    from facecap_core.meshio import load_mesh
+def mesh_preview(out: Path) -> Path:
+    """``out/preview.png``: the accuracy heat map (metric protocol) when a scan was given,
+    otherwise the mesh in its own colours turned to face the viewer."""
+    import shutil
 
+    from facecap_core.evaluation import mesh_render
+    from facecap_core.meshio import load_mesh
     from facecap_core.template import Template, head_frame
 
-    mesh = load_mesh(mesh_path, "mesh")
+    preview = out / "preview.png"
+    heatmap = out / "heatmap_metric.png"
+    if heatmap.is_file():
+        shutil.copyfile(heatmap, preview)
+        return preview
+    mesh = load_mesh(out / "mesh.ply", "mesh")
     vertices = np.asarray(mesh.vertices, float)
     template = Template.default()
+    framed = vertices
     if len(vertices) == len(template.vertices):
         # The reconstruction's world frame is the cameras'; turn the face to the viewer.
         R, origin = head_frame(vertices[template.landmarks])
         vertices = (vertices - origin) @ R.T
-    nan = np.full(len(vertices), np.nan)
-    return error_heatmap(vertices, mesh.faces, nan, out_png, size=320)
+        framed = vertices[template.regions["face"]]
+    colours = getattr(mesh.visual, "vertex_colors", None)
+    colours = None if colours is None or len(colours) != len(vertices) else colours[:, :3]
+    return mesh_render(vertices, mesh.faces, preview, colours, size=320, framed=framed)
 
 
 def stage_rows(report: dict) -> list[dict]:
@@ -90,11 +100,10 @@ def publish_capture(report: dict, out: Path, label: str) -> None:
                           description=f"stages of {label}: computed or reused, seconds")
     images = []
     if (out / "mesh.ply").is_file():
-        images.append(("Mesh", mesh_preview(out / "mesh.ply", out / "preview.png")))
-    for protocol in ("similarity", "metric"):
-        p = out / f"heatmap_{protocol}.png"
-        if p.is_file():
-            images.append((f"Accuracy ({protocol})", p))
+        scored = (out / "heatmap_metric.png").is_file()
+        images.append(("Accuracy (metric)" if scored else "Mesh", mesh_preview(out)))
+    if (out / "heatmap_similarity.png").is_file():
+        images.append(("Accuracy (similarity)", out / "heatmap_similarity.png"))
     create_markdown_artifact(capture_markdown(report, out, images), key=f"capture-{key}",
                              description=f"{label}: results and previews")
     emit_event(event="facecap.capture.completed",

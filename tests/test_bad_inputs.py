@@ -380,6 +380,7 @@ def test_refused_by_a_stage(case, media, kept, tmp_path, capfd, prefect_server):
     assert_kept(before, snapshot(kept["store"], kept["out"]))
 
 
+@pytest.mark.slow
 def test_full_disk(media, kept, capfd, monkeypatch, prefect_server):
     """The store's disk fills up (ENOSPC on every write): one line, not retried, nothing
     half-written left in the store."""

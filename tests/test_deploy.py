@@ -72,6 +72,7 @@ def live_server(tmp_path_factory):
         proc.wait(30)
 
 
+@pytest.mark.slow
 def test_nightly_evaluation_gets_scheduled_runs(live_server):
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import DeploymentFilter, DeploymentFilterId

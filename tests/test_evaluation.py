@@ -304,6 +304,30 @@ def test_error_heatmap_png(head, tmp_path):
     assert (bar.max(axis=2) - bar.min(axis=2) > 40).sum() > 1000  # the colour ramp
 
 
+def test_preview_is_the_heat_map_with_a_scan_and_the_coloured_mesh_without(head, tmp_path):
+    """``preview.png``: never a colour bar over a plain mesh. Without a scan, the mesh in its
+    own vertex colours (red on the subject's left, blue on the right); with one, the metric
+    heat map."""
+    import trimesh
+
+    from flows.ui import mesh_preview
+
+    v, f, lm = head
+    colours = np.where(v[:, :1] > 0, [[220, 30, 30]], [[30, 30, 220]]).astype(np.uint8)
+    trimesh.Trimesh(v, f, vertex_colors=colours, process=False).export(tmp_path / "mesh.ply")
+    img = cv2.imread(str(mesh_preview(tmp_path)))  # BGR
+    assert img.shape == (320, 3 * 320, 3)  # three views, no colour bar
+    front = img[:, :320].astype(int)
+    red = (front[..., 2] > front[..., 0] + 60).sum()
+    blue = (front[..., 0] > front[..., 2] + 60).sum()
+    assert red > 3000 and blue > 3000, (red, blue)
+    # The subject's left is on the viewer's right in the front view.
+    cols = np.arange(320)[None, :]
+    assert ((front[..., 2] > front[..., 0] + 60) * cols).sum() / red > 160
+    heat = error_heatmap(v, f, np.abs(v[:, 0]) / 15.0, tmp_path / "heatmap_metric.png")
+    assert mesh_preview(tmp_path).read_bytes() == heat.read_bytes()
+
+
 def test_paper_table_conventions():
     def rec(acc_mean, acc_median, comp_mean, comp_median):
         side = lambda m, md: {"mean": m, "std": 0.5, "median": md, "under_1mm": 0.5,

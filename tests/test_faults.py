@@ -431,6 +431,7 @@ def _restart_after_first_failure(server, flow_name: str, stop: threading.Event) 
         time.sleep(0.1)
 
 
+@pytest.mark.slow
 def test_a_store_outage_is_retried_and_then_succeeds(prefect_api, tmp_path, monkeypatch):
     """The S3 endpoint is down when a task first needs it (the server stopped, as in
     tests/test_store_s3.py); the task's retry finds it back and the flow completes."""

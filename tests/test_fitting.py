@@ -207,19 +207,41 @@ def test_ear_points_pull_their_vertices(setup):
     assert err_with < 0.5 * err_without
 
 
-def test_edges_and_texture_and_files(setup, tmp_path):
-    """Keyframes rendered from the subject: silhouette targets are found and used, vertex
-    colours match the subject's colour field, and the mesh files read back."""
+def test_edges_bring_the_jaw_line_closer_where_the_cloud_misses_it(setup):
+    """MVS loses the grazing skin along the jaw; there the silhouettes of the profile views
+    are what places the mesh. A cloud with nothing within 20 mm of the jaw line (landmarks
+    2-14): the fit with edge constraints lies closer to the subject's jaw than without.
+
+    Measured: median distance of the jaw vertices to the subject 2.1 mm with edges, 2.8 mm
+    without (1.2 mm both when only 10 mm are missing: the cloud then suffices)."""
+    template, sv, sf, slm, _, _, noisy = setup
+    cloud, normals = mvs_like_cloud(sv, sf, density=0.7, noise_mm=0.5, holes=0.0,
+                                    outliers=0.05, seed=3)
+
+    def near_jaw(points, radius_mm):
+        d = np.linalg.norm(points[:, None] - slm[None, 2:15], axis=2).min(axis=1)
+        return d < radius_mm
+
+    keep = ~near_jaw(cloud, 20.0)
+    keyframes = _render_keyframes(sv, sf)
+    jaw = near_jaw(sv, 12.0)  # the subject's jaw vertices; same topology as the template
+    median = {}
+    for use_edges in (True, False):
+        result = fit(template, cloud[keep], noisy, cloud_normals=normals[keep],
+                     keyframes=keyframes, config=FittingConfig(**FAST, use_edges=use_edges))
+        median[use_edges] = np.median(np.abs(distances(result.vertices[jaw], sv, sf)))
+    assert median[True] < 0.85 * median[False], median
+
+
+def test_texture_and_files(setup, tmp_path):
+    """Keyframes rendered from the subject: vertex colours match the subject's colour field,
+    and the mesh files read back in trimesh and open3d."""
     template, sv, sf, slm, cloud, normals, noisy = setup
     keyframes = _render_keyframes(sv, sf)
     config = FittingConfig(**FAST)
     path = main(cloud, noisy, tmp_path / "fit", template=template, keyframes=keyframes,
                 cloud_normals=normals, config=config)
     assert path.name == "mesh.ply" and (tmp_path / "fit" / "mesh.obj").is_file()
-    import json
-
-    log = json.loads((tmp_path / "fit" / "fit.json").read_text())
-    assert max(s["edge_targets"] for s in log["steps"]) > 50
     for p in (path, tmp_path / "fit" / "mesh.obj"):
         tm = trimesh.load(p, process=False, maintain_order=True)
         assert len(tm.vertices) == len(template.vertices)

@@ -14,6 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# Every test here runs the tail of the pipeline on a real Prefect server.
+pytestmark = pytest.mark.slow
+
 from facecap_core.config import PipelineConfig, SynthConfig
 from facecap_core.meshio import load_landmarks, load_mesh, save_landmarks
 from facecap_core.store import ArtifactStore

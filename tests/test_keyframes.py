@@ -16,6 +16,7 @@ def sweep(tmp_path_factory, ict_model):
     return synthesize(config, tmp_path_factory.mktemp("kf"), progress=False)
 
 
+@pytest.mark.slow
 def test_keyframes_are_spaced_by_angle(sweep):
     kf = select_keyframes(sweep.video)
     _, poses = load_gt_cameras(sweep.gt_cameras)
@@ -32,6 +33,7 @@ def test_keyframes_are_spaced_by_angle(sweep):
     assert obs[:, 2].max() < 640 and obs[:, 3].max() < 360 and obs[:, 2:].min() >= 0
 
 
+@pytest.mark.slow
 def test_more_keyframes_for_smaller_angles(sweep):
     coarse = select_keyframes(sweep.video, KeyframeConfig(keyframe_angle_deg=8.0))
     fine = select_keyframes(sweep.video)
@@ -66,6 +68,7 @@ def test_flat_colour_video_is_refused(tmp_path):
     assert "\n" not in str(err.value)
 
 
+@pytest.mark.slow
 def test_main_writes_keyframes_that_load_back(sweep, tmp_path):
     path = main(sweep.video, tmp_path / "kf")
     assert path == tmp_path / "kf" / "keyframes.json"

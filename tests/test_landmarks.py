@@ -140,6 +140,7 @@ def monkeypatch_module():
     mp.undo()
 
 
+@pytest.mark.slow
 def test_stage_triangulates_the_inner_landmarks(capture, stage_run):
     out, path = stage_run
     assert path == out / "landmarks3d.json"
@@ -164,6 +165,7 @@ def test_stage_triangulates_the_inner_landmarks(capture, stage_run):
     assert np.median(err) < 0.8 * np.median(error(raw)[1])
 
 
+@pytest.mark.slow
 def test_stage_estimates_yaw_and_gates_near_frontal_views(capture, stage_run):
     out, _ = stage_run
     doc = json.loads((out / "landmarks2d.json").read_text())
@@ -185,6 +187,7 @@ def test_stage_estimates_yaw_and_gates_near_frontal_views(capture, stage_run):
     assert doc["ear_model"] is False and not doc["gate_widened"]
 
 
+@pytest.mark.slow
 def test_stage_without_ear_model_writes_empty_ears(stage_run):
     out, _ = stage_run
     ids, pts, doc = load_ears3d(out / "ears3d.json")

@@ -59,6 +59,13 @@ def test_mixed_sizes_and_too_few_photos_are_refused(tmp_path):
         (tmp_path / "junk" / f"b{i}.png").write_bytes(b"\x89PNG nope")
     with pytest.raises(InputError, match="not a readable image"):
         probe_photos(tmp_path / "junk")
+    # Probing reads headers only; a photo cut short is named when its pixels are read.
+    cut = _photos(tmp_path / "cut", [(64, 48)] * 5)
+    whole = (cut / "img_002.jpg").read_bytes()
+    (cut / "img_002.jpg").write_bytes(whole[: len(whole) // 2])
+    assert probe_photos(cut).width == 64
+    with pytest.raises(InputError, match="img_002.jpg cannot be decoded.*damaged or truncated"):
+        read_photo(cut / "img_002.jpg")
 
 
 def test_a_photo_folder_key_follows_its_content(tmp_path):

@@ -86,6 +86,7 @@ def capture(tmp_path_factory, ict_model):
     return synthesize(config, tmp_path_factory.mktemp("pose"), progress=False)
 
 
+@pytest.mark.slow
 def test_pose_stage_calibrates_every_keyframe(capture, tmp_path):
     kf_json = keyframes_main(capture.video, tmp_path / "kf")
     kf = load_keyframes(kf_json)
@@ -131,3 +132,21 @@ def test_pose_stage_needs_the_keyframe_stage(tmp_path):
 
     with pytest.raises(InputError, match="run the keyframe stage first"):
         pose_main(tmp_path / "video.mp4", tmp_path / "kf" / "keyframes.json", tmp_path / "out")
+
+
+def test_colmap_logs_go_to_the_log_not_the_terminal(capfd, caplog):
+    """pycolmap's bundle adjustment writes glog lines to stderr whatever GLOG_minloglevel
+    says; the refinement keeps them in facecap's log (DEBUG) instead."""
+    import logging
+
+    import pycolmap
+
+    from facecap_core.pose.geometric import native_stderr_to_log
+
+    capfd.readouterr()
+    with caplog.at_level(logging.DEBUG, logger="facecap_core.pose.geometric"):
+        with native_stderr_to_log():
+            pycolmap.bundle_adjustment(pycolmap.Reconstruction(),
+                                       pycolmap.BundleAdjustmentOptions())
+    assert capfd.readouterr().err == ""
+    assert any("bundle adjustment" in r.getMessage().lower() for r in caplog.records)

@@ -115,7 +115,9 @@ def main(cloud, landmarks, out_dir: str | Path, template: Template | None = None
                  found["stretched_edges"], found["self_intersecting_pairs"], sanity.flipped,
                  sanity.stretched_edges, sanity.self_intersecting_pairs)
     if not sanity.ok:
-        log.warning("the fitted mesh is not sane: %s", sanity.to_json())
+        log.warning("the fitted mesh keeps %d flipped triangles, %d stretched edges and %d "
+                    "self-intersecting triangle pairs (fit.json: sanity)", sanity.flipped,
+                    sanity.stretched_edges, sanity.self_intersecting_pairs)
     colours = None
     if config.texture and len(keyframes):
         from facecap_core.texture import vertex_colours

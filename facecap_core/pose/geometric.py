@@ -10,7 +10,11 @@ cameras' rotations. Ceres (through pycolmap) does the adjustment.
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
 import shutil
+import tempfile
 import time
 from pathlib import Path
 
@@ -18,6 +22,26 @@ import numpy as np
 
 from facecap_core.camera import Intrinsics, camera_center, project, undistort
 from facecap_core.pose.colmap_sfm import Poses
+
+log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def native_stderr_to_log():
+    """What native code writes to stderr meanwhile goes to this module's log (DEBUG)
+    instead of the user's terminal: pycolmap's bundle adjustment logs its heading through
+    glog whatever ``GLOG_minloglevel`` says (it resets the level on each call)."""
+    with tempfile.TemporaryFile() as sink:
+        saved = os.dup(2)
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            for line in sink.read().decode(errors="replace").splitlines():
+                log.debug("colmap: %s", line)
 
 
 def triangulate(observations: np.ndarray, R: list[np.ndarray], t: list[np.ndarray],
@@ -90,7 +114,8 @@ def bundle_adjust(poses: Poses, work_dir: str | Path, refine_intrinsics: bool = 
     options.refine_principal_point = refine_intrinsics
     options.refine_extra_params = refine_intrinsics
     options.print_summary = False
-    pycolmap.bundle_adjustment(rec, options)
+    with native_stderr_to_log():
+        pycolmap.bundle_adjustment(rec, options)
     return _from_reconstruction(rec, poses, time.perf_counter() - start)
 
 
