@@ -2,6 +2,7 @@
 
 import numba as nb
 import numpy as np
+import pytest
 
 from facecap_core.camera import Intrinsics, project, rotation_matrix, undistort
 from facecap_core.pose import pba
@@ -61,3 +62,49 @@ def test_sparse_points_are_hosted_at_their_depth():
         expected, z = project(points[sel], R[k], t[k], intr)
         np.testing.assert_allclose(uv[host == k], np.round(expected))
         np.testing.assert_allclose(rho[host == k], 1 / z)
+
+
+def test_pba_improves_on_its_starting_point():
+    """Eight exact renders of a textured head over 70°: PBA started from poses with every
+    rotation but the first (the gauge) turned 0.4° about a random axis, the centres exact,
+    ends within a quarter of that (measured 0.04°: the images are renders of a per-vertex
+    albedo sampled bilinearly, so not exactly photo-consistent)."""
+    from facecap_core.assets import packaged_ict_model
+    from facecap_core.camera import camera_center, look_at
+    from facecap_core.config import PBAConfig
+    from facecap_core.pose.evaluate import pose_errors
+    from facecap_core.render import RaycastScene, interpolate
+    from facecap_core.template import Template
+
+    head = Template.from_ict(packaged_ict_model())
+    V, F = head.vertices - head.landmark_points[30], head.faces
+    rng = np.random.default_rng(0)
+    # A smooth albedo: 40 plane waves with periods of 20-80 mm.
+    waves = rng.normal(size=(40, 3))
+    waves *= rng.uniform(0.08, 0.3, (40, 1)) / np.linalg.norm(waves, axis=1, keepdims=True)
+    albedo = 128 + 100 / np.sqrt(40) * np.sin(V @ waves.T + rng.uniform(0, 6.3, 40)).sum(1)
+    intr = Intrinsics(320, 240, 380.0, 380.0, 161.0, 118.0)
+    scene = RaycastScene()
+    scene.add(V, F)
+    R, t, images, points, hosts = [], [], [], [], []
+    for k, yaw in enumerate(np.radians(np.linspace(-35, 35, 8))):
+        Rk, tk = look_at([450 * np.sin(yaw), 15.0, 450 * np.cos(yaw)], [0, 0, -40.0], [0, 1, 0])
+        hits = scene.cast_camera(intr, Rk, tk)
+        image = np.full(hits.depth.shape, 40.0, np.float32)
+        image[hits.valid] = interpolate(albedo[:, None], F, hits.triangle[hits.valid],
+                                        hits.bary[hits.valid])[:, 0]
+        grid = hits.points[8:-8:10, 8:-8:10].reshape(-1, 3)
+        grid = grid[np.isfinite(grid).all(1)]
+        R.append(Rk), t.append(tk), images.append(image), points.append(grid)
+        hosts.append(np.full(len(grid), k))
+    turned = [R[0]] + [rotation_matrix(rng.normal(size=3), np.radians(0.4)) @ r for r in R[1:]]
+    start_t = [-r @ camera_center(r0, x) for r, r0, x in zip(turned, R, t)]
+    before = pose_errors(turned, start_t, intr, R, t, intr)["rotation_deg"]
+    result = pba.photometric_bundle_adjustment(images, intr, turned, start_t,
+                                               np.concatenate(points), PBAConfig(),
+                                               sparse_hosts=np.concatenate(hosts),
+                                               centre_prior=True)
+    after = pose_errors(result.R, result.t, result.intrinsics, R, t, intr)
+    assert before == pytest.approx(0.4, rel=1e-6)
+    assert after["rotation_deg"] < 0.25 * before, after
+    assert after["centre_pct"] < 0.1 and result.rms_after < result.rms_before
