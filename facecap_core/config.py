@@ -39,16 +39,26 @@ class SynthConfig(StrictModel):
     """Spread of random ICT identity coefficients, in model standard deviations."""
 
     width: int = Field(1280, ge=64, le=7680)
-    """Video width in pixels (landscape)."""
+    """Width in pixels of the frames as stored (the sensor's long side; see
+    ``display_rotation_deg``)."""
     height: int = Field(720, ge=64, le=4320)
-    """Video height in pixels."""
+    """Height in pixels of the frames as stored."""
     fps: float = Field(30.0, gt=0, le=480)
     """Frames per second."""
     duration_s: float = Field(6.0, gt=0, le=120)
     """Length of the sweep in seconds."""
 
+    display_rotation_deg: Literal[0, 90, 180, 270] = 0
+    """Phone orientation, stored as phones store it: every frame is encoded as the
+    ``width`` × ``height`` sensor image and the container carries this display rotation
+    (counter-clockwise degrees, as :mod:`facecap_core.video` reads PyAV's ``frame.rotation``
+    and turns the frames upright). 90 or 270: a portrait capture, upright ``height`` ×
+    ``width``. The scene is rendered upright; the ground-truth intrinsics and poses are
+    those of the upright image. 0: landscape, no rotation (as before)."""
+
     hfov_deg: float = Field(65.0, gt=20, lt=120)
-    """Nominal horizontal field of view; the true focal length is drawn around it."""
+    """Nominal field of view across the sensor's width (horizontal in landscape, vertical
+    in portrait); the true focal length is drawn around it."""
     focal_jitter: float = Field(0.04, ge=0, le=0.3)
     """Relative standard deviation of the drawn focal length (the focal is 'unknown')."""
     principal_point_jitter: float = Field(0.01, ge=0, le=0.1)
@@ -91,9 +101,40 @@ class SynthConfig(StrictModel):
     """Ambient light level."""
     room: bool = True
     """Render a static textured room around the subject (a background to track)."""
+    plain_walls: bool = False
+    """Untextured room: every surface (walls, floor, ceiling, furniture) has one uniform
+    albedo, its paint colour, so the background offers edges and shading but no texture to
+    track. The room's geometry and colours are those of the textured room of the same
+    seed."""
+    skin_detail: float = Field(1.0, ge=0, le=1)
+    """Strength of the procedural skin's fine texture (1.2 mm mottling, 0.5 mm pores and
+    freckles) relative to the default: 1 as before, 0 leaves the tone, 4 mm and 25 mm
+    variation, lips, brows and hair (real skin, as a phone resolves it, is smoother than
+    the default). ICT subjects only; a mesh subject's own texture is used as it is."""
 
+    rolling_shutter_s: float = Field(0.0, ge=0, le=0.1)
+    """Rolling-shutter readout time: the sensor's rows (stored rows; columns of the upright
+    portrait image) are exposed one after another over this time, first to last, each
+    rendered (ray cast, blurred) with the camera pose at its own time; phones read out in
+    about 30 ms. A frame's ground-truth pose is the one at mid-exposure of the sensor's
+    middle line (``gt/cameras.json`` ``frames[].time``). 0: global shutter (as before)."""
+    sway_mm: float = Field(0.0, ge=0, le=50)
+    """Subject sway: the head moves rigidly and smoothly (0.1–0.5 Hz) before the still
+    room; its largest translation from the reference pose over the frames is exactly this.
+    The ground-truth mesh and landmarks are the head at the reference pose (its head
+    frame) and the ground-truth cameras are relative to the head, so they stay exact for
+    the reconstruction; the head's pose per frame (head to room) is in
+    ``gt/cameras.json``. Each frame shows the head at its pose at the frame's ground-truth
+    instant (its motion within one exposure and readout, < 0.3 mm at 3 mm of sway, is not
+    rendered). 0: a still head (as before)."""
+    sway_deg: float = Field(0.0, ge=0, le=10)
+    """Largest rotation of the swaying head (about a pivot at the neck) over the frames."""
+
+    codec: Literal["h264", "hevc"] = "h264"
+    """Video codec: H.264 (libx264) or HEVC (libx265, tagged ``hvc1`` as phones write
+    it), both at ``crf`` with the medium preset."""
     crf: int = Field(16, ge=0, le=51)
-    """H.264 constant rate factor of the output video (lower = better quality)."""
+    """Constant rate factor of the output video (lower = better quality)."""
     seed: int = 0
     """Seed of every random draw (camera, path, lighting, textures, noise)."""
 
@@ -105,6 +146,10 @@ class SynthConfig(StrictModel):
                 raise ValueError(f"{name}: lower bound {lo} exceeds upper bound {hi}")
         if self.distance_mm[0] <= 100:
             raise ValueError("distance_mm must stay above 100 mm")
+        if self.rolling_shutter_s > 1 / self.fps:
+            # A sensor reads a frame out before the next one starts.
+            raise ValueError(f"rolling_shutter_s {self.rolling_shutter_s} exceeds the frame "
+                             f"interval 1/fps = {1 / self.fps:.4f} s")
         return self
 
 

@@ -9,17 +9,27 @@ specular) under fixed world lights, blurred by the camera's motion during the ex
 scaled by a drifting auto-exposure gain, given Poisson–Gaussian sensor noise, and encoded as
 H.264. A static textured room surrounds the subject so there is a background to track.
 
+What phones do and a plain render does not, each a :class:`SynthConfig` field that is off by
+default: portrait frames stored landscape with a display rotation
+(``display_rotation_deg``), a rolling shutter whose every sensor line is ray cast and
+blurred at its own camera pose (``rolling_shutter_s``), HEVC (``codec``), a head that sways
+rigidly before the still room (``sway_mm``, ``sway_deg``), untextured walls
+(``plain_walls``) and smoother skin (``skin_detail``). 4K and 120 fps are ``width``,
+``height`` and ``fps``.
+
 World frame: the subject's head frame (mm) from its landmarks (see
 :func:`facecap_core.template.head_frame`): +x the subject's left, +y up, +z out of the face,
 origin between the tops of the jaw contour.
 
 Output folder::
 
-    video.mp4            the capture (H.264, yuv420p)
+    video.mp4            the capture (H.264 or HEVC, yuv420p, display rotation if any)
     gt/mesh.ply          the visible head surface in mm (world frame): the "scan"
     gt/landmarks.json    68 3D landmarks (iBUG order, mm)
-    gt/cameras.json      intrinsics + distortion, and per frame: time, world-to-camera R, t
-                         (OpenCV convention, at mid-exposure), exposure gain
+    gt/cameras.json      intrinsics + distortion (of the upright image), and per frame:
+                         time, world-to-camera R, t (OpenCV convention, at mid-exposure of
+                         the sensor's middle line), exposure gain; with sway the world is
+                         the head frame and head_R, head_t give the head's pose in the room
     gt/subject.json      what the subject is (ICT coefficients, texture, ...)
     gt/config.yaml       the exact SynthConfig used
     gt/render.json       every drawn quantity (focal, distortion, lights, ...)
@@ -40,11 +50,15 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
-from facecap_core.camera import Intrinsics, look_at, pixel_rays, project, rotation_matrix
+from facecap_core.camera import (
+    Intrinsics, distort, look_at, pixel_rays, project, rotation_matrix,
+)
 from facecap_core.config import SynthConfig, dump_yaml
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_landmarks, load_mesh, save_landmarks
-from facecap_core.render import RaycastScene, interpolate, shade_lambert, vertex_normals
+from facecap_core.render import (
+    NO_HIT, Hits, RaycastScene, interpolate, shade_lambert, vertex_normals,
+)
 from facecap_core.template import (
     ICT_EYE_MATERIALS, head_frame, ict_faces_of, ict_identity_vertices, ict_skin_faces,
     load_ict_model,
@@ -132,8 +146,9 @@ class SkinAlbedo:
     freckles, lips, brows and short hair — texture at 0.5–25 mm for stereo matching."""
 
     def __init__(self, landmarks: np.ndarray, rng: np.random.Generator,
-                 hair_weight: np.ndarray | None = None):
+                 hair_weight: np.ndarray | None = None, detail: float = 1.0):
         self.noise = SolidNoise(rng)
+        self.detail = detail  # weight of the fine (<= 1.6 mm) texture, see SynthConfig
         self.tone = SKIN_TONES[rng.integers(len(SKIN_TONES))] * rng.uniform(0.9, 1.1, 3)
         self.hair = HAIR_COLOURS[rng.integers(len(HAIR_COLOURS))]
         self.lip = self.tone * np.array([1.05, 0.62, 0.62])
@@ -150,13 +165,15 @@ class SkinAlbedo:
 
     def __call__(self, points: np.ndarray, hair: np.ndarray | None = None) -> np.ndarray:
         n = self.noise
-        lum = (1 + 0.07 * n(points, 4.0, 1) + 0.05 * n(points, 1.2, 2) + 0.03 * n(points, 0.5, 3))
+        d = self.detail
+        lum = (1 + 0.07 * n(points, 4.0, 1) + d * 0.05 * n(points, 1.2, 2)
+               + d * 0.03 * n(points, 0.5, 3))
         red = 0.06 * n(points, 25.0, 0)
         rgb = self.tone[None, :] * lum[:, None]
         rgb[:, 0] *= 1 + red
         rgb[:, 1] *= 1 - 0.5 * red
         freckles = _smoothstep(n(points, 1.6, 4), self.freckle_level, self.freckle_level + 0.6)
-        rgb *= (1 - 0.35 * freckles[:, None] * np.array([0.8, 1.0, 1.1]))
+        rgb *= (1 - d * 0.35 * freckles[:, None] * np.array([0.8, 1.0, 1.1]))
         lips = self.lips(points)[:, None]
         rgb = rgb * (1 - lips) + self.lip * (1 + 0.08 * n(points, 0.8, 5))[:, None] * lips
         strands = _smoothstep(n(points, 0.6, 6, stretch=(6.0, 1.0, 1.0)), -0.3, 0.6)
@@ -214,8 +231,10 @@ def _to_head_frame(vertices: np.ndarray, landmarks: np.ndarray):
     return (vertices - origin) @ R.T, (landmarks - origin) @ R.T
 
 
-def ict_subject(model_path: str | Path, seed: int | None, sigma: float = 1.0) -> Subject:
-    """A random ICT Face Model identity (``seed=None``: the mean face) with procedural skin."""
+def ict_subject(model_path: str | Path, seed: int | None, sigma: float = 1.0,
+                skin_detail: float = 1.0) -> Subject:
+    """A random ICT Face Model identity (``seed=None``: the mean face) with procedural skin
+    (``skin_detail``: weight of its fine texture, see :attr:`SynthConfig.skin_detail`)."""
     model = load_ict_model(model_path)
     rng = np.random.default_rng(None if seed is None else [seed, 1])
     coeffs = None if seed is None else rng.standard_normal(100) * sigma
@@ -242,7 +261,7 @@ def ict_subject(model_path: str | Path, seed: int | None, sigma: float = 1.0) ->
     lateral_ok = ~((np.abs(verts[:, 0]) > 0.85 * w) & (verts[:, 1] < 0.75 * w)
                    & (verts[:, 2] > -0.7 * w))  # keep the temples and ears bare
     hair_v = _smoothstep(verts[:, 1] - hairline, -4.0, 6.0) * lateral_ok
-    skin_albedo = SkinAlbedo(lm, rng)
+    skin_albedo = SkinAlbedo(lm, rng, detail=skin_detail)
     iris_rgb = IRIS_COLOURS[rng.integers(len(IRIS_COLOURS))]
     eye_centres = {}
     for side in ("Left", "Right"):
@@ -338,7 +357,11 @@ def make_subject(config: SynthConfig) -> Subject:
         arg = spec[4:]
         if arg != "mean" and not arg.lstrip("-").isdigit():
             raise InputError(f"subject {spec!r}: expected ict:SEED (an integer) or ict:mean")
-        return ict_subject(model, None if arg == "mean" else int(arg), config.ict_identity_sigma)
+        return ict_subject(model, None if arg == "mean" else int(arg), config.ict_identity_sigma,
+                           config.skin_detail)
+    if config.skin_detail != 1.0:
+        raise InputError(f"skin_detail {config.skin_detail}: only the procedural skin of ict: "
+                         "subjects can be smoothed; leave it at 1 for a textured mesh")
     if spec == "james":
         from facecap_core.assets import james_files
 
@@ -353,8 +376,9 @@ def make_subject(config: SynthConfig) -> Subject:
 # -- the room ---------------------------------------------------------------------------------
 
 
-def _wall_texture(rng: np.random.Generator, size: int = 1024) -> np.ndarray:
-    """A wall: paint with large and fine noise, and posters, shelves and frames on it."""
+def _wall_texture(rng: np.random.Generator, size: int = 1024, plain: bool = False) -> np.ndarray:
+    """A wall: paint with large and fine noise, and posters, shelves and frames on it;
+    ``plain``: its paint colour alone (a 2×2 texture), drawn from the same random stream."""
     base = rng.uniform(0.25, 0.75, 3)
     low = cv2.resize(rng.standard_normal((8, 8)).astype(np.float32), (size, size),
                      interpolation=cv2.INTER_CUBIC)
@@ -386,6 +410,10 @@ def _wall_texture(rng: np.random.Generator, size: int = 1024) -> np.ndarray:
                               rng.uniform(0, 0.3, 3).tolist(), -1)
         img[y:y + h, x:x + w] = patch
         cv2.rectangle(img, (int(x), int(y)), (int(x + w), int(y + h)), rng.uniform(0, 1, 3).tolist(), 3)
+    if plain:
+        # Everything above was still drawn so that the rest of the room (furniture, later
+        # walls) comes out of the random stream exactly as in the textured room.
+        return np.full((2, 2, 3), np.clip(base, 0.02, 1.0), np.float32)
     return np.clip(img, 0.02, 1.0).astype(np.float32)
 
 
@@ -402,7 +430,7 @@ class Room:
     textures: list[np.ndarray]
 
     @classmethod
-    def random(cls, rng: np.random.Generator) -> "Room":
+    def random(cls, rng: np.random.Generator, plain: bool = False) -> "Room":
         lo = np.array([-rng.uniform(1500, 2200), -rng.uniform(1100, 1400), -rng.uniform(1500, 2500)])
         hi = np.array([rng.uniform(1500, 2200), rng.uniform(1300, 1700), rng.uniform(1500, 2500)])
         boxes = [(lo, hi, True)]
@@ -422,7 +450,7 @@ class Room:
             for axis in range(3):
                 sel = normal_axis == axis
                 t = len(textures)
-                textures.append(_wall_texture(rng))
+                textures.append(_wall_texture(rng, plain=plain))
                 a = [i for i in range(3) if i != axis]
                 faces.append(f[sel] + sum(len(v) for v in verts))
                 tex.append(np.full(sel.sum(), t))
@@ -502,6 +530,107 @@ def _small_rotation(w: np.ndarray) -> np.ndarray:
     return np.eye(3) if angle < 1e-12 else rotation_matrix(w / angle, angle)
 
 
+# -- subject sway and rolling shutter -------------------------------------------------------
+
+
+NECK_PIVOT_MM = np.array([0.0, -90.0, -30.0])
+"""Where a swaying head turns, in the head frame: the top of the neck (the frame's origin
+lies between the tops of the jaw contour, about ear level)."""
+
+
+class HeadSway:
+    """The head's rigid pose in the room over time: ``p_room = R p + c`` for a point ``p`` of
+    the head frame, a smooth (0.1–0.5 Hz) translation and a turn about :data:`NECK_PIVOT_MM`,
+    scaled so that their largest values at ``times`` are exactly ``sway_mm`` and
+    ``sway_deg``. The reference pose (identity) is the head frame itself."""
+
+    def __init__(self, rng: np.random.Generator, sway_mm: float, sway_deg: float,
+                 times: np.ndarray):
+        self.move = SmoothNoise(rng, 3, 0.1, 0.5)
+        self.turn = SmoothNoise(rng, 3, 0.1, 0.5)
+        peak_move = max(np.linalg.norm(self.move(t)) for t in times)
+        peak_turn = max(np.linalg.norm(self.turn(t)) for t in times)
+        self.move_scale = sway_mm / max(peak_move, 1e-12)
+        self.turn_scale = np.radians(sway_deg) / max(peak_turn, 1e-12)
+
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(R, c) of the head at time ``t``."""
+        R = _small_rotation(self.turn_scale * self.turn(t))
+        return R, NECK_PIVOT_MM - R @ NECK_PIVOT_MM + self.move_scale * self.move(t)
+
+
+def _turn(image: np.ndarray, rotation_deg: int) -> np.ndarray:
+    """Turn an image counter-clockwise by ``rotation_deg`` (the display rotation's
+    convention in :mod:`facecap_core.video`: stored frame turned by it = upright frame)."""
+    return np.ascontiguousarray(np.rot90(image, k=(rotation_deg // 90) % 4))
+
+
+@dataclass
+class Readout:
+    """A rolling shutter: when each pixel of the upright image is exposed."""
+
+    lines: np.ndarray  # (H, W) int: the sensor line (stored row) each upright pixel lies on
+    offsets: np.ndarray  # (L,) s from the frame's ground-truth time to each line's mid-exposure
+
+
+def rolling_readout(config: SynthConfig) -> Readout | None:
+    """The sensor reads its ``height`` stored rows top to bottom in ``rolling_shutter_s``;
+    the frame's ground-truth time is the middle of that readout (``None``: global shutter)."""
+    if config.rolling_shutter_s <= 0:
+        return None
+    rows = np.repeat(np.arange(config.height)[:, None], config.width, axis=1)
+    offsets = config.rolling_shutter_s * ((np.arange(config.height) + 0.5) / config.height - 0.5)
+    return Readout(_turn(rows, config.display_rotation_deg), offsets)
+
+
+def _world_to_lines(points: np.ndarray, R: np.ndarray, t: np.ndarray, line: np.ndarray,
+                    chunk: int = 1 << 19) -> np.ndarray:
+    """Camera coordinates of points (N, 3), each seen by the pose (R[l], t[l]) of its line."""
+    out = np.empty_like(points, dtype=float)
+    for s in range(0, len(points), chunk):
+        ln = line[s:s + chunk]  # chunked: a (N, 3, 3) gather of 4K frames would be 600 MB
+        out[s:s + chunk] = np.einsum("nij,nj->ni", R[ln], points[s:s + chunk]) + t[ln]
+    return out
+
+
+def _project_lines(points: np.ndarray, R: np.ndarray, t: np.ndarray, line: np.ndarray,
+                   intr: Intrinsics) -> np.ndarray:
+    """As :func:`facecap_core.camera.project` (pixels only), one pose per line."""
+    pc = _world_to_lines(points, R, t, line)
+    z = pc[:, 2]
+    xy = distort(pc[:, :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)[:, None], intr.k1, intr.k2)
+    return np.stack([intr.fx * xy[:, 0] + intr.cx, intr.fy * xy[:, 1] + intr.cy], axis=1)
+
+
+def _cast_lines(scene: RaycastScene, rays_cam: np.ndarray, R: np.ndarray, t: np.ndarray,
+                lines: np.ndarray) -> tuple[Hits, np.ndarray]:
+    """:meth:`RaycastScene.cast_camera` with one pose per sensor line; also returns each
+    pixel's camera centre (H*W, 3)."""
+    h, w = lines.shape
+    line = lines.ravel()
+    centres = -np.einsum("lji,lj->li", R, t)  # -R^T t per line
+    d_cam = rays_cam.reshape(-1, 3)
+    d_world = np.empty_like(d_cam)
+    for s in range(0, len(d_cam), 1 << 19):
+        ln = line[s:s + (1 << 19)]
+        d_world[s:s + (1 << 19)] = np.einsum("nji,nj->ni", R[ln], d_cam[s:s + (1 << 19)])
+    centre = centres[line]
+    ans = scene.cast(centre, d_world)
+    depth = ans["t_hit"].astype(np.float32)
+    gid = ans["geometry_ids"]
+    hit = gid != NO_HIT
+    mesh = np.full(gid.shape, -1, np.int32)
+    for i, g in enumerate(scene._ids):  # the scene's meshes in the order they were added
+        mesh[gid == g] = i
+    tri = np.where(hit, ans["primitive_ids"].astype(np.int64), -1)
+    uv = ans["primitive_uvs"]
+    bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1).astype(np.float32)
+    points = centre + d_world * np.where(hit, depth, np.nan)[:, None].astype(np.float64)
+    return Hits(depth=np.where(hit, depth, np.inf).reshape(h, w), mesh=mesh.reshape(h, w),
+                triangle=tri.reshape(h, w), bary=bary.reshape(h, w, 3),
+                points=points.reshape(h, w, 3)), centre
+
+
 # -- rendering ---------------------------------------------------------------------------------
 
 
@@ -527,24 +656,42 @@ class Renderer:
                                                 process=False).face_normals
         self.rays = pixel_rays(self.intrinsics)
 
-    def render(self, R: np.ndarray, t: np.ndarray):
-        """Linear-RGB image (H, W, 3) and the ray-cast hits of one pose."""
-        hits = self.scene.cast_camera(self.intrinsics, R, t, self.rays)
+    def _scene_with_head(self, R_head: np.ndarray, c_head: np.ndarray) -> RaycastScene:
+        scene = RaycastScene()  # a BVH of the moved head: milliseconds, once per frame
+        scene.add(self.subject.vertices @ R_head.T + c_head, self.subject.faces)
+        if self.room is not None:
+            scene.add(self.room.vertices, self.room.faces)
+        return scene
+
+    def render(self, R: np.ndarray, t: np.ndarray, lines: np.ndarray | None = None,
+               head: tuple[np.ndarray, np.ndarray] | None = None):
+        """Linear-RGB image (H, W, 3) and the ray-cast hits (room frame) of one pose, or with
+        ``lines`` (H, W) of one pose per sensor line (R (L, 3, 3), t (L, 3): a rolling
+        shutter). ``head``: the head's pose (R, c) in the room (sway); else it is at rest."""
+        scene = self.scene if head is None else self._scene_with_head(*head)
+        if lines is None:
+            hits = scene.cast_camera(self.intrinsics, R, t, self.rays)
+            centre = -R.T @ t
+        else:
+            hits, centre = _cast_lines(scene, self.rays, R, t, lines)
         h, w = hits.depth.shape
         img = np.zeros((h * w, 3))
         mesh = hits.mesh.ravel()
         tri = hits.triangle.ravel()
         bary = hits.bary.reshape(-1, 3)
         pts = hits.points.reshape(-1, 3)
-        centre = -R.T @ t
         for mesh_id in (0, 1):
             sel = mesh == mesh_id
             if not sel.any():
                 continue
             if mesh_id == 0:
-                alb = self.subject.albedo(tri[sel], bary[sel], pts[sel])
+                # Texture and normals live in the head frame: take the hits back into it.
+                p_head = pts[sel] if head is None else (pts[sel] - head[1]) @ head[0]
+                alb = self.subject.albedo(tri[sel], bary[sel], p_head)
                 n = interpolate(self.normals, self.subject.faces, tri[sel], bary[sel])
                 n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+                if head is not None:
+                    n = n @ head[0].T
                 spec = self.specular
                 # Occlusion darkens eye sockets, nostrils and creases as in a real photo.
                 alb = alb * interpolate(self.subject.occlusion[:, None], self.subject.faces,
@@ -553,28 +700,28 @@ class Renderer:
                 alb = self.room.albedo(tri[sel], bary[sel], pts[sel])
                 n = self.room_normals[tri[sel]]
                 spec = 0.0
-            view = centre - pts[sel]
+            view = (centre if lines is None else centre[sel]) - pts[sel]
             view /= np.linalg.norm(view, axis=1, keepdims=True)
             img[sel] = shade_lambert(alb, n, view, self.lights, self.ambient, spec)
         return img.reshape(h, w, 3), hits
 
 
-def _motion_blur(img: np.ndarray, points: np.ndarray, poses: list, intr: Intrinsics,
+def _motion_blur(img: np.ndarray, points: np.ndarray, projections: list[Callable],
                  uv0: np.ndarray) -> np.ndarray:
-    """Average the sharp image along each pixel's motion over the exposure."""
+    """Average the sharp image along each pixel's motion over the exposure; ``projections``
+    map the pixels' world points (N, 3) to pixels (N, 2) at each sub-frame instant."""
     h, w = img.shape[:2]
     valid = np.isfinite(points[..., 0]).ravel()
     acc = np.zeros_like(img, dtype=np.float32)
     src = img.astype(np.float32)
-    for R, t in poses:
+    for proj in projections:
         uv = uv0.copy()
-        uv_k, _ = project(points.reshape(-1, 3)[valid], R, t, intr)
-        uv[valid] = uv_k
+        uv[valid] = proj(points.reshape(-1, 3)[valid], valid)
         flow = (uv - uv0).reshape(h, w, 2)
         grid = uv0.reshape(h, w, 2) - flow
         acc += cv2.remap(src, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32),
                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-    return acc / len(poses)
+    return acc / len(projections)
 
 
 def _to_srgb8(linear: np.ndarray) -> np.ndarray:
@@ -616,17 +763,134 @@ class Capture:
     seconds: float
 
 
-def _encode(frames_path: Path, width: int, height: int, fps: float, crf: int):
+CODECS = {"h264": "libx264", "hevc": "libx265"}
+
+
+def _encode(frames_path: Path, width: int, height: int, fps: float, crf: int,
+            codec: str = "h264", rotation_deg: int = 0):
     import av
 
     container = av.open(str(frames_path), mode="w", format="mp4")
     rate = Fraction(fps).limit_denominator(1001)
-    stream = container.add_stream("libx264", rate=rate)
+    stream = container.add_stream(CODECS[codec], rate=rate)
     stream.width, stream.height = width, height
     stream.pix_fmt = "yuv420p"
     stream.time_base = 1 / rate
     stream.options = {"crf": str(crf), "preset": "medium"}
+    if codec == "hevc":
+        stream.codec_tag = "hvc1"  # as phones write it (Apple players need this tag)
+        stream.options["x265-params"] = "log-level=error"
+    if rotation_deg:
+        stream.set_display_rotation(rotation_deg)
     return container, stream
+
+
+@dataclass
+class FrameRender:
+    """One frame before sensor noise: linear RGB (upright, exposure gain applied), the
+    ray-cast hits of its sharp image, and its ground truth."""
+
+    image: np.ndarray
+    hits: Hits
+    time: float  # the ground-truth instant (s): mid-exposure of the sensor's middle line
+    R: np.ndarray  # world-to-camera at ``time``, world = the head frame (the GT mesh's)
+    t: np.ndarray
+    gain: float
+    head: tuple[np.ndarray, np.ndarray] | None  # head-to-room (R, c) at ``time`` when swaying
+
+
+@dataclass
+class Shot:
+    """A capture's scene, camera path and sensor, ready to render any frame or instant."""
+
+    config: SynthConfig
+    subject: Subject
+    intrinsics: Intrinsics  # of the upright image
+    lights: list
+    renderer: Renderer
+    path: CameraPath  # camera in the room
+    target: np.ndarray
+    gain_noise: SmoothNoise
+    readout: Readout | None
+    sway: HeadSway | None
+    frames: int
+    exposure: float
+    uv0: np.ndarray
+
+    def frame_time(self, i: int) -> float:
+        """Frame ``i``'s ground-truth instant: mid-exposure of the sensor's middle line."""
+        return i / self.config.fps + self.exposure / 2 + self.config.rolling_shutter_s / 2
+
+    def camera(self, time: float):
+        """The room-to-camera pose at ``time``: (R, t), or per sensor line (L, 3, 3), (L, 3)
+        with a rolling shutter."""
+        if self.readout is None:
+            return self.path.pose(time)
+        poses = [self.path.pose(time + o) for o in self.readout.offsets]
+        return np.stack([p[0] for p in poses]), np.stack([p[1] for p in poses])
+
+    def _projection(self, time: float) -> Callable:
+        R, t = self.camera(time)
+        intr = self.intrinsics
+        if self.readout is None:
+            return lambda p, valid: project(p, R, t, intr)[0]
+        line = self.readout.lines.ravel()
+        return lambda p, valid: _project_lines(p, R, t, line[valid], intr)
+
+    def render(self, time: float):
+        """Linear RGB image of the (blurred) exposure centred on ``time`` (its sensor lines
+        at their own times with a rolling shutter; the head at its pose at ``time``), the
+        sharp image's hits, and the head's pose."""
+        c = self.config
+        R, t = self.camera(time)
+        head = None if self.sway is None else self.sway.pose(time)
+        lines = None if self.readout is None else self.readout.lines
+        img, hits = self.renderer.render(R, t, lines, head)
+        if c.blur_samples > 1 and self.exposure > 0:
+            offsets = np.linspace(-self.exposure / 2, self.exposure / 2, c.blur_samples)
+            img = _motion_blur(img, hits.points, [self._projection(time + d) for d in offsets],
+                               self.uv0)
+        return img, hits, head
+
+    def frame(self, i: int) -> FrameRender:
+        time = self.frame_time(i)
+        img, hits, head = self.render(time)
+        gain = float(np.exp(self.config.exposure_drift * self.gain_noise(i / self.config.fps)[0]))
+        R, t = self.path.pose(time)
+        if head is not None:
+            # Head-relative ground truth: x_cam = R (R_h p + c_h) + t for a head-frame p.
+            R, t = R @ head[0], R @ head[1] + t
+        return FrameRender(img * gain, hits, time, R, t, gain, head)
+
+
+def prepare(config: SynthConfig) -> Shot:
+    """Subject, camera, lights, room and motions of a capture (every random draw)."""
+    rng = np.random.default_rng(config.seed)
+    subject = make_subject(config)
+    intr = draw_intrinsics(config, rng)
+    if config.display_rotation_deg in (90, 270):
+        # Portrait: the sensor's drawn camera, as seen in the upright image.
+        intr = Intrinsics(intr.height, intr.width, intr.fy, intr.fx, intr.cy, intr.cx,
+                          intr.k1, intr.k2)
+    lights = _draw_lights(rng)
+    room = (Room.random(np.random.default_rng([config.seed, 2]), plain=config.plain_walls)
+            if config.room else None)
+    renderer = Renderer(subject, room, intr, lights, config.ambient, config.specular)
+    w = np.abs(subject.landmarks[[0, 16], 0]).mean()
+    target = np.array([0.0, subject.landmarks[27, 1] * 0.5, 0.3 * w])
+    path = CameraPath(config, target, np.random.default_rng([config.seed, 3]))
+    gain_noise = SmoothNoise(np.random.default_rng([config.seed, 4]), 1, 0.05, 0.4)
+    n_frames = max(2, int(round(config.duration_s * config.fps)))
+    exposure = config.exposure_fraction / config.fps
+    uv0 = np.stack(np.meshgrid(np.arange(intr.width, dtype=float),
+                               np.arange(intr.height, dtype=float)), -1).reshape(-1, 2)
+    shot = Shot(config, subject, intr, lights, renderer, path, target, gain_noise,
+                rolling_readout(config), None, n_frames, exposure, uv0)
+    if config.sway_mm > 0 or config.sway_deg > 0:
+        times = np.array([shot.frame_time(i) for i in range(n_frames)])
+        shot.sway = HeadSway(np.random.default_rng([config.seed, 6]), config.sway_mm,
+                             config.sway_deg, times)
+    return shot
 
 
 def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True) -> Capture:
@@ -643,48 +907,35 @@ def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True) 
         raise InputError(f"cannot create output folder {out}: {exc.strerror}") from None
     if config.width % 2 or config.height % 2:
         raise InputError(f"video size {config.width}x{config.height}: H.264 needs even sizes")
-    rng = np.random.default_rng(config.seed)
-    subject = make_subject(config)
-    intr = draw_intrinsics(config, rng)
-    lights = _draw_lights(rng)
-    room = Room.random(np.random.default_rng([config.seed, 2])) if config.room else None
-    renderer = Renderer(subject, room, intr, lights, config.ambient, config.specular)
-    w = np.abs(subject.landmarks[[0, 16], 0]).mean()
-    target = np.array([0.0, subject.landmarks[27, 1] * 0.5, 0.3 * w])
-    path = CameraPath(config, target, np.random.default_rng([config.seed, 3]))
-    gain_noise = SmoothNoise(np.random.default_rng([config.seed, 4]), 1, 0.05, 0.4)
+    shot = prepare(config)
+    subject, intr = shot.subject, shot.intrinsics
     noise_rng = np.random.default_rng([config.seed, 5])
-
-    n_frames = max(2, int(round(config.duration_s * config.fps)))
-    exposure = config.exposure_fraction / config.fps
-    uv0 = np.stack(np.meshgrid(np.arange(intr.width, dtype=float),
-                               np.arange(intr.height, dtype=float)), -1).reshape(-1, 2)
     seen = np.zeros(len(subject.faces), bool)
     frames_meta = []
     video_path = out / "video.mp4"
     tmp_video = out / ".video.mp4.part"
-    container, stream = _encode(tmp_video, intr.width, intr.height, config.fps, config.crf)
+    container, stream = _encode(tmp_video, config.width, config.height, config.fps, config.crf,
+                                config.codec, config.display_rotation_deg)
     try:
-        for i in tqdm(range(n_frames), desc="render", unit="frame", disable=not progress):
-            t_mid = i / config.fps + exposure / 2
-            R, t = path.pose(t_mid)
-            img, hits = renderer.render(R, t)
-            on_subject = hits.mesh == 0
-            seen[np.unique(hits.triangle[on_subject])] = True
-            if config.blur_samples > 1 and exposure > 0:
-                offsets = np.linspace(-exposure / 2, exposure / 2, config.blur_samples)
-                img = _motion_blur(img, hits.points, [path.pose(t_mid + d) for d in offsets],
-                                   intr, uv0)
-            gain = float(np.exp(config.exposure_drift * gain_noise(i / config.fps)[0]))
-            img = img * gain
+        for i in tqdm(range(shot.frames), desc="render", unit="frame", disable=not progress):
+            f = shot.frame(i)
+            on_subject = f.hits.mesh == 0
+            seen[np.unique(f.hits.triangle[on_subject])] = True
+            img = f.image
             sigma = np.sqrt(config.read_noise ** 2 + config.shot_noise ** 2 * np.clip(img, 0, 1))
             img = img + sigma * noise_rng.standard_normal(img.shape)
-            frame = av.VideoFrame.from_ndarray(_to_srgb8(img), format="rgb24")
+            # Stored as the sensor holds it; the display rotation turns it upright again.
+            stored = _turn(_to_srgb8(img), -config.display_rotation_deg)
+            frame = av.VideoFrame.from_ndarray(stored, format="rgb24")
             frame.pts = i
             for packet in stream.encode(frame):
                 container.mux(packet)
-            frames_meta.append({"index": i, "time": round(t_mid, 6), "R": R.round(12).tolist(),
-                                "t": t.round(9).tolist(), "exposure_gain": round(gain, 6)})
+            meta = {"index": i, "time": round(f.time, 6), "R": f.R.round(12).tolist(),
+                    "t": f.t.round(9).tolist(), "exposure_gain": round(f.gain, 6)}
+            if f.head is not None:
+                meta["head_R"] = f.head[0].round(12).tolist()
+                meta["head_t"] = f.head[1].round(9).tolist()
+            frames_meta.append(meta)
         for packet in stream.encode():
             container.mux(packet)
     finally:
@@ -700,19 +951,46 @@ def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True) 
                "pixel centres at integer coordinates", "model": "RADIAL (k1, k2)",
                "width": intr.width, "height": intr.height, "fps": config.fps,
                "intrinsics": intr.to_dict(), "frames": frames_meta}
+    cameras.update(_conditions_doc(config))
     (gt_dir / "cameras.json").write_text(json.dumps(cameras, indent=1))
     (gt_dir / "subject.json").write_text(json.dumps({"name": subject.name, **subject.info},
                                                     indent=1))
     dump_yaml(config, gt_dir / "config.yaml")
     render_info = {"intrinsics": intr.to_dict(), "horizontal_fov_deg": intr.horizontal_fov_deg,
                    "lights": [{"direction": d.round(6).tolist(), "intensity": round(s, 6)}
-                              for d, s in lights],
+                              for d, s in shot.lights],
                    "ambient": config.ambient, "specular": config.specular,
-                   "exposure_s": exposure, "frames": n_frames, "look_at_target": target.tolist(),
+                   "exposure_s": shot.exposure, "frames": shot.frames,
+                   "look_at_target": shot.target.tolist(),
                    "render_seconds": round(time.perf_counter() - start, 3)}
     (gt_dir / "render.json").write_text(json.dumps(render_info, indent=1))
     return Capture(out, video_path, gt_dir / "mesh.ply", gt_dir / "landmarks.json",
-                   gt_dir / "cameras.json", n_frames, time.perf_counter() - start)
+                   gt_dir / "cameras.json", shot.frames, time.perf_counter() - start)
+
+
+def _conditions_doc(config: SynthConfig) -> dict:
+    """What ``gt/cameras.json`` says about the phone-like conditions that are on (nothing
+    for a default capture, whose file stays as it was)."""
+    doc = {}
+    if config.display_rotation_deg:
+        doc["display_rotation_deg"] = config.display_rotation_deg
+        doc["stored_size"] = [config.width, config.height]
+        doc["orientation"] = ("width, height and intrinsics are of the upright image (the "
+                              "stored frames turned counter-clockwise by display_rotation_deg)")
+    if config.rolling_shutter_s > 0:
+        doc["rolling_shutter"] = {
+            "readout_s": config.rolling_shutter_s, "lines": config.height,
+            "meaning": "stored row r (a column of the upright image in portrait) is exposed "
+                       "at frames[].time + readout_s * ((r + 0.5) / lines - 0.5); the frame's "
+                       "R, t are the pose at frames[].time, mid-exposure of the middle line"}
+    if config.sway_mm > 0 or config.sway_deg > 0:
+        doc["sway"] = {
+            "sway_mm": config.sway_mm, "sway_deg": config.sway_deg,
+            "meaning": "the head sways in a still room; world = the head frame (the GT mesh's "
+                       "at rest), so R, t are camera relative to the head; head_R, head_t map "
+                       "head-frame points into the room at frames[].time: p_room = head_R p + "
+                       "head_t (the room-relative camera is R head_R^T, t - R head_R^T head_t)"}
+    return doc
 
 
 def load_gt_cameras(path: str | Path) -> tuple[Intrinsics, list[dict]]:

@@ -122,3 +122,152 @@ def test_bad_subjects_are_named(tmp_path, monkeypatch):
         synthesize(SynthConfig(subject=str(tmp_path / "head.obj")), tmp_path)
     with pytest.raises(InputError, match="even"):
         synthesize(SynthConfig(subject="james", width=641), tmp_path)
+
+
+# -- phone-like conditions ------------------------------------------------------------------
+
+from facecap_core.camera import rotation_angle_deg  # noqa: E402
+from facecap_core.config import build  # noqa: E402
+from facecap_core.synthetic import Room, _to_srgb8, ict_subject, prepare  # noqa: E402
+from facecap_core.video import iter_frames, probe  # noqa: E402
+
+
+def _small(ict_model, **kw) -> SynthConfig:
+    """A tiny noiseless capture: exact comparisons between renders."""
+    values = dict(subject="ict:4", ict_model=ict_model, width=128, height=72, duration_s=0.4,
+                  fps=30, seed=4, read_noise=0.0, shot_noise=0.0)
+    return SynthConfig(**{**values, **kw})
+
+
+@pytest.mark.parametrize("rotation", [0, 90])
+def test_rolling_shutter_line_is_the_global_shutter_render_at_its_time(ict_model, rotation):
+    """Each sensor line of a rolling-shutter frame (a row; a column of the upright image in
+    portrait) is exactly the global-shutter render at that line's time."""
+    rs = prepare(_small(ict_model, rolling_shutter_s=0.03, blur_samples=1,
+                        display_rotation_deg=rotation))
+    gs = prepare(_small(ict_model, blur_samples=1, display_rotation_deg=rotation))
+    time = rs.frame_time(6)
+    image, _, _ = rs.render(time)
+    offsets = rs.readout.offsets
+    assert len(offsets) == 72 and np.isclose(offsets[-1] - offsets[0], 0.03 * 71 / 72)
+    assert np.isclose(offsets.mean(), 0.0)  # the GT instant is mid-readout
+    for line in (0, 35, 71):
+        mask = rs.readout.lines == line
+        assert mask.sum() == 128  # a whole sensor row, wherever it lies upright
+        at_line, _, _ = gs.render(time + offsets[line])
+        diff = np.abs(image[mask] - at_line[mask])
+        assert np.median(diff) < 1e-9 and np.mean(diff > 1e-6) < 0.02
+    # and the shutter matters: the first line differs from the mid-readout global render
+    mid, _, _ = gs.render(time)
+    first = rs.readout.lines == 0
+    assert np.abs(image[first] - mid[first]).mean() > 1e-3
+
+
+@pytest.mark.parametrize("rotation", [90, 270])
+def test_portrait_decodes_upright(tmp_path, ict_model, rotation):
+    config = _small(ict_model, display_rotation_deg=rotation, duration_s=0.1)
+    cap = synthesize(config, tmp_path, progress=False)
+    info = probe(cap.video)
+    assert (info.width, info.height, info.rotation_deg) == (72, 128, rotation)
+    with av.open(str(cap.video)) as c:
+        stored = next(c.decode(video=0))
+        assert (stored.width, stored.height) == (128, 72)  # landscape in the file
+    upright = next(iter_frames(cap.video)).image
+    expected = _to_srgb8(prepare(config).frame(0).image)
+    assert upright.shape == expected.shape == (128, 72, 3)
+    err = np.abs(upright.astype(int) - expected).mean()
+    assert err < 3.0 and np.abs(upright.astype(int) - expected[::-1, ::-1]).mean() > 5 * err
+    doc = json.loads(cap.gt_cameras.read_text())
+    assert (doc["width"], doc["height"], doc["display_rotation_deg"]) == (72, 128, rotation)
+    intr, _ = load_gt_cameras(cap.gt_cameras)
+    assert (intr.width, intr.height) == (72, 128)
+
+
+def test_sway_moves_the_head_by_the_configured_amount(ict_model):
+    shot = prepare(_small(ict_model, sway_mm=3.0, duration_s=2.0))
+    heads = [shot.sway.pose(shot.frame_time(i)) for i in range(shot.frames)]
+    shift = np.array([np.linalg.norm(c) for R, c in heads])
+    assert np.allclose([R for R, _ in heads], np.eye(3))
+    assert np.isclose(shift.max(), 3.0) and shift.min() < 2.5  # it moves, by at most 3 mm
+    turn = prepare(_small(ict_model, sway_deg=1.0, duration_s=2.0))
+    angles = [rotation_angle_deg(turn.sway.pose(turn.frame_time(i))[0], np.eye(3))
+              for i in range(turn.frames)]
+    assert np.isclose(max(angles), 1.0, atol=1e-6)
+
+
+def test_swaying_head_ground_truth_cameras_are_head_relative(ict_model):
+    """The head's rendered points, taken back into the head frame, project through the GT
+    camera onto their own pixels: the GT mesh and cameras stay exact while the head moves."""
+    shot = prepare(_small(ict_model, sway_mm=4.0, sway_deg=1.0, blur_samples=1))
+    f = shot.frame(9)
+    head = f.hits.mesh == 0
+    R_h, c_h = f.head
+    p_head = (f.hits.points[head] - c_h) @ R_h
+    uv, _ = project(p_head, f.R, f.t, shot.intrinsics)
+    v, u = np.nonzero(head)
+    assert np.abs(uv - np.stack([u, v], 1)).max() < 1e-3
+    room_R, room_t = shot.path.pose(f.time)  # the room camera differs by the sway
+    assert np.linalg.norm(camera_center(f.R, f.t) - camera_center(room_R, room_t)) > 0.5
+
+
+def test_plain_walls_have_uniform_albedo():
+    plain = Room.random(np.random.default_rng(7), plain=True)
+    textured = Room.random(np.random.default_rng(7))
+    np.testing.assert_array_equal(plain.vertices, textured.vertices)  # the same room
+    rng = np.random.default_rng(0)
+    tri = rng.integers(len(plain.faces), size=4000)
+    bary = rng.dirichlet([1, 1, 1], size=4000)
+    points = np.einsum("nc,nck->nk", bary, plain.vertices[plain.faces[tri]])
+    alb = plain.albedo(tri, bary, points)
+    colours = {}
+    for k, c in zip(plain.face_texture[tri], alb):
+        colours.setdefault(k, []).append(c)
+    assert all(np.ptp(np.array(c), axis=0).max() < 1e-6 for c in colours.values())
+    rich = textured.albedo(tri, bary, points)
+    assert np.std(rich[plain.face_texture[tri] == plain.face_texture[tri][0]], axis=0).max() > 0.02
+
+
+def test_smooth_skin_attenuates_the_fine_texture(ict_model):
+    def detail(subject):
+        # Albedo along a 40 mm line over the cheek, every 0.1 mm; its fine texture is the
+        # residual after a 2 mm moving average.
+        lm = subject.landmarks
+        start = lm[1] + 0.4 * (lm[30] - lm[1])
+        points = start + np.linspace(0, 40, 401)[:, None] * np.array([0, 1, 0])
+        tri = np.zeros(len(points), int)  # skin faces come first
+        lum = subject.albedo(tri, np.full((len(points), 3), 1 / 3), points).mean(1)
+        smooth = np.convolve(lum, np.ones(21) / 21, mode="same")
+        return np.std((lum - smooth)[20:-20]) / lum.mean()
+
+    full = detail(ict_subject(ict_model, 2))
+    assert detail(ict_subject(ict_model, 2, skin_detail=1.0)) == full
+    assert detail(ict_subject(ict_model, 2, skin_detail=0.3)) < 0.45 * full
+    assert detail(ict_subject(ict_model, 2, skin_detail=0.0)) < 0.2 * full
+
+
+def test_hevc_and_conditions_in_the_ground_truth(tmp_path, ict_model):
+    config = _small(ict_model, codec="hevc", rolling_shutter_s=0.03, sway_mm=2.0,
+                    duration_s=0.1)
+    cap = synthesize(config, tmp_path, progress=False)
+    with av.open(str(cap.video)) as c:
+        stream = c.streams.video[0]
+        assert stream.codec_context.name == "hevc" and stream.codec_tag == "hvc1"
+        assert len(list(c.decode(video=0))) == cap.frames == 3
+    doc = json.loads(cap.gt_cameras.read_text())
+    assert doc["rolling_shutter"]["readout_s"] == 0.03 and doc["sway"]["sway_mm"] == 2.0
+    first = doc["frames"][0]
+    assert first["time"] == pytest.approx(config.exposure_fraction / 60 + 0.015, abs=1e-6)
+    assert np.asarray(first["head_R"]).shape == (3, 3)
+    # a default capture's ground truth carries none of it
+    plain = synthesize(_small(ict_model, duration_s=0.1), tmp_path / "plain", progress=False)
+    assert not {"rolling_shutter", "sway", "display_rotation_deg"} & set(
+        json.loads(plain.gt_cameras.read_text()))
+
+
+def test_condition_settings_are_checked(tmp_path):
+    with pytest.raises(InputError, match="frame interval"):
+        build(SynthConfig, {"fps": 120, "rolling_shutter_s": 0.03})
+    with pytest.raises(InputError, match="display_rotation_deg"):
+        build(SynthConfig, {"display_rotation_deg": 45})
+    with pytest.raises(InputError, match="skin_detail"):
+        synthesize(SynthConfig(subject="james", skin_detail=0.5), tmp_path, progress=False)
