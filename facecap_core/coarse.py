@@ -9,13 +9,15 @@ by a **size prior** (see docs/landmarks.md, "Metric scale"):
 * an average face's landmark configuration is ``landmark_size`` times the template's (a
   population mean measured once, with the detector's convention: see
   :class:`~facecap_core.config.CoarseConfig`);
-* so one camera unit is ``landmark_size / lambda`` millimetres. With ear points, the
-  ear-to-ear width against the template's (``ear_width_size``) gives a second estimate;
-  the two are combined by their assumed relative spreads (a weighted geometric mean).
+* so one camera unit is ``landmark_size / lambda`` millimetres.
 
 The error of such a prior is the spread of face sizes around the mean (≈ 5 % for the
-landmark configuration over ICT identities); only a metric cue (a known length in view, a
-depth sensor, the phone's motion sensors) removes it — ``scale_method: fixed`` takes one.
+landmark configuration over ICT identities). A measured cue narrows it: the subject's
+interpupillary distance (``ipd_mm``) against the distance between the triangulated eye
+centres (≈ 2 %). The cues are combined by their stated spreads (an inverse-variance mean of
+log scales); one that disagrees with the others beyond ``cue_agreement_sigmas`` is dropped and
+reported. The ear-to-ear width is a cue only when ``ear_width_cue`` is on (not calibrated).
+``scale_method: fixed`` takes a known scale as it is.
 
 The **coarse mesh**: the template, placed by the robust similarity (in mm), then bent by a
 smooth landmark-driven deformation — a Gaussian radial-basis displacement field of the
@@ -40,8 +42,8 @@ from facecap_core.config import CoarseConfig
 from facecap_core.errors import InputError
 from facecap_core.template import INNER_LANDMARKS, Template
 
-__all__ = ["main", "weighted_similarity", "robust_similarity", "metric_scale", "rbf_deform",
-           "coarse_mesh"]
+__all__ = ["main", "weighted_similarity", "robust_similarity", "metric_scale", "combine_cues",
+           "eye_distance", "rbf_deform", "coarse_mesh"]
 
 
 # --------------------------------------------------------------------------- similarity
@@ -86,35 +88,81 @@ def _ear_width(points: np.ndarray, sides: np.ndarray) -> float:
     return float(np.linalg.norm(points[sides == "left"].mean(0) - points[sides == "right"].mean(0)))
 
 
+def eye_distance(landmarks: np.ndarray) -> float:
+    """Distance between the centres of the two eyes' six landmarks (ibug 36-41, 42-47); nan
+    when an eye is missing."""
+    right, left = landmarks[36:42], landmarks[42:48]
+    if not (np.all(np.isfinite(right)) and np.all(np.isfinite(left))):
+        return float("nan")
+    return float(np.linalg.norm(left.mean(0) - right.mean(0)))
+
+
+def combine_cues(cues: list[dict], agreement_sigmas: float) -> tuple[float, float, list[dict]]:
+    """Inverse-variance mean of the cues' log scales: ``(mm per unit, relative 1σ, dropped)``.
+
+    Each cue is ``{"name", "mm_per_unit", "sigma"}`` (relative 1σ). A cue whose estimate
+    lies more than ``agreement_sigmas`` combined standard deviations from the others' mean
+    is dropped — the worst first, one at a time — as long as two or more cues remain."""
+    kept, dropped = list(cues), []
+    while len(kept) > 2 or (len(kept) == 2 and not dropped):
+        worst, worst_z = None, agreement_sigmas
+        for cue in kept:
+            others = [c for c in kept if c is not cue]
+            w = np.array([1 / c["sigma"] ** 2 for c in others])
+            mean = float(np.sum(w * np.log([c["mm_per_unit"] for c in others])) / w.sum())
+            z = abs(np.log(cue["mm_per_unit"]) - mean) / np.hypot(cue["sigma"],
+                                                                  1 / np.sqrt(w.sum()))
+            if z > worst_z:
+                worst, worst_z = cue, z
+        if worst is None:
+            break
+        if len(kept) == 2:
+            # Two cues that disagree: keep the one with the smaller stated spread.
+            worst = max(kept, key=lambda c: c["sigma"])
+        kept.remove(worst)
+        dropped.append({**worst, "disagreement_sigmas": round(float(worst_z), 2)})
+        if len(kept) < 2:
+            break
+    w = np.array([1 / c["sigma"] ** 2 for c in kept])
+    log_scale = float(np.sum(w * np.log([c["mm_per_unit"] for c in kept])) / w.sum())
+    return float(np.exp(log_scale)), float(1 / np.sqrt(w.sum())), dropped
+
+
 def metric_scale(template: Template, landmarks: np.ndarray, ear_ids: np.ndarray,
                  ear_points: np.ndarray, ear_sides: np.ndarray, config: CoarseConfig) -> dict:
-    """Millimetres per camera unit and how they were obtained (a JSON-ready dict)."""
+    """Millimetres per camera unit, each cue's estimate, the combined 1σ uncertainty and the
+    cues dropped for disagreeing (a JSON-ready dict)."""
     if config.scale_method == "fixed":
-        return {"metric_scale": config.fixed_scale, "method": "fixed",
-                "how": "given (CoarseConfig.fixed_scale)"}
+        return {"metric_scale": config.fixed_scale, "method": "fixed", "sigma_pct": None,
+                "cues": [], "dropped": [], "how": "given (CoarseConfig.fixed_scale)"}
     inner = INNER_LANDMARKS
     ok = np.all(np.isfinite(landmarks[inner]), axis=1)
     src = template.vertices[template.landmarks[inner]][ok]
     s, _, _, _ = robust_similarity(src, landmarks[inner][ok], None, config.robust_iterations,
                                    config.scale_cauchy_mm)
-    from_face = config.landmark_size / s
-    doc = {"method": "template", "landmark_similarity_scale": s,
-           "from_landmarks": from_face, "landmarks_used": int(ok.sum())}
+    cues = [{"name": "landmarks", "mm_per_unit": config.landmark_size / s,
+             "sigma": config.landmark_size_spread,
+             "how": "size prior: the landmark configuration of an average face"}]
+    eyes = eye_distance(landmarks)
+    if config.ipd_mm is not None and np.isfinite(eyes) and eyes > 0:
+        cues.append({"name": "ipd", "mm_per_unit": config.ipd_mm / (config.ipd_ratio * eyes),
+                     "sigma": config.ipd_spread,
+                     "how": f"given interpupillary distance {config.ipd_mm:g} mm"})
     both = len(ear_ids) and {"left", "right"} <= set(ear_sides.tolist())
-    if both and config.ear_weight > 0:
+    if config.ear_width_cue and both:
         measured = _ear_width(ear_points, ear_sides)
         reference = _ear_width(template.vertices[ear_ids], ear_sides)
-        from_ears = config.ear_width_size * reference / measured
-        wf, we = 1.0 / config.landmark_size_spread ** 2, \
-            config.ear_weight / config.ear_width_spread ** 2
-        scale = float(np.exp((wf * np.log(from_face) + we * np.log(from_ears)) / (wf + we)))
-        doc.update(from_ears=from_ears, ear_width_units=measured,
-                   template_ear_width_mm=reference, metric_scale=scale,
-                   how="size prior: landmark configuration and ear-to-ear width")
-    else:
-        doc.update(metric_scale=float(from_face),
-                   how="size prior: landmark configuration (no ear points on both sides)")
-    return doc
+        cues.append({"name": "ear_width", "mm_per_unit": config.ear_width_size * reference
+                     / measured, "sigma": config.ear_width_spread,
+                     "how": "size prior: the ear-to-ear width of an average head"})
+    scale, sigma, dropped = combine_cues(cues, config.cue_agreement_sigmas)
+    names = [c["name"] for c in cues if c["name"] not in {d["name"] for d in dropped}]
+    return {"method": "cues", "metric_scale": scale, "sigma_pct": round(100 * sigma, 2),
+            "cues": cues, "dropped": dropped, "used": names,
+            "landmark_similarity_scale": s, "landmarks_used": int(ok.sum()),
+            "eye_distance_units": eyes if np.isfinite(eyes) else None,
+            "how": " + ".join(names) + (f" ({', '.join(d['name'] for d in dropped)} dropped: "
+                                        "disagrees with the others)" if dropped else "")}
 
 
 # --------------------------------------------------------------------------- deformation

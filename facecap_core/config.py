@@ -550,14 +550,34 @@ class CoarseConfig(StrictModel):
     """Cauchy scale of the robust similarity that measures the landmark configuration's size
     (template mm; wide: every landmark counts, a stray one does not)."""
     landmark_size_spread: float = Field(0.05, gt=0, lt=1)
-    """Relative spread of that size over faces (weights the landmark estimate)."""
+    """Relative spread (1σ) of that size over faces: the landmark cue's uncertainty (5.8 %
+    RMS measured over 30 held-out ICT identities, 0.7 % on the james scan; ``tests/
+    test_coarse.py``)."""
+    ipd_mm: float | None = Field(None, ge=40, le=90)
+    """The subject's interpupillary distance in mm as an optician measures it ("far PD"),
+    when known: the scale then comes mainly from the distance between the triangulated eye
+    centres (``--ipd-mm`` on the command line)."""
+    ipd_ratio: float = Field(0.9745, gt=0.5, lt=1.5)
+    """Pupil distance over the distance between the triangulated centres of the two eyes'
+    six landmarks: the mean over the captures of ICT identities 1000-1007 (iris centroids
+    against the landmark stage's output with exact cameras; ``benchmarks/bench_scale.py
+    --calibrate``)."""
+    ipd_spread: float = Field(0.02, gt=0, lt=1)
+    """Relative 1σ of the IPD cue: the spread of that ratio over the calibration captures
+    (1.7 % over 8, rounded up: a spread from 8 faces is itself uncertain by a quarter)."""
+    ear_width_cue: bool = False
+    """Use the ear-to-ear width as a scale cue. Off: it is not calibrated (``ear_width_size``
+    is the template's own width) and real-skin ear points can be far off."""
     ear_width_size: float = Field(1.0, gt=0.5, lt=2)
     """Ear-to-ear width of an average head relative to the template's."""
     ear_width_spread: float = Field(0.05, gt=0, lt=1)
     """Relative spread of the ear-to-ear width over heads (weights the ear estimate)."""
     ear_weight: float = Field(1.0, ge=0)
-    """Weight of one ear point against one face landmark in the similarity fit (and a
-    multiplier of the ear estimate's weight in the scale; 0 ignores ears)."""
+    """Weight of one ear point against one face landmark in the similarity fit of the coarse
+    mesh (0 ignores ears)."""
+    cue_agreement_sigmas: float = Field(3.0, gt=0)
+    """A scale cue further than this many combined standard deviations from the others'
+    estimate is dropped (and reported), not averaged in."""
     robust_iterations: int = Field(5, ge=0, le=50)
     """Reweighting rounds of the robust (Cauchy) similarity fit."""
     robust_scale_mm: float = Field(3.0, gt=0)

@@ -81,7 +81,7 @@ def _export(store: str, keys: dict[str, str], out: Path) -> None:
     wanted = {
         "poses": ["cameras.json", "points.ply", "colmap/cameras.txt", "colmap/images.txt",
                   "colmap/points3D.txt"],
-        "coarse": ["cameras.json", "landmarks3d.json", "ears3d.json", "coarse.ply"],
+        "coarse": ["cameras.json", "landmarks3d.json", "ears3d.json", "coarse.ply", "coarse.json"],
         "fusion": ["cloud.ply"],
         "fitting": ["mesh.ply", "mesh.obj", "fit.json"],
         "evaluation": ["evaluation.json", "heatmap_similarity.png", "heatmap_metric.png"],
@@ -118,15 +118,16 @@ def _stage_report(store: str, keys: dict[str, str], started: datetime) -> dict:
 def reconstruct_capture(video: str, out: str, config: str | None = None,
                         scan: str | None = None, scan_landmarks: str | None = None,
                         until: Stage = "evaluation", store: str | None = None,
-                        progress: bool = False) -> dict:
+                        progress: bool = False, ipd_mm: float | None = None) -> dict:
     """Reconstruct one capture; returns the report (also written to ``out/report.json``).
 
     ``config``: a PipelineConfig YAML; ``scan``/``scan_landmarks``: ground truth to score
-    against; ``store``: artifact store URL (default ``$FACECAP_STORE``).
+    against; ``store``: artifact store URL (default ``$FACECAP_STORE``); ``ipd_mm``: the
+    subject's interpupillary distance (far PD, mm), a scale cue (``coarse.ipd_mm``).
     """
     logger = get_run_logger()
     start = time.perf_counter()
-    cfg = preflight(video, config, scan, scan_landmarks, out)
+    cfg = with_ipd(preflight(video, config, scan, scan_landmarks, out), ipd_mm)
     store = store or default_store_url()
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -184,6 +185,10 @@ def _figures(out: Path) -> dict:
         if doc.get("metric_scale") is not None:
             fig["metric_scale"] = doc["metric_scale"]
         fig["dropped_keyframes"] = doc.get("dropped", [])
+    if (out / "coarse.json").is_file():
+        scale = json.loads((out / "coarse.json").read_text())["scale"]
+        fig["scale"] = {k: scale.get(k) for k in ("metric_scale", "sigma_pct", "used", "cues",
+                                                   "dropped", "how")}
     if (out / "landmarks3d.json").is_file():
         doc = json.loads((out / "landmarks3d.json").read_text())
         if doc.get("coverage"):
@@ -255,6 +260,18 @@ def preflight(video: str | Path, config: str | Path | None = None, scan: str | N
     if out is not None:
         check_output_folder(Path(out))
     return cfg
+
+
+def with_ipd(cfg: PipelineConfig, ipd_mm: float | None) -> PipelineConfig:
+    """The config with the subject's interpupillary distance as a scale cue (validated like
+    the config file's ``coarse.ipd_mm``)."""
+    if ipd_mm is None:
+        return cfg
+    from facecap_core.config import CoarseConfig, build
+
+    coarse = build(CoarseConfig, {**cfg.coarse.model_dump(), "ipd_mm": ipd_mm},
+                   source="--ipd-mm")
+    return cfg.model_copy(update={"coarse": coarse})
 
 
 def as_user_sees_it(message: str, video: str | Path) -> str:

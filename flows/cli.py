@@ -160,6 +160,12 @@ def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
     if depth:
         print(f"  {'depth':<10} {sum(not i['cached'] for i in depth)} of {len(depth)} maps "
               f"computed, {sum(i['seconds'] or 0 for i in depth):.1f} s in all")
+    scale = report.get("figures", {}).get("scale")
+    if scale and scale.get("sigma_pct") is not None:
+        dropped = "".join(f"; {d['name']} dropped ({d['mm_per_unit']:.4g}, "
+                          f"{d['disagreement_sigmas']} sigma off)" for d in scale["dropped"])
+        print(f"  scale      {scale['metric_scale']:.4g} mm per camera unit, "
+              f"±{scale['sigma_pct']:.1f} % (1 sigma) from {' + '.join(scale['used'])}{dropped}")
     evaluation = report.get("figures", {}).get("evaluation")
     if evaluation:
         rows = [(f"facecap ({p})", [s]) for p, s in evaluation.items()]
@@ -171,15 +177,16 @@ def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
 
 
 def _cmd_reconstruct(args) -> int:
-    from flows.capture import preflight
+    from flows.capture import preflight, with_ipd
 
-    preflight(args.video, args.config, args.scan, args.scan_landmarks, args.out)
+    with_ipd(preflight(args.video, args.config, args.scan, args.scan_landmarks, args.out),
+             args.ipd_mm)
     _prefect_env()
     from flows.capture import reconstruct_capture
 
     report = reconstruct_capture(args.video, args.out, config=args.config, scan=args.scan,
                                  scan_landmarks=args.scan_landmarks, until=args.until,
-                                 store=args.store, progress=True)
+                                 store=args.store, progress=True, ipd_mm=args.ipd_mm)
     _print_report(report, Path(args.out))
     return 0
 
@@ -312,6 +319,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--config", help="PipelineConfig YAML (any subset of the stages' settings)")
     r.add_argument("--until", choices=list(_STAGES), default="evaluation",
                    help="last stage to run")
+    r.add_argument("--ipd-mm", type=float, help="the subject's interpupillary distance in mm "
+                                                 "as an optician measures it (far PD): a scale "
+                                                 "cue of about 2 %% instead of 5 %%")
     r.add_argument("--scan", help="ground-truth scan (mm) to score the mesh against")
     r.add_argument("--scan-landmarks", help="68 3D landmarks of the scan")
     r.add_argument("--store", help="artifact store: folder or s3://bucket/prefix "

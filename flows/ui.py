@@ -80,6 +80,11 @@ def capture_markdown(report: dict, out: Path, images: list[tuple[str, Path]]) ->
     for name in ("keyframes", "focal_px", "metric_scale", "fit_seconds"):
         if name in fig:
             lines.append(f"- {name}: {fig[name]}")
+    scale = fig.get("scale") or {}
+    if scale.get("sigma_pct") is not None:
+        lines.append(f"- scale uncertainty: ±{scale['sigma_pct']} % (1σ) from "
+                     f"{' + '.join(scale['used'])}"
+                     + "".join(f"; {d['name']} dropped" for d in scale["dropped"]))
     for protocol, sc in fig.get("evaluation", {}).items():
         a, c = sc["accuracy"], sc["completion"]
         lines.append(f"- {protocol}: accuracy mean {a['mean']:.3f} / median {a['median']:.3f} mm,"

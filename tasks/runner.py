@@ -37,11 +37,11 @@ VERSIONS = {
     "poses": "2",
     "frames": "1",
     "landmarks": "2",
-    "coarse": "2",
+    "coarse": "3",
     "views": "1",
     "depth": "1",
     "fusion": "1",
-    "fitting": "2",
+    "fitting": "3",
     "evaluation": "1",
 }
 """Algorithm version of each stage: part of every artifact key."""

@@ -258,6 +258,8 @@ CORPUS = {
                                              _config(t, "fitting: {stifness: [1.0]}\n")],
                             ["fitting.stifness", "extra inputs are not permitted",
                              "correct or remove"]),
+    "an IPD no adult has": (lambda m, t, k: ["reconstruct", m["orbit"], "--ipd-mm", "6.3"],
+                            ["--ipd-mm", "ipd_mm", "greater than or equal to 40"]),
     "config: unknown section": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                                                  _config(t, "meshing: {depth: 9}\n")],
                                 ["meshing", "extra inputs"]),

@@ -91,26 +91,44 @@ def test_size_prior_holds_on_heads_it_was_not_calibrated_on(template, ict_model)
     assert abs(_scale_error(template, james, config)) < config.landmark_size_spread
 
 
-def test_size_prior_combines_face_and_ears_by_their_spreads(template):
+def test_scale_cues_combine_by_their_spreads_and_a_wrong_one_is_dropped(template):
     """The arithmetic: landmarks of a face of exactly the prior's size in a world of unknown
-    scale give that scale; ears on both sides refine it by the ear-to-ear width, weighted by
-    the two spreads."""
-    config = CoarseConfig()
-    truth_mm_per_unit = 37.0
+    scale give that scale with the prior's spread; an IPD 4 % off the truth pulls it by the
+    inverse-variance weights; ear points 30 % too far apart (as on real skin) are dropped
+    and reported, not averaged in; without ``ear_width_cue`` they are not a cue at all."""
+    config = CoarseConfig(ear_width_cue=True)
+    truth = 37.0
     rot = rotation_matrix([0.1, 1.0, 0.0], 1.1)
-    face = template.landmark_points * config.landmark_size
-    L = (face @ rot.T + 5.0) / truth_mm_per_unit
+    L = (template.landmark_points * config.landmark_size @ rot.T + 5.0) / truth
     L[:17] = np.nan
     none = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, str)
     doc = coarse.metric_scale(template, L, *none, config)
-    assert doc["metric_scale"] == pytest.approx(truth_mm_per_unit, rel=1e-6)
-    # Ears 5 % wider than the template's pull the estimate up by half of that (equal spreads).
+    assert doc["metric_scale"] == pytest.approx(truth, rel=1e-6)
+    assert doc["sigma_pct"] == pytest.approx(100 * config.landmark_size_spread)
+    assert doc["used"] == ["landmarks"] and doc["dropped"] == []
+
+    eyes_mm = coarse.eye_distance(L) * truth
+    ipd = CoarseConfig(ear_width_cue=True, ipd_mm=1.04 * eyes_mm * config.ipd_ratio)
+    doc = coarse.metric_scale(template, L, *none, ipd)
+    w_lm, w_ipd = 1 / ipd.landmark_size_spread ** 2, 1 / ipd.ipd_spread ** 2
+    expected = truth * np.exp(w_ipd * np.log(1.04) / (w_lm + w_ipd))
+    assert doc["metric_scale"] == pytest.approx(expected, rel=1e-9)
+    assert doc["sigma_pct"] == pytest.approx(100 / np.sqrt(w_lm + w_ipd), abs=0.01)
+    assert doc["used"] == ["landmarks", "ipd"]
+
     ids = np.array([100, 200, 300, 400])
     sides = np.array(["left", "left", "right", "right"])
-    ear_pts = (1.05 * template.vertices[ids] @ rot.T + 5.0) / truth_mm_per_unit
-    doc = coarse.metric_scale(template, L, ids, ear_pts, sides, config)
-    assert doc["from_ears"] == pytest.approx(truth_mm_per_unit / 1.05, rel=1e-6)
-    assert doc["metric_scale"] == pytest.approx(truth_mm_per_unit / 1.05 ** 0.5, rel=1e-6)
+    wide = (1.3 * template.vertices[ids] @ rot.T + 5.0) / truth
+    doc = coarse.metric_scale(template, L, ids, wide, sides, ipd)
+    assert [d["name"] for d in doc["dropped"]] == ["ear_width"]
+    assert doc["dropped"][0]["disagreement_sigmas"] > ipd.cue_agreement_sigmas
+    assert doc["metric_scale"] == pytest.approx(expected, rel=1e-9)
+    # Ears that agree are kept; by default they are no cue.
+    agree = (1.01 * template.vertices[ids] @ rot.T + 5.0) / truth
+    assert coarse.metric_scale(template, L, ids, agree, sides, ipd)["used"] == [
+        "landmarks", "ipd", "ear_width"]
+    default = coarse.metric_scale(template, L, ids, wide, sides, CoarseConfig())
+    assert default["used"] == ["landmarks"] and default["metric_scale"] == pytest.approx(truth)
     fixed = coarse.metric_scale(template, L, *none, CoarseConfig(scale_method="fixed",
                                                                  fixed_scale=2.5))
     assert fixed["metric_scale"] == 2.5
