@@ -63,6 +63,11 @@ def load_mesh(path: str | Path, what: str = "mesh", keep_vertex_order: bool = Tr
                          "give a triangle mesh")
     if not np.all(np.isfinite(loaded.vertices)):
         raise InputError(f"{what} file {path} has non-finite vertex coordinates; repair the mesh")
+    faces = np.asarray(loaded.faces)
+    if faces.min() < 0 or faces.max() >= len(loaded.vertices):
+        raise InputError(f"{what} file {path} has triangles that name vertex "
+                         f"{faces.min() if faces.min() < 0 else faces.max()} of "
+                         f"{len(loaded.vertices)}; repair the mesh")
     return loaded
 
 

@@ -217,7 +217,8 @@ def _check_file_names(names: list[str]) -> None:
     """File names must be relative POSIX paths that stay inside the artifact folder."""
     for name in names:
         parts = name.split("/") if isinstance(name, str) else []
-        if not parts or "\\" in name or any(part in ("", ".", "..") for part in parts):
+        if (not parts or "\\" in name or "\0" in name
+                or any(part in ("", ".", "..") for part in parts)):
             raise InputError(
                 f"invalid artifact file name {name!r}: use a relative POSIX path "
                 "without '..', '.', empty parts or a leading '/'"
@@ -445,6 +446,12 @@ class ArtifactStore:
         if manifest.folder is not None and not _WRITER_PATTERN.fullmatch(manifest.folder):
             # The folder becomes part of a path: nothing but a writer's name may be there.
             raise self._corrupt(key, MANIFEST_NAME, f"names an invalid folder {manifest.folder!r}")
+        try:
+            # File names become paths in the local cache: none may lead out of the artifact.
+            _check_file_names(list(manifest.files))
+        except InputError as exc:
+            raise self._corrupt(key, MANIFEST_NAME, f"names files the store cannot hold "
+                                                    f"({exc})") from None
         return manifest
 
     def read_bytes(self, key: str, name: str, verify: bool = True) -> bytes:

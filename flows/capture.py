@@ -75,21 +75,25 @@ def _mvs_fan_out(store: str, inputs: dict, config: dict, indices: list[int], lab
     return keys
 
 
+EXPORTED = {
+    "poses": ["cameras.json", "points.ply", "colmap/cameras.txt", "colmap/images.txt",
+              "colmap/points3D.txt"],
+    "coarse": ["cameras.json", "landmarks3d.json", "ears3d.json", "coarse.ply", "coarse.json"],
+    "fusion": ["cloud.ply"],
+    "fitting": ["mesh.ply", "mesh.obj", "fit.json"],
+    "evaluation": ["evaluation.json", "heatmap_similarity.png", "heatmap_metric.png"],
+}
+"""The files of each stage copied into the output folder (besides report.json, preview.png)."""
+OUTPUT_NAMES = {n for names in EXPORTED.values() for n in names} | {"report.json", "preview.png"}
+
+
 def _export(store: str, keys: dict[str, str], out: Path) -> None:
     """Copy the user-facing files of the finished stages into ``out``."""
     st = open_store(store)
-    wanted = {
-        "poses": ["cameras.json", "points.ply", "colmap/cameras.txt", "colmap/images.txt",
-                  "colmap/points3D.txt"],
-        "coarse": ["cameras.json", "landmarks3d.json", "ears3d.json", "coarse.ply", "coarse.json"],
-        "fusion": ["cloud.ply"],
-        "fitting": ["mesh.ply", "mesh.obj", "fit.json"],
-        "evaluation": ["evaluation.json", "heatmap_similarity.png", "heatmap_metric.png"],
-    }
-    for stage, names in wanted.items():
+    for stage, names in EXPORTED.items():
         if stage not in keys:
             continue
-        folder = st.get(keys[stage], verify=False)
+        folder = st.get(keys[stage])  # checked: a file changed after its commit is refused
         for name in names:
             src = folder / name
             if src.is_file():
@@ -259,6 +263,10 @@ def preflight(video: str | Path, config: str | Path | None = None, scan: str | N
     assets.default_template_files()  # fetched once; a damaged copy fails here, not at fitting
     if out is not None:
         check_output_folder(Path(out))
+        for what, path in (("capture", video), ("scan", scan), ("scan landmarks", scan_landmarks)):
+            if path and Path(path).resolve() in {(Path(out) / n).resolve() for n in OUTPUT_NAMES}:
+                raise InputError(f"the {what} {path} would be overwritten by a result of the same "
+                                 f"name in the output folder {out}; give another --out")
     return cfg
 
 
@@ -314,7 +322,7 @@ def dense_and_fit(store: str, keys: dict[str, str], cfg: PipelineConfig, label: 
     base = {"frames": keys["frames"], "coarse": keys["coarse"]}
     keys["views"] = call_stage(views_task, store, {**base, "poses": keys["poses"]},
                                config_part(cfg.mvs, VIEW_FIELDS), label)
-    indices = sorted(read_views(st.get(keys["views"], verify=False) / "views.json"))
+    indices = sorted(read_views(st.get(keys["views"]) / "views.json"))
     depth = _mvs_fan_out(store, {**base, "views": keys["views"]},
                          config_part(cfg.mvs, DEPTH_FIELDS), indices, label, progress)
     keys.update({f"depth_{i:05d}": k for i, k in depth.items()})

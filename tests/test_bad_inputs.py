@@ -185,6 +185,12 @@ def facecap(capfd, *argv) -> tuple[int, str, str]:
 # --------------------------------------------------------------------------- the corpus
 
 
+def _copy(source: Path, target: Path) -> Path:
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_bytes(source.read_bytes())
+    return target
+
+
 def _config(tmp: Path, text: str) -> Path:
     (tmp / "pipeline.yaml").write_text(text)
     return tmp / "pipeline.yaml"
@@ -258,6 +264,10 @@ CORPUS = {
                                              _config(t, "fitting: {stifness: [1.0]}\n")],
                             ["fitting.stifness", "extra inputs are not permitted",
                              "correct or remove"]),
+    "a capture named like a result in --out": (
+        lambda m, t, k: ["reconstruct", _copy(m["orbit"], t / "results" / "report.json"),
+                         "--out", t / "results"], ["report.json would be overwritten",
+                                                    "another --out"]),
     "an IPD no adult has": (lambda m, t, k: ["reconstruct", m["orbit"], "--ipd-mm", "6.3"],
                             ["--ipd-mm", "ipd_mm", "greater than or equal to 40"]),
     "config: unknown section": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",

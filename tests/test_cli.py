@@ -59,6 +59,12 @@ BAD = {
                        "--scan-landmarks", "{s}/scan_landmarks.json"], "not a mesh"),
     "garbage ply": (["evaluate", "{d}/garbage.ply", "--scan", "{s}/scan.ply",
                      "--scan-landmarks", "{s}/scan_landmarks.json"], "mesh"),
+    "triangles naming absent vertices": (["evaluate", "{d}/far.ply", "--scan", "{s}/scan.ply",
+                                          "--scan-landmarks", "{s}/scan_landmarks.json"],
+                                         "name vertex 7 of 3"),
+    "triangles naming negative vertices": (["evaluate", "{d}/negative.ply", "--scan",
+                                            "{s}/scan.ply", "--scan-landmarks",
+                                            "{s}/scan_landmarks.json"], "name vertex -2 of 3"),
     "scan without landmarks": (["evaluate", "{s}/big.ply", "--scan", "{s}/scan.ply"],
                                "landmarks"),
     "landmarks of the wrong size": (["evaluate", "{s}/big.ply", "--scan", "{s}/scan.ply",
@@ -84,6 +90,11 @@ def test_bad_input_is_one_clear_line(case, scan, tmp_path):
     (tmp_path / "garbage.ply").write_bytes(b"ply\nformat nonsense\n\x00\xff" * 10)
     (tmp_path / "five.json").write_text(json.dumps(np.zeros((5, 3)).tolist()))
     (tmp_path / "typo.yaml").write_text("colour: red\n")
+    for name, index in (("far.ply", 7), ("negative.ply", -2)):
+        (tmp_path / name).write_text(
+            "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+            f"end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 {index}\n")
     args, expected = BAD[case]
     code, out, err = facecap(*[a.format(d=tmp_path, s=scan) for a in args])
     assert code == 2, (out, err)

@@ -12,6 +12,7 @@ a manifest, the server going away and coming back.
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import os
 import re
@@ -220,6 +221,24 @@ def test_a_corrupt_manifest_is_detected(store, bucket, prefix):
                       Body=b'{"key": "truncated')
     with pytest.raises(CorruptArtifactError, match="manifest.json"):
         store.manifest(key)
+
+
+@pytest.mark.parametrize("name", ["../../escaped.txt", "/tmp/escaped.txt", "a/../../x"])
+def test_a_manifest_cannot_steer_a_download_out_of_the_cache(store, bucket, prefix, name,
+                                                            facecap_home, tmp_path):
+    """Whoever can write the bucket (a shared S3 key) edits a manifest so that a file name
+    leads out of the artifact: the reader refuses the manifest and writes nothing."""
+    put_mesh(store, {"mesh.ply": b"ply data"})
+    key = mesh_key()
+    manifest_key = f"{prefix}/artifacts/{key}/manifest.json"
+    doc = json.loads(bucket.get_object(Bucket=BUCKET, Key=manifest_key)["Body"].read())
+    doc["files"][name] = doc["files"].pop("mesh.ply")
+    bucket.put_object(Bucket=BUCKET, Key=manifest_key, Body=json.dumps(doc).encode())
+    stored = f"{prefix}/artifacts/{key}/{doc['folder']}/mesh.ply"
+    bucket.put_object(Bucket=BUCKET, Key=stored.replace("mesh.ply", name), Body=b"ply data")
+    with pytest.raises(CorruptArtifactError, match="names files the store cannot hold"):
+        store.get(key)
+    assert not list(tmp_path.rglob("escaped.txt")) and not Path("/tmp/escaped.txt").exists()
 
 
 def test_a_missing_artifact_or_object_raises_the_stores_errors(store, bucket, prefix):

@@ -106,3 +106,21 @@ def test_inputs_reach_the_stage_as_folders(tmp_path):
 ])
 def test_only_transient_faults_are_retried(exc, retried):
     assert is_transient(exc) is retried
+
+
+def test_results_are_exported_only_as_they_were_committed(tmp_path):
+    """A stored result changed after its commit (fx 500 -> 999 in cameras.json) is refused
+    when the capture's files are exported, not handed to the user."""
+    from facecap_core.store import artifact_key
+    from flows.capture import _export
+
+    store = ArtifactStore(str(tmp_path / "store"))
+    key = artifact_key("poses", {"video": "input-x"}, {}, "1")
+    store.put(key, {"cameras.json": b'{"fx": 500}'}, stage="poses", inputs={"video": "input-x"},
+              config={}, version="1")
+    _export(str(tmp_path / "store"), {"poses": key}, tmp_path / "out")
+    assert (tmp_path / "out" / "cameras.json").read_bytes() == b'{"fx": 500}'
+    (store.get(key) / "cameras.json").write_bytes(b'{"fx": 999}')
+    with pytest.raises(CorruptArtifactError, match="cameras.json"):
+        _export(str(tmp_path / "store"), {"poses": key}, tmp_path / "again")
+    assert not (tmp_path / "again" / "cameras.json").exists()
