@@ -34,7 +34,8 @@ class SynthConfig(StrictModel):
     subject_scale: float = Field(1.0, gt=0)
     """Factor that converts a mesh-path subject to millimetres."""
     ict_model: Path | None = None
-    """ICT Face Model Light ``.npz``; default ``$FACECAP_ICT_MODEL``."""
+    """ICT Face Model Light ``.npz``; default ``$FACECAP_ICT_MODEL``, else the trimmed model
+    in the package (``facecap_core/data/``)."""
     ict_identity_sigma: float = Field(1.0, ge=0, le=3)
     """Spread of random ICT identity coefficients, in model standard deviations."""
 
@@ -43,7 +44,7 @@ class SynthConfig(StrictModel):
     ``display_rotation_deg``)."""
     height: int = Field(720, ge=64, le=4320)
     """Height in pixels of the frames as stored."""
-    fps: float = Field(30.0, gt=0, le=480)
+    fps: float = Field(30.0, ge=1, le=480)
     """Frames per second."""
     duration_s: float = Field(6.0, gt=0, le=120)
     """Length of the sweep in seconds."""
@@ -135,7 +136,7 @@ class SynthConfig(StrictModel):
     it), both at ``crf`` with the medium preset."""
     crf: int = Field(16, ge=0, le=51)
     """Constant rate factor of the output video (lower = better quality)."""
-    seed: int = 0
+    seed: int = Field(0, ge=0)
     """Seed of every random draw (camera, path, lighting, textures, noise)."""
 
     @model_validator(mode="after")
@@ -180,10 +181,19 @@ def load_yaml(model: type[M], path: str | Path, overrides: dict | None = None) -
     if not path.is_file():
         raise InputError(f"config file not found: {path}; check the path")
     try:
-        values = yaml.safe_load(path.read_text()) or {}
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"config file {path} is not UTF-8 text (byte {exc.start} is not); "
+                         "save it as UTF-8") from None
+    try:
+        values = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise InputError(f"config file {path} is not valid YAML ({str(exc).splitlines()[0]});"
                          " fix its syntax") from None
+    except RecursionError:
+        raise InputError(f"config file {path} nests too deeply to be a config; settings are "
+                         "two or three levels deep, such as 'mvs: {iterations: 4}'") from None
+    values = {} if values is None else values  # an empty file; [] or 0 are not
     if not isinstance(values, dict):
         raise InputError(f"config file {path} must hold a mapping of settings, such as "
                          "'mvs: {iterations: 4}'")

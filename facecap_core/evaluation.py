@@ -565,7 +565,11 @@ def render_views(vertices: np.ndarray, faces: np.ndarray, albedo, framed: np.nda
 def _write_png(image: np.ndarray, out_png: str | Path) -> Path:
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), image):
+    try:
+        written = cv2.imwrite(str(out), image)
+    except cv2.error:  # OpenCV knows no writer for the suffix
+        written = False
+    if not written:
         raise InputError(f"could not write {out} (is the folder writable, the suffix .png?)")
     return out
 

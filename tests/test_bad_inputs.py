@@ -191,6 +191,11 @@ def _copy(source: Path, target: Path) -> Path:
     return target
 
 
+def _config_bytes(tmp: Path, data: bytes) -> Path:
+    (tmp / "pipeline.yaml").write_bytes(data)
+    return tmp / "pipeline.yaml"
+
+
 def _config(tmp: Path, text: str) -> Path:
     (tmp / "pipeline.yaml").write_text(text)
     return tmp / "pipeline.yaml"
@@ -279,6 +284,19 @@ CORPUS = {
     "config: not a mapping": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                                                _config(t, "- mvs\n- fitting\n")],
                               ["must hold a mapping"]),
+    "config: Latin-1": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                         _config_bytes(t, b"mvs: {iterations: 4} # caf\xe9\n")],
+                        ["not UTF-8", "save it as UTF-8"]),
+    "config: UTF-16": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                        _config_bytes(t, "mvs: {iterations: 4}\n".encode("utf-16"))],
+                       ["not UTF-8"]),
+    "config: nested 20,000 deep": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                                    _config(t, "a: " + "[" * 20000 + "]" * 20000)],
+                                   ["nests too deeply"]),
+    "config: an empty list": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                               _config(t, "[]\n")], ["must hold a mapping"]),
+    "config: false": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                       _config(t, "false\n")], ["must hold a mapping"]),
     "config file missing": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                                              t / "none.yaml"], ["config file not found"]),
     "scan without landmarks": (lambda m, t, k: ["reconstruct", m["orbit"], "--scan", _scan(t)],

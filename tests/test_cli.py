@@ -65,6 +65,13 @@ BAD = {
     "triangles naming negative vertices": (["evaluate", "{d}/negative.ply", "--scan",
                                             "{s}/scan.ply", "--scan-landmarks",
                                             "{s}/scan_landmarks.json"], "name vertex -2 of 3"),
+    "heat map of an unknown image type": (["evaluate", "{s}/scan.ply", "--scan", "{s}/scan.ply",
+                                           "--scan-landmarks", "{s}/scan_landmarks.json",
+                                           "--heatmap", "{d}/h.jpgx"], ".png"),
+    "68 identical scan landmarks": (["evaluate", "{s}/scan.ply", "--scan", "{s}/scan.ply",
+                                     "--scan-landmarks", "{d}/same.json"], "landmarks"),
+    "synth: negative seed": (["synth", "--out", "{d}/o", "--seed", "-1"], "seed"),
+    "synth: a frame a year": (["synth", "--out", "{d}/o", "--fps", "0.0001"], "fps"),
     "scan without landmarks": (["evaluate", "{s}/big.ply", "--scan", "{s}/scan.ply"],
                                "landmarks"),
     "landmarks of the wrong size": (["evaluate", "{s}/big.ply", "--scan", "{s}/scan.ply",
@@ -90,6 +97,7 @@ def test_bad_input_is_one_clear_line(case, scan, tmp_path):
     (tmp_path / "garbage.ply").write_bytes(b"ply\nformat nonsense\n\x00\xff" * 10)
     (tmp_path / "five.json").write_text(json.dumps(np.zeros((5, 3)).tolist()))
     (tmp_path / "typo.yaml").write_text("colour: red\n")
+    (tmp_path / "same.json").write_text(json.dumps([[1.0, 2.0, 3.0]] * 68))
     for name, index in (("far.ply", 7), ("negative.ply", -2)):
         (tmp_path / name).write_text(
             "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
