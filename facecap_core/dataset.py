@@ -40,12 +40,12 @@ class CaptureEntry:
         return inside(Path(out_root), Path(out_root) / self.subject / self.capture)
 
 
-def inside(root: Path, path: Path) -> Path:
-    """``path`` resolved, refusing anything that leaves ``root``."""
+def inside(root: Path, path: Path, what: str = "dataset folder") -> Path:
+    """``path`` resolved, refusing anything that leaves ``root`` (the ``what``)."""
     root_r = root.resolve()
     resolved = path.resolve()
     if resolved != root_r and root_r not in resolved.parents:
-        raise InputError(f"{path} lies outside the dataset folder {root}; move it inside or "
+        raise InputError(f"{path} lies outside the {what} {root}; move it inside or "
                          "remove the link")
     return resolved
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from prefect import flow, get_run_logger
 
-from facecap_core.dataset import scan_dataset
+from facecap_core.dataset import inside, scan_dataset
 from tasks.runner import default_store_url
 from tasks.stages import call_ingest, call_stage, evaluation_task
 
@@ -63,6 +63,7 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
         if entry.scan is None or entry.scan_landmarks is None or not mesh.is_file():
             skipped.append(name)
             continue
+        mesh = inside(out_root, mesh, "results folder")  # not a link to elsewhere
         inputs = {"mesh": call_ingest(store, mesh, "mesh.ply", name),
                   "scan": call_ingest(store, entry.scan, entry.scan.name, name),
                   "scan_landmarks": call_ingest(store, entry.scan_landmarks,

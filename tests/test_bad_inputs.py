@@ -451,6 +451,28 @@ def test_dataset_with_odd_names(media, kept, tmp_path, capfd, prefect_server):
     assert_kept(before, snapshot(kept["store"], kept["out"]))
 
 
+def test_evaluation_does_not_follow_a_link_out_of_the_results(media, kept, tmp_path, capfd,
+                                                              prefect_server):
+    """A reconstruction in OUT that is a link to a file elsewhere (here a stand-in for a
+    secret on the worker) is refused by ``evaluate-dataset``; nothing enters the store."""
+    root = tmp_path / "dataset"
+    (root / "anna").mkdir(parents=True)
+    shutil.copyfile(media["static"], root / "anna" / "take.mp4")
+    _scan(root / "anna")
+    (root / "anna" / "scan_landmarks.json").write_text(json.dumps([[0.0, 0.0, 0.0]] * 68))
+    secret = tmp_path / "elsewhere" / "secret.ply"
+    secret.parent.mkdir()
+    secret.write_text("not for the store")
+    out = kept["out"] / "results"
+    (out / "anna" / "take").mkdir(parents=True)
+    (out / "anna" / "take" / "mesh.ply").symlink_to(secret)
+    before = snapshot(kept["store"], kept["out"])
+    code, _, err = facecap(capfd, "evaluate-dataset", root, "--out", out, "--store",
+                           kept["store"])
+    assert_one_line_error(code, err, ["take/mesh.ply lies outside the results folder"])
+    assert_kept(before, snapshot(kept["store"], kept["out"]))
+
+
 # --------------------------------------------------------------------------- accepted
 
 
