@@ -289,6 +289,12 @@ class PBAConfig(StrictModel):
     intrinsics_level: int = Field(0, ge=0, le=5)
     """Intrinsics are held fixed at pyramid levels coarser than this one (coarse levels bias
     the focal length)."""
+    max_width: int | None = Field(1920, ge=160, le=8192)
+    """Keyframes wider than this (pixels) are adjusted at this width (area filter, aspect kept;
+    the intrinsics scaled to it and the result's scaled back; poses are metric and do not
+    change with it). PBA holds every keyframe with its pyramid and gradients, about 14 bytes
+    a pixel: at 3840×2160 that is 116 MB a keyframe, 5 GB for 45 keyframes; at 1920×1080,
+    29 MB. None: full resolution. 720p and 1080p captures are not affected."""
 
 
 class PoseConfig(StrictModel):

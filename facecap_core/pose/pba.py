@@ -415,6 +415,28 @@ def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
                      borderMode=cv2.BORDER_REPLICATE)[0]
 
 
+def _processing_grey(image: np.ndarray, max_width: int | None) -> np.ndarray:
+    """A keyframe as float32 grey, at most ``max_width`` wide (area filter, aspect kept)."""
+    from facecap_core.video import processing_size
+
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+    w, h = processing_size(grey.shape[1], grey.shape[0], max_width)
+    if (w, h) != (grey.shape[1], grey.shape[0]):
+        grey = cv2.resize(grey, (w, h), interpolation=cv2.INTER_AREA)
+    return grey.astype(np.float32)
+
+
+def _at_size(intrinsics: Intrinsics, width: int, height: int) -> Intrinsics:
+    """``intrinsics`` for images ``width``×``height`` (the same camera at another resolution:
+    pixel-centre convention, as an area-filter resize samples)."""
+    if (width, height) == (intrinsics.width, intrinsics.height):
+        return intrinsics
+    if abs(width / height - intrinsics.width / intrinsics.height) > 0.01:
+        raise FacecapError(f"keyframes are {width}x{height} but the camera is "
+                           f"{intrinsics.width}x{intrinsics.height} (aspect ratios differ)")
+    return intrinsics.scaled(width, height)
+
+
 def _points_from_sparse(points, hosts, R, t, intrinsics: Intrinsics, shape):
     """The initial reconstruction's points, each hosted in its given keyframe at its depth
     (no search: the geometric solution already knows where they are)."""
@@ -481,7 +503,9 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                                   centre_prior: bool = False) -> PBAResult:
     """Refine keyframe poses, intrinsics and distortion photometrically.
 
-    ``images``: the keyframes (grey or RGB, at the intrinsics' resolution) in video order;
+    ``images``: the keyframes (grey or RGB) in video order, at the intrinsics' resolution or
+    any other of the same aspect ratio; those wider than ``config.max_width`` are adjusted at
+    that width, and the returned intrinsics are at the resolution of ``intrinsics``;
     ``R``, ``t``: their initial world-to-camera poses; ``sparse_points``: 3D points of the
     initial reconstruction. With ``sparse_hosts`` (a host keyframe per sparse point, -1 for
     none) and ``config.points_from_sparse``, the points are those sparse points, hosted there
@@ -494,9 +518,10 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
     """
     config = config or PBAConfig()
     start = time.perf_counter()
-    greys = [(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im).astype(np.float32)
-             for im in images]
+    greys = [_processing_grey(im, config.max_width) for im in images]
     K = len(greys)
+    full = intrinsics
+    intrinsics = _at_size(full, greys[0].shape[1], greys[0].shape[0])
     levels = config.pyramid_levels
     pyr = [_pyramid(g, levels) for g in greys]
     R = [np.asarray(r, float) for r in R]
@@ -620,6 +645,8 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
     cost, count = evaluate(R, t, affine, intr, rho, False)[6:]
     out = Intrinsics(intrinsics.width, intrinsics.height, float(intr[0]), float(intr[0]),
                      float(intr[1]), float(intr[2]), float(intr[3]), float(intr[4]))
+    if (out.width, out.height) != (full.width, full.height):
+        out = out.scaled(full.width, full.height)
     return PBAResult(out, R, t, affine, len(host), count, float(rms_first),
                      float(np.sqrt(cost / max(count, 1))),
                      time.perf_counter() - start, log)

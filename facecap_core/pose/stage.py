@@ -4,8 +4,9 @@
 2. Our geometric refinement: the keyframe tracker's LK tracks triangulated into the model and
    a bundle adjustment with the principal point free (``geometric.py``).
 3. Photometric bundle adjustment from that start (``pba.py``), hosting the sparse points at
-   their depths, when ``config.method == "pba"``; the sparse points are then re-triangulated
-   with the final cameras.
+   their depths, when ``config.method == "pba"``, on keyframes decoded at most
+   ``config.pba.max_width`` wide; the sparse points are then re-triangulated with the final
+   cameras.
 """
 
 from __future__ import annotations
@@ -40,8 +41,9 @@ def track_hosts(observations: np.ndarray, n_points: int) -> np.ndarray:
 
 def photometric_refinement(poses: Poses, grey_keyframes: list[np.ndarray], config: PoseConfig,
                            progress: bool = False) -> Poses:
-    """PBA of ``poses`` over the keyframes (grey, full resolution, in poses' order); the
-    sparse points are re-triangulated from their observations with the refined cameras."""
+    """PBA of ``poses`` over the keyframes (grey, in poses' order, at full resolution or
+    already at most ``config.pba.max_width`` wide); the sparse points are re-triangulated
+    from their observations with the refined cameras (full-resolution intrinsics)."""
     from facecap_core.pose.pba import photometric_bundle_adjustment
 
     result = photometric_bundle_adjustment(
@@ -142,7 +144,8 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
         steps["geometric"] = current
     if config.method == "pba":
         start = time.perf_counter()
-        greys = read_frames(video, keyframes.indices, grey=True)
+        # Decoded straight to PBA's processing width: PBA holds every keyframe at once.
+        greys = read_frames(video, keyframes.indices, width=config.pba.max_width, grey=True)
         grey_list = [greys[i] for i in current.frame_indices]
         refined = photometric_refinement(current, grey_list, config, progress)
         refined.seconds = current.seconds + time.perf_counter() - start
