@@ -104,7 +104,7 @@ def combine_cues(cues: list[dict], agreement_sigmas: float) -> tuple[float, floa
     lies more than ``agreement_sigmas`` combined standard deviations from the others' mean
     is dropped — the worst first, one at a time — as long as two or more cues remain."""
     kept, dropped = list(cues), []
-    while len(kept) > 2 or (len(kept) == 2 and not dropped):
+    while len(kept) >= 2:
         worst, worst_z = None, agreement_sigmas
         for cue in kept:
             others = [c for c in kept if c is not cue]
@@ -120,9 +120,8 @@ def combine_cues(cues: list[dict], agreement_sigmas: float) -> tuple[float, floa
             # Two cues that disagree: keep the one with the smaller stated spread.
             worst = max(kept, key=lambda c: c["sigma"])
         kept.remove(worst)
-        dropped.append({**worst, "disagreement_sigmas": round(float(worst_z), 2)})
-        if len(kept) < 2:
-            break
+        dropped.append({**worst, "disagreement_sigmas": round(float(worst_z), 2),
+                        "reason": "disagrees with the other cues"})
     w = np.array([1 / c["sigma"] ** 2 for c in kept])
     log_scale = float(np.sum(w * np.log([c["mm_per_unit"] for c in kept])) / w.sum())
     return float(np.exp(log_scale)), float(1 / np.sqrt(w.sum())), dropped
@@ -144,10 +143,13 @@ def metric_scale(template: Template, landmarks: np.ndarray, ear_ids: np.ndarray,
              "sigma": config.landmark_size_spread,
              "how": "size prior: the landmark configuration of an average face"}]
     eyes = eye_distance(landmarks)
+    unusable = []
     if config.ipd_mm is not None and np.isfinite(eyes) and eyes > 0:
         cues.append({"name": "ipd", "mm_per_unit": config.ipd_mm / (config.ipd_ratio * eyes),
                      "sigma": config.ipd_spread,
                      "how": f"given interpupillary distance {config.ipd_mm:g} mm"})
+    elif config.ipd_mm is not None:
+        unusable.append({"name": "ipd", "reason": "an eye's landmarks were not triangulated"})
     both = len(ear_ids) and {"left", "right"} <= set(ear_sides.tolist())
     if config.ear_width_cue and both:
         measured = _ear_width(ear_points, ear_sides)
@@ -157,12 +159,13 @@ def metric_scale(template: Template, landmarks: np.ndarray, ear_ids: np.ndarray,
                      "how": "size prior: the ear-to-ear width of an average head"})
     scale, sigma, dropped = combine_cues(cues, config.cue_agreement_sigmas)
     names = [c["name"] for c in cues if c["name"] not in {d["name"] for d in dropped}]
+    dropped += unusable
     return {"method": "cues", "metric_scale": scale, "sigma_pct": round(100 * sigma, 2),
             "cues": cues, "dropped": dropped, "used": names,
             "landmark_similarity_scale": s, "landmarks_used": int(ok.sum()),
             "eye_distance_units": eyes if np.isfinite(eyes) else None,
-            "how": " + ".join(names) + (f" ({', '.join(d['name'] for d in dropped)} dropped: "
-                                        "disagrees with the others)" if dropped else "")}
+            "how": " + ".join(names) + "".join(f"; {d['name']} dropped: {d['reason']}"
+                                               for d in dropped)}
 
 
 # --------------------------------------------------------------------------- deformation

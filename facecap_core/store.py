@@ -446,12 +446,13 @@ class ArtifactStore:
         if manifest.folder is not None and not _WRITER_PATTERN.fullmatch(manifest.folder):
             # The folder becomes part of a path: nothing but a writer's name may be there.
             raise self._corrupt(key, MANIFEST_NAME, f"names an invalid folder {manifest.folder!r}")
-        try:
-            # File names become paths in the local cache: none may lead out of the artifact.
-            _check_file_names(list(manifest.files))
-        except InputError as exc:
-            raise self._corrupt(key, MANIFEST_NAME, f"names files the store cannot hold "
-                                                    f"({exc})") from None
+        for name in manifest.files:
+            try:
+                # File names become paths in the local cache: none may lead out of it.
+                _check_file_names([name])
+            except InputError:
+                raise self._corrupt(key, MANIFEST_NAME, f"names a file outside its artifact "
+                                                        f"({name!r})") from None
         return manifest
 
     def read_bytes(self, key: str, name: str, verify: bool = True) -> bytes:

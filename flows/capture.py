@@ -88,8 +88,12 @@ OUTPUT_NAMES = {n for names in EXPORTED.values() for n in names} | {"report.json
 
 
 def _export(store: str, keys: dict[str, str], out: Path) -> None:
-    """Copy the user-facing files of the finished stages into ``out``."""
+    """Copy the user-facing files of the finished stages into ``out``; results an earlier
+    run left there that this run did not make (a heat map when no scan is given now, a mesh
+    after ``--until coarse``) are removed, so that the folder shows this run alone (they stay
+    in the store)."""
     st = open_store(store)
+    written = {"report.json"}  # rewritten after the export
     for stage, names in EXPORTED.items():
         if stage not in keys:
             continue
@@ -102,6 +106,9 @@ def _export(store: str, keys: dict[str, str], out: Path) -> None:
                 tmp = dst.with_name(f".{dst.name}.part")
                 shutil.copyfile(src, tmp)
                 tmp.replace(dst)
+                written.add(name)
+    for name in sorted(OUTPUT_NAMES - written):
+        (out / name).unlink(missing_ok=True)
 
 
 def _stage_report(store: str, keys: dict[str, str], started: datetime) -> dict:

@@ -100,10 +100,13 @@ def _prefect_env(console_level: str = "WARNING") -> None:
 
     _prefect_defaults()
     if _VERBOSE:
-        handler = logging.StreamHandler()
-        handler.setFormatter(logging.Formatter("%(asctime)s %(name)s: %(message)s", "%H:%M:%S"))
-        logging.getLogger("facecap_core").addHandler(handler)
-        logging.getLogger("facecap_core").setLevel(logging.DEBUG)
+        core = logging.getLogger("facecap_core")
+        if not core.handlers:
+            handler = logging.StreamHandler()
+            handler.setFormatter(logging.Formatter("%(asctime)s %(name)s: %(message)s",
+                                                   "%H:%M:%S"))
+            core.addHandler(handler)
+        core.setLevel(logging.DEBUG)
         _quiet_console("DEBUG")
         return
     # COLMAP (pose stage) logs through glog straight to stderr; its failures reach the user
@@ -162,8 +165,9 @@ def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
               f"computed, {sum(i['seconds'] or 0 for i in depth):.1f} s in all")
     scale = report.get("figures", {}).get("scale")
     if scale and scale.get("sigma_pct") is not None:
-        dropped = "".join(f"; {d['name']} dropped ({d['mm_per_unit']:.4g}, "
-                          f"{d['disagreement_sigmas']} sigma off)" for d in scale["dropped"])
+        dropped = "".join(f"; {d['name']} dropped: {d['reason']}"
+                          + (f" ({d['disagreement_sigmas']} sigma off)"
+                             if "disagreement_sigmas" in d else "") for d in scale["dropped"])
         print(f"  scale      {scale['metric_scale']:.4g} mm per camera unit, "
               f"±{scale['sigma_pct']:.1f} % (1 sigma) from {' + '.join(scale['used'])}{dropped}")
     evaluation = report.get("figures", {}).get("evaluation")
@@ -279,8 +283,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="facecap",
         description="Metric 3D face meshes from one handheld phone video, and the tools to "
                     "measure them.")
-    p.add_argument("--verbose", action="store_true",
-                   help="show third-party logs (COLMAP, Prefect) and facecap's debug log")
+    verbose = "show third-party logs (COLMAP, Prefect) and facecap's debug log"
+    p.add_argument("--verbose", action="store_true", help=verbose)
     sub = p.add_subparsers(dest="command", required=True)
 
     a = sub.add_parser("assets", help="fetch, verify and list the template and sample scan")
@@ -367,6 +371,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--fps", type=float, default=30.0, help="video frame rate")
     d.add_argument("--seconds", type=float, default=6.0, help="sweep duration")
     d.set_defaults(func=_cmd_demo)
+    for runs_flows in (r, ds, ed, sv, d):  # also after the command: facecap reconstruct ... --verbose
+        runs_flows.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS,
+                                help=verbose)
     return p
 
 

@@ -61,8 +61,8 @@ def mesh_preview(out: Path) -> Path:
         R, origin = head_frame(vertices[template.landmarks])
         vertices = (vertices - origin) @ R.T
         framed = vertices[template.regions["face"]]
-    colours = getattr(mesh.visual, "vertex_colors", None)
-    colours = None if colours is None or len(colours) != len(vertices) else colours[:, :3]
+    # Only colours the file holds: trimesh gives an uncoloured mesh a default grey.
+    colours = mesh.visual.vertex_colors[:, :3] if mesh.visual.kind == "vertex" else None
     return mesh_render(vertices, mesh.faces, preview, colours, size=320, framed=framed)
 
 
@@ -84,7 +84,7 @@ def capture_markdown(report: dict, out: Path, images: list[tuple[str, Path]]) ->
     if scale.get("sigma_pct") is not None:
         lines.append(f"- scale uncertainty: ±{scale['sigma_pct']} % (1σ) from "
                      f"{' + '.join(scale['used'])}"
-                     + "".join(f"; {d['name']} dropped" for d in scale["dropped"]))
+                     + "".join(f"; {d['name']} dropped ({d['reason']})" for d in scale["dropped"]))
     for protocol, sc in fig.get("evaluation", {}).items():
         a, c = sc["accuracy"], sc["completion"]
         lines.append(f"- {protocol}: accuracy mean {a['mean']:.3f} / median {a['median']:.3f} mm,"

@@ -127,6 +127,17 @@ def test_scale_cues_combine_by_their_spreads_and_a_wrong_one_is_dropped(template
     agree = (1.01 * template.vertices[ids] @ rot.T + 5.0) / truth
     assert coarse.metric_scale(template, L, ids, agree, sides, ipd)["used"] == [
         "landmarks", "ipd", "ear_width"]
+    # Three cues where two remain at odds once the worst is gone: the pair is checked too.
+    _, _, dropped = coarse.combine_cues(
+        [{"name": "landmarks", "mm_per_unit": 1.0, "sigma": 0.05},
+         {"name": "ipd", "mm_per_unit": 1.5, "sigma": 0.02},
+         {"name": "ear_width", "mm_per_unit": 3.0, "sigma": 0.05}], 3.0)
+    assert [d["name"] for d in dropped] == ["ear_width", "landmarks"]
+    # An IPD without both eyes triangulated is reported, not silently left out.
+    no_eye = L.copy()
+    no_eye[36:42] = np.nan
+    doc = coarse.metric_scale(template, no_eye, *none, ipd)
+    assert doc["used"] == ["landmarks"] and doc["dropped"][0]["name"] == "ipd"
     default = coarse.metric_scale(template, L, ids, wide, sides, CoarseConfig())
     assert default["used"] == ["landmarks"] and default["metric_scale"] == pytest.approx(truth)
     fixed = coarse.metric_scale(template, L, *none, CoarseConfig(scale_method="fixed",

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 import urllib.request
+from pathlib import Path
 
 import pytest
 
@@ -37,6 +38,14 @@ def test_served_flows_accept_only_documented_parameters():
     schema = reconstruct_dataset.parameters
     assert set(schema.properties) == {"root", "out", "config", "store"}
     assert set(schema.required) == {"root", "out"}
+    from flows.capture import reconstruct_capture
+
+    schema = reconstruct_capture.parameters
+    assert set(schema.properties) == {"video", "out", "config", "scan", "scan_landmarks", "until",
+                                      "store", "progress", "ipd_mm"}
+    assert set(schema.required) == {"video", "out"}
+    documented = (Path(__file__).parents[1] / "docs" / "deploy.md").read_text()
+    assert "`ipd_mm`" in documented
 
 
 def _free_port() -> int:

@@ -109,8 +109,9 @@ def test_only_transient_faults_are_retried(exc, retried):
 
 
 def test_results_are_exported_only_as_they_were_committed(tmp_path):
-    """A stored result changed after its commit (fx 500 -> 999 in cameras.json) is refused
-    when the capture's files are exported, not handed to the user."""
+    """The output folder shows this run's results only (an earlier run's heat map goes, the
+    user's own files stay); a stored result changed after its commit (fx 500 -> 999 in
+    cameras.json) is refused when exported, not handed to the user."""
     from facecap_core.store import artifact_key
     from flows.capture import _export
 
@@ -118,8 +119,14 @@ def test_results_are_exported_only_as_they_were_committed(tmp_path):
     key = artifact_key("poses", {"video": "input-x"}, {}, "1")
     store.put(key, {"cameras.json": b'{"fx": 500}'}, stage="poses", inputs={"video": "input-x"},
               config={}, version="1")
+    # An earlier run's heat map and preview, which this run (no scan, no mesh) did not make.
+    (tmp_path / "out").mkdir()
+    for stale in ("heatmap_metric.png", "preview.png"):
+        (tmp_path / "out" / stale).write_bytes(b"an earlier run")
+    (tmp_path / "out" / "notes.txt").write_text("the user's own file")
     _export(str(tmp_path / "store"), {"poses": key}, tmp_path / "out")
     assert (tmp_path / "out" / "cameras.json").read_bytes() == b'{"fx": 500}'
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["cameras.json", "notes.txt"]
     (store.get(key) / "cameras.json").write_bytes(b'{"fx": 999}')
     with pytest.raises(CorruptArtifactError, match="cameras.json"):
         _export(str(tmp_path / "store"), {"poses": key}, tmp_path / "again")

@@ -14,7 +14,9 @@ import contextlib
 import logging
 import os
 import shutil
+import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -26,22 +28,32 @@ from facecap_core.pose.colmap_sfm import Poses
 log = logging.getLogger(__name__)
 
 
+_STDERR_LOCK = threading.Lock()
+
+
 @contextlib.contextmanager
 def native_stderr_to_log():
-    """What native code writes to stderr meanwhile goes to this module's log (DEBUG)
-    instead of the user's terminal: pycolmap's bundle adjustment logs its heading through
-    glog whatever ``GLOG_minloglevel`` says (it resets the level on each call)."""
-    with tempfile.TemporaryFile() as sink:
+    """What native code writes to stderr meanwhile goes to this module's log instead of the
+    user's terminal (glog's warnings and errors at WARNING, the rest at DEBUG): pycolmap's
+    bundle adjustment logs its heading through glog whatever ``GLOG_minloglevel`` says (it
+    resets the level on each call). File descriptor 2 is the process's: one redirection at
+    a time."""
+    with _STDERR_LOCK, tempfile.TemporaryFile() as sink:
+        sys.stderr.flush()
         saved = os.dup(2)
         os.dup2(sink.fileno(), 2)
         try:
             yield
         finally:
+            sys.stderr.flush()
             os.dup2(saved, 2)
             os.close(saved)
             sink.seek(0)
             for line in sink.read().decode(errors="replace").splitlines():
-                log.debug("colmap: %s", line)
+                # glog lines start with their severity: I, W, E or F (after a colour code).
+                severity = line.lstrip("\x1b[0123456789;m")[:1]
+                log.log(logging.WARNING if severity in "WEF" and severity else logging.DEBUG,
+                        "colmap: %s", line)
 
 
 def triangulate(observations: np.ndarray, R: list[np.ndarray], t: list[np.ndarray],
