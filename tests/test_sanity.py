@@ -66,3 +66,19 @@ def test_a_surface_pushed_through_another_is_a_self_intersection(sphere):
     fit[north] -= [0, 0, 110.0]
     sanity = check_mesh(fit, faces, vertices)
     assert sanity.self_intersecting_pairs > 0
+
+
+def test_a_fold_the_membrane_leaves_is_moved_with_its_template_triangle(sphere):
+    """Without membrane rounds, a folded triangle is moved as its template triangle is (its
+    three corners share their mean deformation): unfolded, and nothing else moves."""
+    vertices, faces = sphere
+    fit = _smooth_fit(vertices)
+    tri = faces[0]
+    a, b, c = fit[tri]
+    fit[tri[2]] = a + b - c  # the apex reflected through the opposite edge: flipped
+    assert check_mesh(fit, faces, vertices).flipped >= 1
+    relaxed, info = relax_folds(fit, faces, vertices, rounds=0, check_intersections=False)
+    sanity = check_mesh(relaxed, faces, vertices)
+    assert sanity.flipped == 0 and info["snapped_triangles"] >= 1
+    untouched = np.setdiff1d(np.arange(len(fit)), faces[np.any(np.isin(faces, tri), 1)])
+    assert np.array_equal(relaxed[untouched], fit[untouched])
