@@ -41,7 +41,7 @@ VERSIONS = {
     "views": "1",
     "depth": "1",
     "fusion": "1",
-    "fitting": "3",
+    "fitting": "4",
     "evaluation": "1",
 }
 """Algorithm version of each stage: part of every artifact key."""
