@@ -87,13 +87,21 @@ def make_video(path: Path | str, seconds: float, fps: int, width: int, height: i
             turn = int(i * 6 * radius / frames)
             patch = image[cy - radius:cy + radius, cx - radius:cx + radius]
             patch[inside] = disk[:, turn:turn + 2 * radius][inside]
-            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
-            frame.pts = i
-            for packet in stream.encode(frame):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+            _encode(container, stream, image, i)
+        _encode(container, stream, None, None)
     return path
+
+
+def _encode(container, stream, image: np.ndarray | None, pts: int | None) -> None:
+    """One RGB frame into the stream (``None``: flush the encoder)."""
+    import av
+
+    frame = None
+    if image is not None:
+        frame = av.VideoFrame.from_ndarray(image, format="rgb24")
+        frame.pts = pts
+    for packet in stream.encode(frame):
+        container.mux(packet)
 
 
 def _peak_kb(pid: int) -> tuple[int, str] | None:
@@ -191,12 +199,8 @@ def make_face_video(source: Path | str, path: Path | str, seconds: float, fps: i
                 first += 1
             blend = cv2.addWeighted(pair[0], 1 - (x - j), pair[1], x - j, 0)
             big = cv2.resize(blend, (width, height), interpolation=cv2.INTER_CUBIC)
-            frame = av.VideoFrame.from_ndarray(big, format="rgb24")
-            frame.pts = i
-            for packet in stream.encode(frame):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+            _encode(container, stream, big, i)
+        _encode(container, stream, None, None)
     return Path(path)
 
 
