@@ -215,11 +215,13 @@ def _cmd_dataset(args) -> int:
 
 def _cmd_evaluate_dataset(args) -> int:
     _prefect_env()
-    from flows.evaluate import _table, evaluate_dataset
+    from flows.evaluate import _table, evaluate_dataset, scale_error_pct
 
     result = evaluate_dataset(args.root, args.out, store=args.store)
     if result["captures"]:
         print(_table(result["captures"]))
+        print("scale error (the mesh's size against the scan's): " + ", ".join(
+            f"{name} {scale_error_pct(s):+.2f} %" for name, s in sorted(result["captures"].items())))
     print(f"scored {len(result['captures'])}, skipped {len(result['skipped'])} (no scan, scan "
           "landmarks or mesh)")
     for f in result["regressions"]:

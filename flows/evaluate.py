@@ -85,6 +85,7 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
              "accuracy_median": round(s["accuracy"]["median"], 3),
              "completion_mean": round(s["completion"]["mean"], 3),
              "completion_median": round(s["completion"]["median"], 3),
+             "scale_error_pct": scale_error_pct(s),
              "regressed": any(f["capture"] == name for f in flagged)}
             for name, s in sorted(current.items())]
     if rows:
@@ -101,6 +102,12 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
                    payload={"regressions": flagged})
     logger.info(f"scored {len(current)} captures, skipped {len(skipped)} without scan or mesh")
     return {"captures": current, "skipped": skipped, "regressions": flagged}
+
+
+def scale_error_pct(similarity_record: dict) -> float:
+    """How far the mesh's millimetres are off (%): the similarity protocol's alignment scales
+    the mesh by ``scale`` onto the scan, so the mesh is ``1 / scale`` times its true size."""
+    return round(100 * (1 / similarity_record["scale"] - 1), 2)
 
 
 def _table(current: dict) -> str:

@@ -95,3 +95,18 @@ def test_regressions_need_both_tolerances():
     flagged = regressions(current, previous, tolerance_mm=0.05, tolerance_rel=0.05)
     assert flagged == [{"capture": "a/1", "measure": "accuracy median", "previous_mm": 1.0,
                         "now_mm": 1.2}]
+
+
+def test_scale_error_is_the_meshs_size_against_the_scans():
+    """A mesh 2 % too large: the similarity protocol shrinks it by 1/1.02 onto the scan, and
+    the reported scale error is +2 %."""
+    import trimesh
+
+    from facecap_core.evaluation import score, score_json
+    from flows.evaluate import scale_error_pct
+
+    scan = trimesh.creation.icosphere(subdivisions=3, radius=80.0)
+    landmarks = np.asarray(scan.vertices[:68])
+    record = score_json(score(1.02 * scan.vertices, scan.faces, scan.vertices, scan.faces,
+                              landmarks, 1.02 * landmarks, protocol="similarity"))
+    assert scale_error_pct(record) == pytest.approx(2.0, abs=0.01)
