@@ -97,6 +97,13 @@ def eye_distance(landmarks: np.ndarray) -> float:
     return float(np.linalg.norm(left.mean(0) - right.mean(0)))
 
 
+def _log_mean(cues: list[dict]) -> tuple[float, float]:
+    """Inverse-variance mean of the cues' log scales and its relative 1σ."""
+    w = np.array([1 / c["sigma"] ** 2 for c in cues])
+    return float(np.sum(w * np.log([c["mm_per_unit"] for c in cues])) / w.sum()), \
+        float(1 / np.sqrt(w.sum()))
+
+
 def combine_cues(cues: list[dict], agreement_sigmas: float) -> tuple[float, float, list[dict]]:
     """Inverse-variance mean of the cues' log scales: ``(mm per unit, relative 1σ, dropped)``.
 
@@ -107,11 +114,8 @@ def combine_cues(cues: list[dict], agreement_sigmas: float) -> tuple[float, floa
     while len(kept) >= 2:
         worst, worst_z = None, agreement_sigmas
         for cue in kept:
-            others = [c for c in kept if c is not cue]
-            w = np.array([1 / c["sigma"] ** 2 for c in others])
-            mean = float(np.sum(w * np.log([c["mm_per_unit"] for c in others])) / w.sum())
-            z = abs(np.log(cue["mm_per_unit"]) - mean) / np.hypot(cue["sigma"],
-                                                                  1 / np.sqrt(w.sum()))
+            mean, sigma = _log_mean([c for c in kept if c is not cue])
+            z = abs(np.log(cue["mm_per_unit"]) - mean) / np.hypot(cue["sigma"], sigma)
             if z > worst_z:
                 worst, worst_z = cue, z
         if worst is None:
@@ -122,9 +126,8 @@ def combine_cues(cues: list[dict], agreement_sigmas: float) -> tuple[float, floa
         kept.remove(worst)
         dropped.append({**worst, "disagreement_sigmas": round(float(worst_z), 2),
                         "reason": "disagrees with the other cues"})
-    w = np.array([1 / c["sigma"] ** 2 for c in kept])
-    log_scale = float(np.sum(w * np.log([c["mm_per_unit"] for c in kept])) / w.sum())
-    return float(np.exp(log_scale)), float(1 / np.sqrt(w.sum())), dropped
+    log_scale, sigma = _log_mean(kept)
+    return float(np.exp(log_scale)), sigma, dropped
 
 
 def metric_scale(template: Template, landmarks: np.ndarray, ear_ids: np.ndarray,

@@ -510,6 +510,10 @@ _VIEW_DIRS = {  # direction from the centre to the camera, in the data conventio
 }
 
 
+_GREY = 0.62
+"""Albedo of what has no colour of its own in a render (no value, no vertex colour)."""
+
+
 def render_views(vertices: np.ndarray, faces: np.ndarray, albedo, framed: np.ndarray,
                  views: Sequence[str] = ("front", "left", "right"), size: int = 480,
                  centre: np.ndarray | None = None) -> np.ndarray:
@@ -591,7 +595,7 @@ def error_heatmap(vertices: np.ndarray, faces: np.ndarray, per_vertex_mm: np.nda
         raise ValueError(f"per_vertex_mm has {len(e)} values for {len(v)} vertices")
     lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None],
                             cv2.COLORMAP_TURBO)[:, 0, :] / 255.0  # BGR
-    grey = np.array([0.62, 0.62, 0.62])
+    grey = np.full(3, _GREY)
 
     def albedo(tri, bary):
         err = interpolate(e[:, None], f, tri, bary)[:, 0]  # nan if any corner is nan
@@ -620,7 +624,7 @@ def mesh_render(vertices: np.ndarray, faces: np.ndarray, out_png: str | Path,
     v = np.asarray(vertices, float)
     f = np.asarray(faces, np.int64)
     if vertex_colours is None:
-        bgr = np.full((len(v), 3), 0.62)
+        bgr = np.full((len(v), 3), _GREY)
     else:
         bgr = np.asarray(vertex_colours, float)[:, 2::-1] / 255.0
     image = render_views(v, f, lambda tri, bary: interpolate(bgr, f, tri, bary),

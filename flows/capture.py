@@ -270,8 +270,9 @@ def preflight(video: str | Path, config: str | Path | None = None, scan: str | N
     assets.default_template_files()  # fetched once; a damaged copy fails here, not at fitting
     if out is not None:
         check_output_folder(Path(out))
+        results = {(Path(out) / n).resolve() for n in OUTPUT_NAMES}
         for what, path in (("capture", video), ("scan", scan), ("scan landmarks", scan_landmarks)):
-            if path and Path(path).resolve() in {(Path(out) / n).resolve() for n in OUTPUT_NAMES}:
+            if path and Path(path).resolve() in results:
                 raise InputError(f"the {what} {path} would be overwritten by a result of the same "
                                  f"name in the output folder {out}; give another --out")
     return cfg

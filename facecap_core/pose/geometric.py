@@ -52,7 +52,7 @@ def native_stderr_to_log():
             for line in sink.read().decode(errors="replace").splitlines():
                 # glog lines start with their severity: I, W, E or F (after a colour code).
                 severity = line.lstrip("\x1b[0123456789;m")[:1]
-                log.log(logging.WARNING if severity in "WEF" and severity else logging.DEBUG,
+                log.log(logging.WARNING if severity in ("W", "E", "F") else logging.DEBUG,
                         "colmap: %s", line)
 
 
