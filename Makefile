@@ -11,13 +11,17 @@ SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # Shared libraries the wheels need but do not ship (open3d: libusb, libgomp).
 SYSTEM_LIBS := libusb-1.0.so.0:libusb-1.0-0 libgomp.so.1:libgomp1
 
-.PHONY: demo test test-fast install system-libs compose-tool bench clean
+.PHONY: demo test test-fast lint install system-libs compose-tool bench clean
 
 demo: install
 	$(PY) -m flows.cli demo --out out/demo --ict-model "$(ICT_MODEL)"
 
 test: install compose-tool
 	$(PY) -m pytest -q
+
+# Style and static checks (ruff; its rules are in pyproject.toml).
+lint: install
+	$(VENV)/bin/ruff check .
 
 # The edit-test loop: everything but the end-to-end renders and stage runs.
 test-fast: install compose-tool

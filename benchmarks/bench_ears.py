@@ -43,7 +43,10 @@ from facecap_core.camera import camera_center, project  # noqa: E402
 from facecap_core.config import EarTrainingConfig, SynthConfig, load_yaml  # noqa: E402
 from facecap_core.landmarks import ear_training as et  # noqa: E402
 from facecap_core.landmarks.ears import (  # noqa: E402
-    EAR_VERTEX_IDS, detect_ears, model_available, models_dir,
+    EAR_VERTEX_IDS,
+    detect_ears,
+    model_available,
+    models_dir,
 )
 from facecap_core.render import RaycastScene  # noqa: E402
 from facecap_core.synthetic import Room, load_gt_cameras, make_subject  # noqa: E402

@@ -49,9 +49,11 @@ from pathlib import Path
 
 import numpy as np
 
+from tasks.graph import STEPS
+
 ROOT = Path(__file__).resolve().parents[1]
 BAR_GB = 4.0
-STAGES = ("keyframes", "poses", "landmarks", "coarse", "mvs", "fitting", "evaluation")
+STAGES = STEPS  # what --until can stop after
 SYNTH = ["--subject", "ict:3", "--width", "1280", "--height", "720", "--fps", "30",
          "--seconds", "6", "--seed", "0"]
 """The rendered sweep the --face capture is built from (``facecap synth`` options)."""
@@ -332,9 +334,11 @@ def main() -> None:
         f" --pba-width {args.pba_width}" if args.pba_width is not None else "")
     what = ("a face, built from `facecap synth " + " ".join(SYNTH) + "` (upscaled, retimed)"
             if args.face else "an orbit without a face")
-    server = lambda r: "–" if r["server_peak_mb"] is None else r["server_peak_mb"]
+    def server(r):
+        return "–" if r["server_peak_mb"] is None else r["server_peak_mb"]
+
     lines = [
-        f"# Peak memory on a long video\n",
+        "# Peak memory on a long video\n",
         f"`{video.name}`: {args.seconds:g} s, {args.fps} fps, {args.width}x{args.height} "
         f"({int(round(args.seconds * args.fps))} frames, {video.stat().st_size / 1e6:.0f} MB), "
         f"{what}. Each step in a fresh process. own: its peak RSS (VmHWM, polled); server: "

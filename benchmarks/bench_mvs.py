@@ -33,14 +33,14 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from facecap_core.config import SynthConfig
+from facecap_core.config import MVSConfig, SynthConfig
 from facecap_core.evaluation import distances, region_sphere
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.mvs.filtering import filter_with_prior, geometric_filter
 from facecap_core.mvs.fusion import fuse, write_ply
-from facecap_core.mvs.pipeline import MVSConfig, choose_sources, compute_depth_map, sparse_from_mesh
 from facecap_core.mvs.planesweep import plane_sweep
 from facecap_core.mvs.prior import coarse_prior
+from facecap_core.mvs.stage import choose_sources, compute_depth_map, sparse_from_mesh
 from facecap_core.mvs.testing import coarse_from_gt, even_keyframes, gt_depth, load_views
 from facecap_core.mvs.views import visible_points
 from facecap_core.synthetic import load_gt_cameras, synthesize
@@ -103,11 +103,11 @@ def face_samples(V, F, centre, radius, count=20000, seed=0):
 
 def consistent_and_fused(maps, views, config):
     """The geometric-consistency filter and the fusion, as the stage runs them."""
-    geo = geometric_filter(maps, config.min_consistent_views, config.fusion_max_depth_mm,
-                           config.fusion_max_reprojection_px, config.fusion_max_normal_deg)
-    cloud = fuse(geo, [v.rgb for v in views], config.min_consistent_views,
-                 config.fusion_max_depth_mm, config.fusion_max_reprojection_px,
-                 config.fusion_max_normal_deg)
+    f = config.fusion
+    geo = geometric_filter(maps, f.min_consistent_views, f.max_depth_mm, f.max_reprojection_px,
+                           f.max_normal_deg)
+    cloud = fuse(geo, [v.rgb for v in views], f.min_consistent_views, f.max_depth_mm,
+                 f.max_reprojection_px, f.max_normal_deg)
     return geo, cloud
 
 def run_subject(subject, args, config, out):
@@ -120,23 +120,23 @@ def run_subject(subject, args, config, out):
     views = load_views(folder, keyframes, args.proc_width)
     coarse = coarse_from_gt(V, F, seed=zlib.crc32(subject.encode()) % 1000)  # stable per subject
     points, vis = sparse_from_mesh(views, V, F, count=4000)
-    sources = choose_sources(views, points, vis, config)
+    sources = choose_sources(views, points, vis, config.views)
     samples = face_samples(V, F, centre, radius)
     seen = seen_twice(samples, views, V, F)
     rows = {}
 
     # Speed on one core: a few maps one after another on this thread.
     numba.set_num_threads(1)
-    compute_depth_map(views[0], [views[j] for j in sources[0]], coarse, F, config)  # JIT/cache
+    compute_depth_map(views[0], [views[j] for j in sources[0]], coarse, F, config.depth)  # JIT/cache
     mid = len(views) // 2
-    single = [compute_depth_map(views[i], [views[j] for j in sources[i]], coarse, F, config)[0]
+    single = [compute_depth_map(views[i], [views[j] for j in sources[i]], coarse, F, config.depth)[0]
               for i in range(mid - args.speed_maps // 2, mid - args.speed_maps // 2 + args.speed_maps)]
 
     # All keyframes with ``workers`` threads.
     t0 = time.perf_counter()
     with ThreadPoolExecutor(config.workers) as pool:
         res = list(pool.map(lambda i: compute_depth_map(
-            views[i], [views[j] for j in sources[i]], coarse, F, config), range(len(views))))
+            views[i], [views[j] for j in sources[i]], coarse, F, config.depth), range(len(views))))
     t_maps = time.perf_counter() - t0
     raw = [r[0] for r in res]
     filt = [r[1] for r in res]
@@ -160,13 +160,13 @@ def run_subject(subject, args, config, out):
         t0 = time.perf_counter()
 
         def peer(i):
-            prior = coarse_prior(views[i], coarse, F, config.depth_margin_mm,
-                                 config.head_dilation_px)
+            prior = coarse_prior(views[i], coarse, F, config.depth.depth_margin_mm,
+                                 config.depth.head_dilation_px)
             dm = plane_sweep(views[i], [views[j] for j in sources[i]], prior,
-                             config.depth_margin_mm, radius=config.window_radius,
-                             nbest=config.num_best_views)
-            return dm, filter_with_prior(dm, prior, config.max_cost,
-                                         config.coarse_max_distance_mm, config.depth_margin_mm)
+                             config.depth.depth_margin_mm, radius=config.depth.window_radius,
+                             nbest=config.depth.num_best_views)
+            return dm, filter_with_prior(dm, prior, config.depth.max_cost,
+                                         config.depth.coarse_max_distance_mm, config.depth.depth_margin_mm)
 
         with ThreadPoolExecutor(config.workers) as pool:
             pres = list(pool.map(peer, range(len(views))))
@@ -252,12 +252,12 @@ def pipeline_subject(result: Path, config, peer: bool):
 
         def sweep(i):
             prior = coarse_prior(by_index[i], coarse.vertices, coarse.faces,
-                                 config.depth_margin_mm, config.head_dilation_px)
+                                 config.depth.depth_margin_mm, config.depth.head_dilation_px)
             dm = plane_sweep(by_index[i], [all_views[j] for j in sources[i]], prior,
-                             config.depth_margin_mm, radius=config.window_radius,
-                             nbest=config.num_best_views)
-            return dm, filter_with_prior(dm, prior, config.max_cost,
-                                         config.coarse_max_distance_mm, config.depth_margin_mm)
+                             config.depth.depth_margin_mm, radius=config.depth.window_radius,
+                             nbest=config.depth.num_best_views)
+            return dm, filter_with_prior(dm, prior, config.depth.max_cost,
+                                         config.depth.coarse_max_distance_mm, config.depth.depth_margin_mm)
 
         t0 = time.perf_counter()
         with ThreadPoolExecutor(config.workers) as pool:
@@ -277,7 +277,7 @@ def table(results, args, config) -> str:
             "(of the surface seen twice) | points "
             "| s/map 1 core wall | CPU s/map | total s (2 workers) | fuse s |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
-    for subject, (rows, n) in results.items():
+    for subject, (rows, _) in results.items():
         for name, r in rows.items():
             raw, fl, ge, cl = r["raw"], r["filtered"], r["geometric"], r["cloud"]
             lines.append(
@@ -305,10 +305,14 @@ def main(argv=None) -> Path:
     p.add_argument("--pipeline-only", action="store_true",
                    help="skip the run on ground-truth inputs")
     p.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
-                   help="MVSConfig overrides, e.g. --set iterations=6 window_radius=4")
+                   help="MVSConfig overrides, e.g. --set depth.iterations=6 views.num_sources=8")
     args = p.parse_args(argv)
-    overrides = dict(kv.split("=", 1) for kv in args.set)
-    config = MVSConfig(processing_width=args.proc_width, **overrides)
+    sections: dict = {"depth": {"processing_width": args.proc_width}}
+    for kv in args.set:
+        name, value = kv.split("=", 1)
+        section, _, field = name.partition(".")
+        sections.setdefault(section, {})[field] = value
+    config = MVSConfig.model_validate(sections)
     args.out.mkdir(parents=True, exist_ok=True)
     results = {}
     for subject in args.subjects if not args.pipeline_only else ():
@@ -325,8 +329,8 @@ def main(argv=None) -> Path:
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     report = (f"# bench_mvs\n\n{len(args.subjects)} subjects, {args.width}x{args.height} "
               f"captures, {args.keyframes} keyframes, processing width {args.proc_width}, "
-              f"{config.num_sources} sources, {config.iterations} iterations, window radius "
-              f"{config.window_radius} step {config.window_step}, best {config.num_best_views}"
+              f"{config.views.num_sources} sources, {config.depth.iterations} iterations, window radius "
+              f"{config.depth.window_radius} step {config.depth.window_step}, best {config.depth.num_best_views}"
               f" views; {config.workers} workers. Peak RSS {peak_mb:.0f} MB.\n\n"
               f"{table(results, args, config)}\n\n"
               f"Bars: depth median ≤ {BARS['depth_median_mm']} mm, coverage ≥ "

@@ -73,7 +73,7 @@ def _lm_dir(gt: Path, folder: Path) -> Path:
 
 def depth_speedup(store: str, report: dict, maps: int, scratch: Path) -> dict:
     """Seconds for ``maps`` depth maps one at a time and two at a time (same inputs)."""
-    from facecap_core.config import MVSConfig
+    from facecap_core.config import DepthMapConfig
     from facecap_core.mvs.stage import depth_main, read_views
     from tasks.runner import open_store
 
@@ -87,7 +87,7 @@ def depth_speedup(store: str, report: dict, maps: int, scratch: Path) -> dict:
 
     def one(i):
         return depth_main(i, frames, coarse / "cameras.json", views / "views.json",
-                          coarse / "coarse.ply", scratch, MVSConfig())
+                          coarse / "coarse.ply", scratch, DepthMapConfig())
 
     one(pick[0])  # compile and warm the caches first
     t = time.perf_counter()

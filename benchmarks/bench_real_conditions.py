@@ -134,7 +134,9 @@ def report(results: list[dict]) -> str:
              "---:|---:|---:|---:|"]
     for r in results:
         p = r.get("poses") or {}
-        fmt = (lambda k, n: "–" if k not in p else f"{p[k]:.{n}f}")
+        def fmt(k, n, p=p):
+            return "–" if k not in p else f"{p[k]:.{n}f}"
+
         lines.append(
             f"| {r['condition']} | {r.get('frames', '–')} | "
             f"{r.get('reconstruct_rc', r.get('render_rc'))} | {p.get('images', '–')} | "

@@ -16,6 +16,7 @@ offline; it is verified the same way.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import subprocess
@@ -25,7 +26,6 @@ import tempfile
 from pathlib import Path
 
 from facecap_core.errors import FacecapError
-from facecap_core.store import file_digest
 
 MENPO3D_REQUIREMENT = "menpo3d==0.8.6"
 MENPO3D_SDIST = "menpo3d-0.8.6.tar.gz"
@@ -68,6 +68,11 @@ def _download_sdist(dest: Path) -> Path:
             f"could not fetch {MENPO3D_REQUIREMENT} from the package index (pip: {detail}); "
             f"check pip's index settings, or put {MENPO3D_SDIST} into {cached.parent}")
     return sdist
+
+
+def file_digest(path: Path) -> str:
+    with open(path, "rb") as source:
+        return hashlib.file_digest(source, "sha256").hexdigest()
 
 
 def menpo3d_data() -> Path:

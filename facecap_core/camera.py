@@ -17,6 +17,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+CAMERAS_JSON = "cameras.json"
+"""The keyframe cameras of the pose stage (its own units) and of the coarse stage (mm)."""
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -44,7 +47,7 @@ class Intrinsics:
     def horizontal_fov_deg(self) -> float:
         return float(np.degrees(2.0 * np.arctan(self.width / (2.0 * self.fx))))
 
-    def scaled(self, width: int, height: int) -> "Intrinsics":
+    def scaled(self, width: int, height: int) -> Intrinsics:
         """The same camera at another image resolution (distortion is resolution-free)."""
         sx, sy = width / self.width, height / self.height
         # Pixel centres sit at integer coordinates, so the image edge is at -0.5.
@@ -57,7 +60,7 @@ class Intrinsics:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Intrinsics":
+    def from_dict(cls, d: dict) -> Intrinsics:
         return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
 
 

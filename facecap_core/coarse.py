@@ -38,9 +38,14 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from facecap_core.camera import CAMERAS_JSON
 from facecap_core.config import CoarseConfig
 from facecap_core.errors import InputError
+from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_3D
 from facecap_core.template import INNER_LANDMARKS, Template
+
+COARSE_PLY = "coarse.ply"
+COARSE_JSON = "coarse.json"
 
 __all__ = ["main", "weighted_similarity", "robust_similarity", "metric_scale", "combine_cues",
            "eye_distance", "rbf_deform", "coarse_mesh"]
@@ -251,17 +256,20 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     ``ears3d.json`` and ``coarse.json`` into ``out_dir``; returns the path of
     ``coarse.ply``."""
     from facecap_core.landmarks.stage import (
-        EAR_TEMPLATE, load_cameras, load_ears3d, load_landmarks3d,
+        EAR_TEMPLATE,
+        load_cameras,
+        load_ears3d,
+        load_landmarks3d,
     )
 
     config = config or CoarseConfig()
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     landmarks_dir = Path(landmarks_dir)
-    L, landmarks_doc = load_landmarks3d(landmarks_dir / "landmarks3d.json")
+    L, landmarks_doc = load_landmarks3d(landmarks_dir / LANDMARKS_3D)
     if np.sum(np.all(np.isfinite(L[INNER_LANDMARKS]), axis=1)) < 6:
         raise InputError(f"{landmarks_dir / 'landmarks3d.json'} has fewer than 6 inner "
                          "landmarks in 3D: the coarse template needs the face's landmarks")
-    ear_ids, ear_pts, ear_doc = load_ears3d(landmarks_dir / "ears3d.json")
+    ear_ids, ear_pts, ear_doc = load_ears3d(landmarks_dir / EARS_3D)
     ear_sides = np.asarray(ear_doc.get("sides", []), dtype=object).astype(str)
     template = template or Template.default()
     ears_ignored = False
@@ -284,7 +292,7 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    ply = out / "coarse.ply"
+    ply = out / COARSE_PLY
     tmp = out / "coarse.ply.part"
     tmp.write_bytes(trimesh.exchange.ply.export_ply(
         trimesh.Trimesh(V, template.faces, process=False), encoding="binary"))
@@ -294,17 +302,17 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     cam_doc["metric_scale"] = m
     cam_doc["keyframes"] = [{**k, "t": (np.asarray(k["t"], float) * m).tolist()}
                             for k in cams.doc["keyframes"]]
-    _write(out / "cameras.json", cam_doc)
-    _write(out / "landmarks3d.json", {
+    _write(out / CAMERAS_JSON, cam_doc)
+    _write(out / LANDMARKS_3D, {
         "convention": "ibug68", "units": "mm", "template": template.name,
         "from_coarse_mesh": np.flatnonzero(missing).tolist(),
         "coverage": landmarks_doc.get("coverage"),
         "landmarks": np.round(L_out, 6).tolist()})
-    _write(out / "ears3d.json", {"template": template.name, "units": "mm",
+    _write(out / EARS_3D, {"template": template.name, "units": "mm",
                                  "vertex_ids": ear_ids.tolist(),
                                  "points": np.round(ears_mm, 6).tolist(),
                                  "sides": ear_sides.tolist()})
-    _write(out / "coarse.json", {
+    _write(out / COARSE_JSON, {
         "scale": scale_doc, "fit": fit_doc, "ears_used": int(len(ear_ids)),
         "ears_ignored_other_template": ears_ignored, "template": template.name,
         "config": config.model_dump(mode="json"),

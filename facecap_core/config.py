@@ -192,11 +192,11 @@ def load_yaml(model: type[M], path: str | Path, overrides: dict | None = None) -
                          " fix its syntax") from None
     except RecursionError:
         raise InputError(f"config file {path} nests too deeply to be a config; settings are "
-                         "two or three levels deep, such as 'mvs: {iterations: 4}'") from None
+                         "two or three levels deep, such as 'mvs: {depth: {iterations: 4}}'") from None
     values = {} if values is None else values  # an empty file; [] or 0 are not
     if not isinstance(values, dict):
         raise InputError(f"config file {path} must hold a mapping of settings, such as "
-                         "'mvs: {iterations: 4}'")
+                         "'mvs: {depth: {iterations: 4}}'")
     return build(model, {**values, **(overrides or {})}, source=f"config {path}")
 
 
@@ -417,11 +417,10 @@ class FittingConfig(StrictModel):
         return self
 
 
-class MVSConfig(StrictModel):
-    """Dense multi-view stereo: view selection, PatchMatch depth maps, filtering, fusion."""
+class ViewSelectionConfig(StrictModel):
+    """Which keyframes get a depth map and which keyframes each one is matched against
+    (``mvs.views``; the paper's view-selection score)."""
 
-    processing_width: int = Field(640, ge=64, le=4096)
-    """Width (px) the keyframes are resized to before undistortion and matching."""
     num_sources: int = Field(12, ge=1, le=64)
     """Source views per reference view, the best by the view-selection score."""
     max_reference_views: int = Field(40, ge=2, le=4096)
@@ -429,13 +428,20 @@ class MVSConfig(StrictModel):
     each, sources among them. Neighbouring keyframes of a dense sweep see nearly the same
     surface: beyond about 40 maps the cloud gains little, and the stage, the pipeline's
     slowest, grows linearly."""
-    view_theta0_deg: float = Field(10.0, gt=0, lt=90)
+    theta0_deg: float = Field(10.0, gt=0, lt=90)
     """Preferred baseline angle theta0 of the view-selection score."""
-    view_sigma1: float = Field(5.0, gt=0)
+    sigma1: float = Field(5.0, gt=0)
     """Spread (degrees) of the score below theta0."""
-    view_sigma2: float = Field(10.0, gt=0)
+    sigma2: float = Field(10.0, gt=0)
     """Spread (degrees) of the score above theta0."""
 
+
+class DepthMapConfig(StrictModel):
+    """One keyframe's depth map: the search range from the coarse mesh, PatchMatch, and the
+    per-map filter (``mvs.depth``)."""
+
+    processing_width: int = Field(640, ge=64, le=4096)
+    """Width (px) the keyframes are resized to before undistortion and matching."""
     depth_margin_mm: float = Field(8.0, gt=0, le=100)
     """Half-width of the depth search range around the coarse mesh."""
     head_dilation_px: int = Field(6, ge=0, le=100)
@@ -471,17 +477,35 @@ class MVSConfig(StrictModel):
     coarse_max_distance_mm: float = Field(6.0, gt=0)
     """Depths farther than this from the coarse mesh (along the ray) are rejected."""
 
-    fusion_max_depth_mm: float = Field(1.0, gt=0)
-    """Fusion: a source agrees when its depth differs by at most this from the reprojection."""
-    fusion_max_reprojection_px: float = Field(1.0, gt=0)
-    """Fusion: ... and the round trip through its depth lands within this many pixels."""
-    fusion_max_normal_deg: float = Field(30.0, gt=0, le=180)
-    """Fusion: ... and its normal is within this angle."""
-    min_consistent_views: int = Field(2, ge=1)
-    """Fusion: source views that must agree with a reference pixel to make a point."""
 
-    workers: int = Field(2, ge=1, le=256)
-    """Depth maps computed at once (threads; the kernels release the GIL)."""
+class FusionConfig(StrictModel):
+    """The consistency filter across depth maps and their fusion into one cloud
+    (``mvs.fusion``)."""
+
+    max_depth_mm: float = Field(1.0, gt=0)
+    """A source agrees when its depth differs by at most this from the reprojection."""
+    max_reprojection_px: float = Field(1.0, gt=0)
+    """... and the round trip through its depth lands within this many pixels."""
+    max_normal_deg: float = Field(30.0, gt=0, le=180)
+    """... and its normal is within this angle."""
+    min_consistent_views: int = Field(2, ge=1)
+    """Source views that must agree with a reference pixel to make a point."""
+
+
+class MVSConfig(StrictModel):
+    """Dense multi-view stereo: view selection, PatchMatch depth maps, filtering, fusion.
+    Each part is its own stage with its own cache key: a changed fusion setting
+    recomputes no depth map."""
+
+    views: ViewSelectionConfig = ViewSelectionConfig()
+    """View selection."""
+    depth: DepthMapConfig = DepthMapConfig()
+    """Depth maps (one stage run per keyframe)."""
+    fusion: FusionConfig = FusionConfig()
+    """Consistency filter and fusion."""
+    workers: int = Field(2, ge=1, le=16)
+    """Depth maps computed at once by one capture run (threads; the kernels release the
+    GIL). It changes no result, so no artifact depends on it."""
 
 
 class LandmarkConfig(StrictModel):
@@ -693,7 +717,7 @@ class EarTrainingConfig(StrictModel):
 class PipelineConfig(StrictModel):
     """Every stage's settings for one reconstruction (``facecap reconstruct --config``).
 
-    A YAML file holds any subset: ``{mvs: {iterations: 4}, fitting: {use_edges: false}}``;
+    A YAML file holds any subset: ``{mvs: {depth: {iterations: 4}}, fitting: {use_edges: false}}``;
     what it leaves out keeps its default. Each stage's artifact key hashes its own section
     only, so changing one section recomputes that stage and the ones after it."""
 

@@ -45,9 +45,10 @@ subject's left (the convention of facecap's data and of :func:`error_heatmap`'s 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -59,6 +60,8 @@ from facecap_core.camera import Intrinsics, look_at
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.render import RaycastScene, interpolate, shade_lambert, vertex_normals
+
+EVALUATION_JSON = "evaluation.json"
 
 __all__ = [
     "EvaluationConfig", "Alignment", "Stats", "Score", "PROTOCOLS", "INNER_LANDMARKS",
@@ -95,9 +98,6 @@ class EvaluationConfig(BaseModel):
     use_landmarks: bool = True
     """Start ICP from a Umeyama fit of the mesh's landmarks when they are given; when False
     they are ignored and ICP starts from the identity."""
-
-    heatmap_max_mm: float = Field(5.0, gt=0)
-    """Error mapped to the top of the heat-map colour scale, in mm."""
 
     icp_margin: float = Field(1.1, ge=1)
     """ICP uses mesh vertices inside the face sphere enlarged by this factor, so that vertices
@@ -374,7 +374,7 @@ class Stats:
     count: int
 
     @classmethod
-    def of(cls, d: np.ndarray) -> "Stats":
+    def of(cls, d: np.ndarray) -> Stats:
         """Statistics of the finite distances in ``d`` (nan everywhere when there are none)."""
         d = np.asarray(d, float)
         d = d[np.isfinite(d)]
@@ -675,7 +675,9 @@ def evaluate_stage(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Pa
     (:func:`score_json` per protocol) and ``heatmap_<protocol>.png``; returns the JSON."""
     import json
 
-    mesh_path = Path(mesh_dir) / "mesh.ply"
+    from facecap_core.fitting.run import MESH_PLY
+
+    mesh_path = Path(mesh_dir) / MESH_PLY
     scan_path = find_file(scan_dir, (".ply", ".obj", ".stl", ".off"), "scan mesh")
     lm_path = (find_file(scan_landmarks, (".json", ".ljson", ".txt", ".pts"), "scan landmarks")
                if scan_landmarks is not None else None)
@@ -697,6 +699,6 @@ def evaluate_stage(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Pa
     for name, sc in scores.items():
         error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces, sc.accuracy_per_vertex,
                       out / f"heatmap_{name}.png")
-    path = out / "evaluation.json"
+    path = out / EVALUATION_JSON
     path.write_text(json.dumps({p: score_json(s) for p, s in scores.items()}, indent=1))
     return path

@@ -22,6 +22,8 @@ from facecap_core.camera import read_cameras_json
 from facecap_core.errors import InputError
 from facecap_core.video import iter_frames
 
+FRAMES_JSON = "frames.json"
+
 
 def frame_name(index: int) -> str:
     return f"frame_{int(index):06d}.png"
@@ -48,7 +50,7 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path) -> Pa
     if size != (cams.intrinsics.width, cams.intrinsics.height):
         raise InputError(f"{video} decodes at {size[0]}x{size[1]} but the cameras are for "
                          f"{cams.intrinsics.width}x{cams.intrinsics.height}")
-    path = out / "frames.json"
+    path = out / FRAMES_JSON
     path.write_text(json.dumps({"frame_indices": written, "width": size[0], "height": size[1]}))
     return path
 

@@ -117,7 +117,7 @@ class HeadMotionProbe:
     ratios: list[float] = field(default_factory=list)  # outside / face median motion
 
     @classmethod
-    def for_video(cls, frame_count: int, fps: float, windows: int = 12) -> "HeadMotionProbe":
+    def for_video(cls, frame_count: int, fps: float, windows: int = 12) -> HeadMotionProbe:
         span = max(2, int(round(0.2 * (fps or 30))))  # a fifth of a second
         last = max(1, (frame_count or 30 * windows) - span - 1)
         return cls(set(np.linspace(0, last, windows).astype(int).tolist()), span)

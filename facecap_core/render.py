@@ -121,5 +121,6 @@ def shade_lambert(albedo: np.ndarray, normals: np.ndarray, view_dirs: np.ndarray
         if specular > 0:
             h = direction + view_dirs
             h /= np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
-            spec = spec + intensity * specular * np.clip(np.sum(n * h, -1, keepdims=True), 0, None) ** shininess * (ndl > 0)
+            highlight = np.clip(np.sum(n * h, -1, keepdims=True), 0, None) ** shininess
+            spec = spec + intensity * specular * highlight * (ndl > 0)
     return albedo * diffuse + spec

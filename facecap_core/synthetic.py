@@ -40,10 +40,10 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -51,16 +51,30 @@ import trimesh
 from scipy import ndimage
 
 from facecap_core.camera import (
-    Intrinsics, distort, look_at, pixel_rays, project, rotation_matrix,
+    Intrinsics,
+    distort,
+    look_at,
+    pixel_rays,
+    project,
+    rotation_matrix,
 )
 from facecap_core.config import SynthConfig, dump_yaml
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_landmarks, load_mesh, save_landmarks
 from facecap_core.render import (
-    NO_HIT, Hits, RaycastScene, interpolate, shade_lambert, vertex_normals,
+    NO_HIT,
+    Hits,
+    RaycastScene,
+    interpolate,
+    shade_lambert,
+    vertex_normals,
 )
 from facecap_core.template import (
-    ICT_EYE_MATERIALS, head_frame, ict_faces_of, ict_identity_vertices, ict_skin_faces,
+    ICT_EYE_MATERIALS,
+    head_frame,
+    ict_faces_of,
+    ict_identity_vertices,
+    ict_skin_faces,
     load_ict_model,
 )
 
@@ -430,7 +444,7 @@ class Room:
     textures: list[np.ndarray]
 
     @classmethod
-    def random(cls, rng: np.random.Generator, plain: bool = False) -> "Room":
+    def random(cls, rng: np.random.Generator, plain: bool = False) -> Room:
         lo = np.array([-rng.uniform(1500, 2200), -rng.uniform(1100, 1400), -rng.uniform(1500, 2500)])
         hi = np.array([rng.uniform(1500, 2200), rng.uniform(1300, 1700), rng.uniform(1500, 2500)])
         boxes = [(lo, hi, True)]

@@ -128,7 +128,7 @@ class Template:
     def to_trimesh(self) -> trimesh.Trimesh:
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
 
-    def with_vertices(self, vertices: np.ndarray) -> "Template":
+    def with_vertices(self, vertices: np.ndarray) -> Template:
         """The same topology, landmarks and regions with new vertex positions."""
         return Template(vertices, self.faces, self.landmarks, self.regions, self.name)
 
@@ -136,7 +136,7 @@ class Template:
 
     @classmethod
     def from_files(cls, mesh_path: str | Path, landmarks_path: str | Path,
-                   scale: float = 1.0, name: str | None = None) -> "Template":
+                   scale: float = 1.0, name: str | None = None) -> Template:
         """Mesh (PLY/OBJ) + landmarks: JSON ``{"vertex_ids": [68 ints]}`` or 68 points
         (snapped to the nearest vertices). ``scale`` converts the mesh's units to mm."""
         mesh = load_mesh(mesh_path, what="template mesh")
@@ -154,7 +154,7 @@ class Template:
         return cls(vertices, mesh.faces, ids, name=name or Path(mesh_path).stem)
 
     @classmethod
-    def default(cls) -> "Template":
+    def default(cls) -> Template:
         """menpo3d's face-and-ears template (Basel topology), converted from µm to mm."""
         from facecap_core import assets
 
@@ -162,7 +162,7 @@ class Template:
         return cls.from_files(mesh_path, lm_path, scale=1e-3, name="menpo3d-bfm")
 
     @classmethod
-    def from_ict(cls, npz_path: str | Path, coefficients: np.ndarray | None = None) -> "Template":
+    def from_ict(cls, npz_path: str | Path, coefficients: np.ndarray | None = None) -> Template:
         """Skin (face + head-and-neck) of an ICT Face Model identity, in mm."""
         model = load_ict_model(npz_path)
         vertices = ict_identity_vertices(model, coefficients)

@@ -1,10 +1,10 @@
 """``reconstruct-capture``: one video in, a metric mesh in template topology out.
 
-The flow chains the stage tasks over the artifact store (every stage cached by content:
-rerunning computes nothing, a changed parameter recomputes only the stages after it), fans
-the depth maps out over a thread pool (the PatchMatch kernels release the GIL, so two
-threads use both cores of a worker without a second process or API server), and exports
-the results to ``out``::
+The flow runs the rows of the stage graph (:mod:`tasks.graph`) over the artifact store
+(every stage cached by content: rerunning computes nothing, a changed setting recomputes
+only the stages that read it and those after them), fans the depth maps out over threads
+(the PatchMatch kernels release the GIL, so ``mvs.workers`` threads use that many cores of
+a worker without a second process or API server), and exports the results to ``out``::
 
     mesh.ply, mesh.obj      fitted mesh (mm, template topology, per-vertex colour)
     cameras.json            metric cameras (mm) of the keyframes; colmap/ the pose stage's
@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from datetime import datetime, timezone
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Literal
 
@@ -29,18 +29,24 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from facecap_core.config import PipelineConfig, load_pipeline_config
 from facecap_core.errors import InputError
-from facecap_core.mvs.stage import (
-    DEPTH_FIELDS, FUSION_FIELDS, VIEW_FIELDS, config_part, read_views,
+from tasks.graph import (
+    BY_NAME,
+    EXPORTED,
+    OUTPUT_NAMES,
+    STEPS,
+    Stage,
+    capture_input_name,
+    producer,
+    stages_until,
 )
 from tasks.runner import default_store_url, open_store
-from tasks.stages import (
-    call_ingest, call_stage, capture_input_name, coarse_task, depth_task, evaluation_task, fitting_task,
-    frames_task, fusion_task, keyframes_task, landmarks_task, poses_task, views_task,
-)
+from tasks.stages import call_ingest, call_stage
 
-STAGES = ("keyframes", "poses", "landmarks", "coarse", "mvs", "fitting", "evaluation")
-"""Stages ``until`` can stop after, in order."""
-Stage = Literal["keyframes", "poses", "landmarks", "coarse", "mvs", "fitting", "evaluation"]
+Step = Literal[STEPS]
+"""What ``until`` can stop after, in order: the steps of the stage graph."""
+MAX_WORKERS = 16
+"""Threads of a capture run's task runner: the most depth maps ``mvs.workers`` can ask for
+at once."""
 
 
 def capture_name(video: str | Path) -> tuple[str, str]:
@@ -56,35 +62,83 @@ def _run_name() -> str:
     return f"{subject}/{capture}"
 
 
-def _mvs_fan_out(store: str, inputs: dict, config: dict, indices: list[int], label: str,
-                 progress: bool) -> dict[int, str]:
-    """One depth task per keyframe, ``workers`` at a time; a progress artifact in the UI."""
+class _StoredFolders(Mapping):
+    """Input folders fetched from the store only when read (a fan-out reads one of them)."""
+
+    def __init__(self, store: str, inputs: dict[str, str]):
+        self._store, self._inputs = open_store(store), inputs
+
+    def __getitem__(self, name: str) -> Path:
+        return self._store.get(self._inputs[name])
+
+    def __iter__(self):
+        return iter(self._inputs)
+
+    def __len__(self) -> int:
+        return len(self._inputs)
+
+
+def _inputs(stage: Stage, keys: dict[str, str]) -> dict[str, str] | None:
+    """The stage's input keys, or None when a required input is missing (no scan given)."""
+    inputs = {}
+    for name in stage.inputs + stage.optional:
+        source = producer(name)
+        fanned = source in BY_NAME and BY_NAME[source].per_keyframe
+        items = {k: v for k, v in keys.items() if fanned and k.startswith(f"{source}_")}
+        if source in keys:
+            inputs[name] = keys[source]
+        elif items:  # a per-keyframe stage: every keyframe's artifact
+            inputs.update(items)
+        elif name in stage.inputs:
+            return None
+    return inputs
+
+
+def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: dict, label: str,
+             workers: int, progress: bool) -> dict[str, tuple[str, bool]]:
+    """One task per keyframe, at most ``workers`` at once; a progress artifact in the UI."""
     from prefect.artifacts import create_progress_artifact, update_progress_artifact
     from tqdm import tqdm
 
-    artifact = create_progress_artifact(0.0, description=f"depth maps of {label}")
-    futures = {i: call_stage(depth_task, store, inputs, {**config, "_index": i}, label,
-                             submit=True) for i in indices}
-    keys = {}
-    bar = tqdm(total=len(indices), desc="depth maps", unit="map", disable=not progress)
-    for i, future in futures.items():
-        keys[i] = future.result()
+    indices = stage.per_keyframe(_StoredFolders(store, inputs))
+    artifact = create_progress_artifact(0.0, description=f"{stage.name} of {label}")
+    bar = tqdm(total=len(indices), desc=f"{stage.name} maps", unit="map",
+               disable=not progress)
+    pending, results = list(indices), {}
+    running: list[tuple[int, object]] = []
+    while pending or running:
+        while pending and len(running) < workers:
+            i = pending.pop(0)
+            running.append((i, call_stage(stage.name, store, inputs, config, label,
+                                          params={"index": i}, submit=True)))
+        i, future = running.pop(0)
+        results[stage.row_name({"index": i})] = tuple(future.result())
         bar.update()
-        update_progress_artifact(artifact, 100.0 * len(keys) / len(indices))
+        update_progress_artifact(artifact, 100.0 * len(results) / len(indices))
     bar.close()
-    return keys
+    return results
 
 
-EXPORTED = {
-    "poses": ["cameras.json", "points.ply", "colmap/cameras.txt", "colmap/images.txt",
-              "colmap/points3D.txt"],
-    "coarse": ["cameras.json", "landmarks3d.json", "ears3d.json", "coarse.ply", "coarse.json"],
-    "fusion": ["cloud.ply"],
-    "fitting": ["mesh.ply", "mesh.obj", "fit.json"],
-    "evaluation": ["evaluation.json", "heatmap_similarity.png", "heatmap_metric.png"],
-}
-"""The files of each stage copied into the output folder (besides report.json, preview.png)."""
-OUTPUT_NAMES = {n for names in EXPORTED.values() for n in names} | {"report.json", "preview.png"}
+def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str,
+               stages: Iterable[Stage], progress: bool = False) -> dict[str, tuple[str, bool]]:
+    """Run ``stages`` in graph order (inside a flow). ``keys`` holds the artifacts at hand
+    (raw inputs by name, earlier stages) and receives the new ones; a stage whose required
+    input is missing (the evaluation without a scan) is skipped. Returns ``{report row:
+    (key, computed)}``."""
+    runs: dict[str, tuple[str, bool]] = {}
+    for stage in stages:
+        inputs = _inputs(stage, keys)
+        if inputs is None:
+            continue
+        config = stage.config_data(cfg)
+        if stage.per_keyframe:
+            items = _fan_out(stage, store, inputs, config, label, cfg.mvs.workers, progress)
+            keys.update({row: key for row, (key, _) in items.items()})
+            runs.update(items)
+        else:
+            runs[stage.name] = call_stage(stage.name, store, inputs, config, label)
+            keys[stage.name] = runs[stage.name][0]
+    return runs
 
 
 def _export(store: str, keys: dict[str, str], out: Path) -> None:
@@ -111,24 +165,22 @@ def _export(store: str, keys: dict[str, str], out: Path) -> None:
         (out / name).unlink(missing_ok=True)
 
 
-def _stage_report(store: str, keys: dict[str, str], started: datetime) -> dict:
-    """Per stage: its key, whether this run found it in the store (committed before the run
-    started), and the seconds its computation took."""
+def _stage_report(store: str, runs: dict[str, tuple[str, bool]]) -> dict:
+    """Per stage: its key, whether this run reused it (the task's own word) and the seconds
+    its computation took (whichever run computed it)."""
     st, report = open_store(store), {}
-    for name, key in keys.items():
-        manifest = st.manifest(key)
-        report[name] = {"key": key,
-                        "cached": datetime.fromisoformat(manifest.created) < started,
-                        "seconds": manifest.meta.get("seconds"),
-                        "cpu_seconds": manifest.meta.get("cpu_seconds")}
+    for name, (key, computed) in runs.items():
+        meta = st.manifest(key).meta
+        report[name] = {"key": key, "cached": not computed, "seconds": meta.get("seconds"),
+                        "cpu_seconds": meta.get("cpu_seconds")}
     return report
 
 
 @flow(name="reconstruct-capture", flow_run_name=_run_name, log_prints=True,
-      task_runner=ThreadPoolTaskRunner(max_workers=2))
+      task_runner=ThreadPoolTaskRunner(max_workers=MAX_WORKERS))
 def reconstruct_capture(video: str, out: str, config: str | None = None,
                         scan: str | None = None, scan_landmarks: str | None = None,
-                        until: Stage = "evaluation", store: str | None = None,
+                        until: Step = "evaluation", store: str | None = None,
                         progress: bool = False, ipd_mm: float | None = None) -> dict:
     """Reconstruct one capture; returns the report (also written to ``out/report.json``).
 
@@ -144,32 +196,13 @@ def reconstruct_capture(video: str, out: str, config: str | None = None,
     out_dir.mkdir(parents=True, exist_ok=True)
     subject, capture = capture_name(video)
     label = f"{subject}/{capture}"
-    keys: dict[str, str] = {}
-    now = datetime.now(timezone.utc)
-    started = now.replace(microsecond=now.microsecond // 1000 * 1000)  # manifests keep ms
-
-    def stop(stage: str) -> bool:
-        return STAGES.index(stage) >= STAGES.index(until)
-
-    v = call_ingest(store, video, capture_input_name(video), label)
-    keys["keyframes"] = call_stage(keyframes_task, store, {"video": v},
-                                   cfg.keyframes.model_dump(mode="json"), label)
-    if not stop("keyframes"):
-        keys["poses"] = call_stage(poses_task, store, {"video": v, "keyframes": keys["keyframes"]},
-                                   cfg.poses.model_dump(mode="json"), label)
-    if not stop("poses"):
-        keys["frames"] = call_stage(frames_task, store, {"video": v, "poses": keys["poses"]}, {},
-                                    label)
-        keys["landmarks"] = call_stage(landmarks_task, store, {"video": v, "poses": keys["poses"]},
-                                       cfg.landmarks.model_dump(mode="json"), label)
-    if not stop("landmarks"):
-        keys["coarse"] = call_stage(coarse_task, store, {"landmarks": keys["landmarks"],
-                                                         "poses": keys["poses"]},
-                                    cfg.coarse.model_dump(mode="json"), label)
-    if not stop("coarse"):
-        dense_and_fit(store, keys, cfg, label, until, scan, scan_landmarks, progress)
+    keys = {"video": call_ingest(store, video, capture_input_name(video), label)}
+    for name, path in (("scan", scan), ("scan_landmarks", scan_landmarks)):
+        if path:
+            keys[name] = call_ingest(store, path, Path(path).name, label)
+    runs = run_stages(store, keys, cfg, label, stages_until(until), progress)
     _export(store, keys, out_dir)
-    stages = _stage_report(store, keys, started)
+    stages = _stage_report(store, runs)
     cached = sum(info["cached"] for info in stages.values())
     report = {
         "subject": subject, "capture": capture, "video": str(video), "store": store,
@@ -314,38 +347,3 @@ def check_output_folder(folder: Path) -> None:
         reason = exc.strerror or type(exc).__name__
         raise InputError(f"cannot write to the output folder {folder} ({reason}); choose a "
                          "writable folder with free space (--out)") from None
-
-
-def dense_and_fit(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str,
-                  until: str = "evaluation", scan: str | None = None,
-                  scan_landmarks: str | None = None, progress: bool = False) -> dict[str, str]:
-    """The stages after the coarse mesh (inside a flow): views, depth maps (fanned out),
-    fusion, fitting, evaluation. ``keys`` holds the ``frames``, ``poses`` and ``coarse``
-    artifacts and receives the new ones."""
-    st = open_store(store)
-
-    def stop(stage: str) -> bool:
-        return STAGES.index(stage) >= STAGES.index(until)
-
-    base = {"frames": keys["frames"], "coarse": keys["coarse"]}
-    keys["views"] = call_stage(views_task, store, {**base, "poses": keys["poses"]},
-                               config_part(cfg.mvs, VIEW_FIELDS), label)
-    indices = sorted(read_views(st.get(keys["views"]) / "views.json"))
-    depth = _mvs_fan_out(store, {**base, "views": keys["views"]},
-                         config_part(cfg.mvs, DEPTH_FIELDS), indices, label, progress)
-    keys.update({f"depth_{i:05d}": k for i, k in depth.items()})
-    keys["fusion"] = call_stage(
-        fusion_task, store, {**base, **{f"depth_{i:05d}": k for i, k in depth.items()}},
-        config_part(cfg.mvs, FUSION_FIELDS), label)
-    if stop("mvs"):
-        return keys
-    keys["fitting"] = call_stage(fitting_task, store, {
-        "fusion": keys["fusion"], "coarse": keys["coarse"], "frames": keys["frames"]},
-        cfg.fitting.model_dump(mode="json"), label)
-    if stop("fitting") or not scan:
-        return keys
-    inputs = {"mesh": keys["fitting"], "scan": call_ingest(store, scan, Path(scan).name)}
-    if scan_landmarks:
-        inputs["scan_landmarks"] = call_ingest(store, scan_landmarks, Path(scan_landmarks).name)
-    keys["evaluation"] = call_stage(evaluation_task, store, inputs, {}, label)
-    return keys

@@ -13,8 +13,6 @@ from pathlib import Path
 
 from facecap_core.errors import FacecapError
 
-_STAGES = ("keyframes", "poses", "landmarks", "coarse", "mvs", "fitting", "evaluation")
-
 
 def _cmd_assets(args) -> int:
     from facecap_core import assets
@@ -281,6 +279,8 @@ def _cmd_demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from tasks.graph import STEPS
+
     p = argparse.ArgumentParser(
         prog="facecap",
         description="Metric 3D face meshes from one handheld phone video, and the tools to "
@@ -323,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "folder of photos of it (JPEG/PNG/HEIC, one camera, any order)")
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--config", help="PipelineConfig YAML (any subset of the stages' settings)")
-    r.add_argument("--until", choices=list(_STAGES), default="evaluation",
+    r.add_argument("--until", choices=list(STEPS), default="evaluation",
                    help="last stage to run")
     r.add_argument("--ipd-mm", type=float, help="the subject's interpupillary distance in mm "
                                                  "as an optician measures it (far PD): a scale "

@@ -9,14 +9,14 @@ grows by more than ``tolerance_mm`` and ``tolerance_rel``.
 from __future__ import annotations
 
 import json
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from prefect import flow, get_run_logger
 
 from facecap_core.dataset import inside, scan_dataset
 from tasks.runner import default_store_url
-from tasks.stages import call_ingest, call_stage, evaluation_task
+from tasks.stages import call_ingest, call_stage
 
 
 def _run_name() -> str:
@@ -68,12 +68,12 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
                   "scan": call_ingest(store, entry.scan, entry.scan.name, name),
                   "scan_landmarks": call_ingest(store, entry.scan_landmarks,
                                                 entry.scan_landmarks.name, name)}
-        key = call_stage(evaluation_task, store, inputs, {}, name)
+        key, _ = call_stage("evaluation", store, inputs, {}, name)
         from tasks.runner import open_store
 
         doc = json.loads((open_store(store).get(key) / "evaluation.json").read_text())
         current[name] = doc["similarity"]
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
     history = out_root / "evaluations"
     history.mkdir(parents=True, exist_ok=True)
     previous = previous_evaluation(history, stamp)

@@ -1,15 +1,14 @@
 """How every stage task runs: content-addressed, locked, stored atomically, retried only
 when the fault is transient.
 
-A stage is identified by its name, the keys of its input artifacts, its config (JSON) and an
-explicit algorithm version (:data:`VERSIONS`). Together they make the artifact key
-(:func:`facecap_core.store.artifact_key`), which is also the Prefect cache key: a stage whose
-artifact is in the store is never computed again, by any run on any worker. Bump a stage's
-version when its algorithm changes the output.
+A stage call is identified by its row in the stage graph (:mod:`tasks.graph`: name and
+version), the keys of its input artifacts, its config section (JSON) and its params. Together
+they make the artifact key. The store is the only cache: a stage whose artifact is stored is
+never computed again, by any run on any worker, and :func:`run_stage` says whether it
+computed.
 
-A stage body is a function ``compute(folders, out_dir, config)`` where ``folders`` maps each
-input name to a local folder holding that input artifact; it writes its files into
-``out_dir``, which is then put into the store in one atomic step.
+A stage body writes its files into a scratch folder, which is then put into the store in one
+atomic step.
 """
 
 from __future__ import annotations
@@ -24,33 +23,11 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
 
+from facecap_core.assets import facecap_home
 from facecap_core.errors import FacecapError, InputError
-from facecap_core.store import (
-    ArtifactStore, CorruptArtifactError, StoreWriteError, artifact_key, input_key,
-)
-
-VERSIONS = {
-    "input": "1",
-    "keyframes": "2",
-    "poses": "2",
-    "frames": "1",
-    "landmarks": "2",
-    "coarse": "3",
-    "views": "1",
-    "depth": "1",
-    "fusion": "1",
-    "fitting": "4",
-    "evaluation": "1",
-}
-"""Algorithm version of each stage: part of every artifact key."""
-
-Compute = Callable[[dict[str, Path], Path, dict], None]
-
-
-def facecap_home() -> Path:
-    return Path(os.environ.get("FACECAP_HOME", Path.home() / ".cache" / "facecap"))
+from tasks.graph import INPUT_VERSION, Stage
+from tasks.store import ArtifactStore, CorruptArtifactError, StoreWriteError, input_key
 
 
 def default_store_url() -> str:
@@ -60,23 +37,6 @@ def default_store_url() -> str:
 
 def open_store(url: str) -> ArtifactStore:
     return ArtifactStore(url)
-
-
-def stage_key(stage: str, inputs: dict[str, str], config: dict | None) -> str:
-    """The artifact key (= Prefect cache key) of a stage call."""
-    if stage not in VERSIONS:
-        raise ValueError(f"unknown stage {stage!r}")
-    return artifact_key(stage, inputs, config, stage_version(stage))
-
-
-def stage_version(stage: str) -> str:
-    """:data:`VERSIONS` of ``stage``, with the digest of the trained model it reads (the ear
-    model can be retrained, or replaced through ``$FACECAP_EAR_MODELS``)."""
-    if stage == "landmarks":
-        from facecap_core.landmarks.ears import model_digest
-
-        return f"{VERSIONS[stage]}+ears-{model_digest()}"
-    return VERSIONS[stage]
 
 
 def _lock_dir(store: ArtifactStore) -> Path:
@@ -109,21 +69,22 @@ def _scratch() -> Path:
     return folder
 
 
-def run_stage(store_url: str, stage: str, inputs: dict[str, str], config: dict | None,
-              compute: Compute) -> tuple[str, bool]:
+def run_stage(store_url: str, stage: Stage, inputs: dict[str, str], config: dict | None,
+              params: dict | None = None) -> tuple[str, bool]:
     """Make the stage's artifact unless it is stored; returns ``(key, computed)``."""
     store = open_store(store_url)
-    key = stage_key(stage, inputs, config)
+    key = stage.key(inputs, config, params)
     if store.exists(key):
         return key, False
+    model = stage.config_model(config)  # a bad config fails before any lock or download
     with key_lock(store, key):
         if store.exists(key):  # another run made it while we waited
             return key, False
         folders = {name: store.get(k) for name, k in inputs.items()}
-        work = Path(tempfile.mkdtemp(prefix=f"{stage}-", dir=_scratch()))
+        work = Path(tempfile.mkdtemp(prefix=f"{stage.name}-", dir=_scratch()))
         try:
             wall, cpu = time.perf_counter(), time.process_time()
-            compute(folders, work, config or {})
+            stage.compute(folders, work, model, params or {})
             meta = {"seconds": round(time.perf_counter() - wall, 3),
                     "cpu_seconds": round(time.process_time() - cpu, 3),
                     "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -131,10 +92,10 @@ def run_stage(store_url: str, stage: str, inputs: dict[str, str], config: dict |
             files = {p.relative_to(work).as_posix(): p
                      for p in sorted(work.rglob("*")) if p.is_file()}
             if not files:
-                raise FacecapError(f"stage {stage} wrote no files")
-            inject_fault(stage, work)
-            store.put(key, files, stage=stage, inputs=inputs, config=config,
-                      version=stage_version(stage), meta=meta)
+                raise FacecapError(f"stage {stage.name} wrote no files")
+            inject_fault(stage.name, work)
+            store.put(key, files, stage=stage.name, inputs=inputs, config=config,
+                      version=stage.full_version(), meta={**meta, **(params or {})})
         finally:
             shutil.rmtree(work, ignore_errors=True)
     return key, True
@@ -190,7 +151,7 @@ def ingest(store_url: str, path: str | os.PathLike, name: str) -> str:
         with key_lock(store, key):
             inject_fault("input", path)
             store.put(key, files, stage="input", inputs={}, config=None,
-                      version=VERSIONS["input"], meta={"source": path.name})
+                      version=INPUT_VERSION, meta={"source": path.name})
     return key
 
 

@@ -31,8 +31,8 @@ import numpy as np
 import pytest
 
 from facecap_core.camera import look_at
-from facecap_core.store import ArtifactStore, artifact_key
 from flows.cli import main
+from tasks.store import ArtifactStore, artifact_key
 from tests.media import write_video
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -254,8 +254,8 @@ CORPUS = {
     "larger than 8K (8448x4752)": (lambda m, t, k: ["reconstruct", m["over_8k"]],
                                    ["8448x4752", "larger than 8k", "record at 8k or less"]),
     "config: NaN": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                     _config(t, "mvs: {sigma_color: .nan}\n")],
-                    ["mvs.sigma_color", "finite number", "correct or remove"]),
+                                     _config(t, "mvs: {depth: {sigma_color: .nan}}\n")],
+                    ["mvs.depth.sigma_color", "finite number", "correct or remove"]),
     "config: NaN in a list": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                                                _config(t, "fitting: {stiffness: [.nan, 1]}\n")],
                               ["fitting.stiffness.0", "finite number"]),
@@ -263,8 +263,8 @@ CORPUS = {
                                           _config(t, "coarse: {rbf_kernel_mm: .inf}\n")],
                          ["coarse.rbf_kernel_mm", "finite number"]),
     "config: negative value": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                                _config(t, "mvs: {iterations: -3}\n")],
-                               ["mvs.iterations", "greater than or equal to 1"]),
+                                                _config(t, "mvs: {depth: {iterations: -3}}\n")],
+                               ["mvs.depth.iterations", "greater than or equal to 1"]),
     "config: unknown key": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                                              _config(t, "fitting: {stifness: [1.0]}\n")],
                             ["fitting.stifness", "extra inputs are not permitted",
@@ -285,10 +285,10 @@ CORPUS = {
                                                _config(t, "- mvs\n- fitting\n")],
                               ["must hold a mapping"]),
     "config: Latin-1": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                         _config_bytes(t, b"mvs: {iterations: 4} # caf\xe9\n")],
+                                         _config_bytes(t, b"mvs: {depth: {iterations: 4}} # caf\xe9\n")],
                         ["not UTF-8", "save it as UTF-8"]),
     "config: UTF-16": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                        _config_bytes(t, "mvs: {iterations: 4}\n".encode("utf-16"))],
+                                        _config_bytes(t, "mvs: {depth: {iterations: 4}}\n".encode("utf-16"))],
                        ["not UTF-8"]),
     "config: nested 20,000 deep": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                                                     _config(t, "a: " + "[" * 20000 + "]" * 20000)],
@@ -363,8 +363,8 @@ def test_read_only_output_folder(media, kept, tmp_path):
 def test_8k_is_accepted_and_streamed_at_processing_width(media, tmp_path):
     """8K passes the preflight checks; the stages read it one frame at a time at their own
     processing width (the 2-frame file needs ``min_frames: 2``)."""
-    from flows.capture import preflight
     from facecap_core.video import iter_frames
+    from flows.capture import preflight
 
     config = _config(tmp_path, "keyframes: {min_frames: 2}\n")
     cfg = preflight(media["8k"], config, out=tmp_path / "out")
@@ -414,7 +414,7 @@ def test_refused_by_a_stage(case, media, kept, tmp_path, capfd, prefect_server):
 def test_full_disk(media, kept, capfd, monkeypatch, prefect_server):
     """The store's disk fills up (ENOSPC on every write): one line, not retried, nothing
     half-written left in the store."""
-    from facecap_core.store import ArtifactStore as Store
+    from tasks.store import ArtifactStore as Store
 
     def disk_full(path, chunks):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
@@ -540,7 +540,7 @@ def test_credentials_come_only_from_the_environment():
     for function in entry_points:
         names = [p.lower() for p in inspect.signature(function).parameters]
         assert not [n for n in names if any(s in n for s in secretive)], function
-    source = (ROOT / "facecap_core" / "store.py").read_text()
+    source = (ROOT / "tasks" / "store.py").read_text()
     assert "url_to_fs(text)" in source  # no storage options: nothing but the URL is passed
 
 

@@ -2,8 +2,15 @@ import cv2
 import numpy as np
 
 from facecap_core.camera import (
-    Intrinsics, camera_center, distort, look_at, pixel_rays, project, rotation_angle_deg,
-    rotation_matrix, undistort,
+    Intrinsics,
+    camera_center,
+    distort,
+    look_at,
+    pixel_rays,
+    project,
+    rotation_angle_deg,
+    rotation_matrix,
+    undistort,
 )
 
 INTR = Intrinsics(640, 360, 500.0, 502.0, 321.3, 178.9, k1=0.08, k2=-0.02)

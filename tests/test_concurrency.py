@@ -19,9 +19,15 @@ from pathlib import Path
 import pytest
 
 from facecap_core.config import PipelineConfig
-from facecap_core.store import ArtifactStore
+from tasks.store import ArtifactStore
 from tests.test_faults import (  # noqa: F401 - prefect_api is a fixture
-    committed, computed_in, digests, finish, prefect_api, shared_capture, start_worker,
+    committed,
+    computed_in,
+    digests,
+    finish,
+    prefect_api,
+    shared_capture,
+    start_worker,
     worker_home,
 )
 
@@ -44,8 +50,8 @@ def seed_poses_and_coarse(store_url: str, video: Path, capture: Path, config: Pi
                           tmp: Path) -> set[str]:
     """The capture's ground-truth poses and coarse mesh, stored under the keys the capture
     flow computes for ``video`` with ``config``; returns the seeded keys."""
+    from tasks.graph import stage_key
     from tests.test_flows import seed_upstream
-    from tasks.runner import stage_key
 
     gt = seed_upstream(store_url, capture, tmp)  # the files, under keys of their own
     store = ArtifactStore(store_url)
@@ -95,7 +101,7 @@ def run_dataset(api: str, folder: Path, capture: Path, workers: int) -> dict:
 
 
 @pytest.fixture(scope="module")
-def runs(prefect_api, capture, tmp_path_factory) -> dict:
+def runs(prefect_api, capture, tmp_path_factory) -> dict:  # noqa: F811 - the fixture imported above
     tmp = tmp_path_factory.mktemp("concurrency")
     return {"together": run_dataset(prefect_api, tmp / "together", capture, workers=2),
             "serial": run_dataset(prefect_api, tmp / "serial", capture, workers=1)}

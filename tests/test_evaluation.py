@@ -21,8 +21,18 @@ from pydantic import ValidationError
 from facecap_core.camera import rotation_matrix
 from facecap_core.errors import InputError
 from facecap_core.evaluation import (
-    COLORBAR_HEIGHT, EvaluationConfig, align, distances, error_heatmap, evaluate, face_region,
-    paper_table, region_sphere, score, score_json, umeyama,
+    COLORBAR_HEIGHT,
+    EvaluationConfig,
+    align,
+    distances,
+    error_heatmap,
+    evaluate,
+    face_region,
+    paper_table,
+    region_sphere,
+    score,
+    score_json,
+    umeyama,
 )
 from facecap_core.meshio import save_landmarks
 from facecap_core.render import vertex_normals
@@ -330,8 +340,9 @@ def test_preview_is_the_heat_map_with_a_scan_and_the_coloured_mesh_without(head,
 
 def test_paper_table_conventions():
     def rec(acc_mean, acc_median, comp_mean, comp_median):
-        side = lambda m, md: {"mean": m, "std": 0.5, "median": md, "under_1mm": 0.5,
-                              "under_2mm": 0.8}
+        def side(m, md):
+            return {"mean": m, "std": 0.5, "median": md, "under_1mm": 0.5, "under_2mm": 0.8}
+
         return {"accuracy": side(acc_mean, acc_median),
                 "completion": side(comp_mean, comp_median), "scale": 1.0}
 

@@ -25,15 +25,15 @@ from pathlib import Path
 
 import pytest
 
-from facecap_core.store import ArtifactStore, CorruptArtifactError
+from tasks.store import ArtifactStore, CorruptArtifactError
 
 ROOT = Path(__file__).resolve().parents[1]
 
 WORKER = """
-import json, sys
+import dataclasses, json, sys
 import tasks.stages as stages
-from facecap_core.store import input_key
-from tasks.runner import ingest, open_store, run_stage, stage_key
+from tasks.store import input_key
+from tasks.runner import ingest, open_store, run_stage
 
 mode, store, args, log_path = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), sys.argv[4]
 
@@ -41,14 +41,15 @@ def log(key):
     with open(log_path, "a") as f:  # written before the work: a killed worker leaves it
         f.write(key + "\\n")
 
-def logged_run_stage(store_url, stage, inputs, config, compute):
-    key = stage_key(stage, inputs, config)
+def logged_run_stage(store_url, stage, inputs, config, params=None):
+    key = stage.key(inputs, config, params)
 
-    def compute_and_log(folders, out, cfg):
+    def compute_and_log(folders, out, cfg, prm):
         log(key)
-        return compute(folders, out, cfg)
+        return stage.compute(folders, out, cfg, prm)
 
-    return run_stage(store_url, stage, inputs, config, compute_and_log)
+    logged = dataclasses.replace(stage, compute=compute_and_log)
+    return run_stage(store_url, logged, inputs, config, params)
 
 def logged_ingest(store_url, path, name):
     if not open_store(store_url).exists(input_key(path)):
@@ -71,7 +72,7 @@ elif mode == "middle":  # landmarks and coarse mesh from seeded poses
 else:  # everything after the coarse mesh
     from tests.test_flows import make_tail_flow, small_config
     keys = make_tail_flow()(store, args["seeded"], small_config().model_dump(mode="json"),
-                            args["scan"], args["scan_landmarks"])
+                            args["scan"], args["scan_landmarks"])["keys"]
 print("KEYS " + json.dumps(keys))
 """
 
@@ -79,13 +80,13 @@ print("KEYS " + json.dumps(keys))
 def make_middle_flow():
     from prefect import flow
 
-    from tasks.stages import call_stage, coarse_task, landmarks_task
+    from tasks.stages import call_stage
 
     @flow(name="middle")
     def middle(store: str, seeded: dict) -> dict:
         keys = {"video": seeded["video"], "poses": seeded["poses"]}
-        keys["landmarks"] = call_stage(landmarks_task, store, keys, {}, "t")
-        keys["coarse"] = call_stage(coarse_task, store, {"landmarks": keys["landmarks"],
+        keys["landmarks"], _ = call_stage("landmarks", store, keys, {}, "t")
+        keys["coarse"], _ = call_stage("coarse", store, {"landmarks": keys["landmarks"],
                                                          "poses": keys["poses"]}, {}, "t")
         return keys
 
@@ -321,13 +322,13 @@ def assert_same_cameras(a_path: Path, b_path: Path) -> None:
 def test_a_process_killed_during_a_put_leaves_nothing_readable(tmp_path):
     """The commit itself is cut short (the process dies between two files): no manifest, no
     key, nothing a reader would take; the next put commits the whole artifact."""
-    from facecap_core.store import artifact_key
+    from tasks.store import artifact_key
 
     store_dir = tmp_path / "store"
     key = artifact_key("fusion", {}, {"x": 1}, "1")
     script = f"""
 import os
-from facecap_core.store import ArtifactStore
+from tasks.store import ArtifactStore
 
 class DiesMidway:
     def read(self, size=-1):
@@ -364,8 +365,8 @@ def test_a_corrupt_artifact_is_refused_and_recomputed_once_deleted(finished, cap
     """A committed file damaged on disk is never read: the next stage refuses it with one
     line that says what to delete; deleted, it is recomputed (the same bytes) and nothing
     else is."""
+    from tasks.graph import BY_NAME
     from tasks.runner import run_stage
-    from tasks.stages import COMPUTE
     from tests.test_flows import run_tail, small_config
 
     store = ArtifactStore(finished["store"])
@@ -380,16 +381,16 @@ def test_a_corrupt_artifact_is_refused_and_recomputed_once_deleted(finished, cap
               "frames": finished["keys"]["frames"]}
     config = {**small_config().fitting.model_dump(mode="json"), "iterations_per_level": 1}
     with pytest.raises(CorruptArtifactError) as caught:
-        run_stage(finished["store"], "fitting", inputs, config, COMPUTE["fitting"])
+        run_stage(finished["store"], BY_NAME["fitting"], inputs, config)
     message = str(caught.value)
     assert "\n" not in message and "cloud.ply" in message
     assert f"delete {Path(finished['store']) / 'artifacts' / fusion}" in message
 
     store.delete(fusion)
-    keys, states = run_tail(finished["tail"], finished["store"], finished["seeded"],
-                            small_config(), capture)
+    keys, computed = run_tail(finished["tail"], finished["store"], finished["seeded"],
+                              small_config(), capture)
     assert keys == finished["keys"]
-    assert {n for n, s in states.items() if s != "Cached"} == {"fusion t"}, states
+    assert computed == {"fusion"}, computed
     assert store.manifest(fusion).files["cloud.ply"] == original["cloud.ply"]  # same bytes
 
 
@@ -403,12 +404,11 @@ def test_a_transient_fault_is_retried_within_the_run(finished, capture, monkeypa
     store.delete(finished["keys"]["views"])
     monkeypatch.setenv("FACECAP_FAULT", "views:1:oserror")
     monkeypatch.setattr(runner, "_FAULT_COUNTS", {})
-    keys, states = run_tail(finished["tail"], finished["store"], finished["seeded"],
-                            small_config(), capture)
+    keys, computed = run_tail(finished["tail"], finished["store"], finished["seeded"],
+                              small_config(), capture)
     assert keys == finished["keys"]
     assert runner._FAULT_COUNTS == {"views": 2}  # failed once, then computed
-    assert {n for n, s in states.items() if s != "Cached"} == {"views t"}, states
-    assert states["views t"] == "Completed"
+    assert computed == {"views"}, computed
 
 
 def _restart_after_first_failure(server, flow_name: str, stop: threading.Event) -> None:

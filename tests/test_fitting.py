@@ -16,14 +16,13 @@ import trimesh
 from facecap_core.camera import Intrinsics, look_at
 from facecap_core.errors import InputError
 from facecap_core.evaluation import distances, score
-from facecap_core.fitting import FittingConfig, Keyframe, NicpSystem, fit, main
+from facecap_core.fitting import FittingConfig, Keyframe, NicpSystem, fit, fit_and_write
 from facecap_core.fitting.constraints import CloudGrid, cloud_targets, nearest_edge_pixels
 from facecap_core.fitting.nicp import initial_similarity
 from facecap_core.fitting.synthetic_cloud import mvs_like_cloud
 from facecap_core.render import RaycastScene, interpolate
 from facecap_core.template import INNER_LANDMARKS, Template, head_frame
 from facecap_core.texture import vertex_colours
-
 
 # --------------------------------------------------------------------------- fixtures
 
@@ -239,7 +238,7 @@ def test_texture_and_files(setup, tmp_path):
     template, sv, sf, slm, cloud, normals, noisy = setup
     keyframes = _render_keyframes(sv, sf)
     config = FittingConfig(**FAST)
-    path = main(cloud, noisy, tmp_path / "fit", template=template, keyframes=keyframes,
+    path = fit_and_write(cloud, noisy, tmp_path / "fit", template=template, keyframes=keyframes,
                 cloud_normals=normals, config=config)
     assert path.name == "mesh.ply" and (tmp_path / "fit" / "mesh.obj").is_file()
     for p in (path, tmp_path / "fit" / "mesh.obj"):

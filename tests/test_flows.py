@@ -19,7 +19,7 @@ pytestmark = pytest.mark.slow
 
 from facecap_core.config import PipelineConfig, SynthConfig
 from facecap_core.meshio import load_landmarks, load_mesh, save_landmarks
-from facecap_core.store import ArtifactStore
+from tasks.store import ArtifactStore
 
 WIDTH, HEIGHT, FRAMES = 320, 180, 18
 KEYFRAMES = list(range(5, 13))
@@ -50,8 +50,8 @@ def capture(tmp_path_factory, ict_model):
 
 def small_config() -> PipelineConfig:
     return PipelineConfig.model_validate({
-        "mvs": {"processing_width": WIDTH, "num_sources": 4, "window_radius": 3,
-                "iterations": 3},
+        "mvs": {"views": {"num_sources": 4},
+                "depth": {"processing_width": WIDTH, "window_radius": 3, "iterations": 3}},
         "fitting": {"stiffness": [50.0, 10.0, 2.0], "landmark_weight": [50.0, 10.0, 2.0],
                     "iterations_per_level": 2, "use_edges": False},
     })
@@ -68,7 +68,8 @@ def seed_upstream(store_url: str, capture: Path, tmp: Path) -> dict[str, str]:
     """Store ground-truth pose and coarse artifacts; returns their keys and the video's."""
     from facecap_core.mvs.testing import coarse_from_gt
     from facecap_core.synthetic import load_gt_cameras
-    from tasks.runner import ingest, stage_key
+    from tasks.graph import stage_key
+    from tasks.runner import ingest
 
     store = ArtifactStore(store_url)
     intr, frames = load_gt_cameras(capture / "gt" / "cameras.json")
@@ -103,50 +104,30 @@ def make_tail_flow():
     from prefect import flow
     from prefect.task_runners import ThreadPoolTaskRunner
 
-    from flows.capture import dense_and_fit
-    from tasks.stages import call_stage, frames_task
+    from flows.capture import run_stages
+    from tasks.graph import STAGES
+    from tasks.stages import call_ingest
 
     @flow(name="tail", task_runner=ThreadPoolTaskRunner(max_workers=2))
     def tail(store: str, seeded: dict, config: dict, scan: str, scan_landmarks: str) -> dict:
+        """The stages after the seeded coarse mesh; returns their keys and what computed."""
         cfg = PipelineConfig.model_validate(config)
         keys = dict(seeded)
-        keys["frames"] = call_stage(frames_task, store, {"video": seeded["video"],
-                                                         "poses": seeded["poses"]}, {}, "t")
-        return dense_and_fit(store, keys, cfg, "t", "evaluation", scan, scan_landmarks)
+        keys["scan"] = call_ingest(store, scan, Path(scan).name, "t")
+        keys["scan_landmarks"] = call_ingest(store, scan_landmarks, Path(scan_landmarks).name)
+        after = [s for s in STAGES if s.name not in ("keyframes", "poses", "landmarks",
+                                                      "coarse")]
+        runs = run_stages(store, keys, cfg, "t", after)
+        return {"keys": keys, "computed": sorted(row for row, (_, new) in runs.items() if new)}
 
     return tail
 
 
-def task_states(flow_run_id) -> dict[str, str]:
-    """{task run name: state name} of one flow run."""
-    import asyncio
-
-    from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
-
-    async def read():
-        async with get_client() as client:
-            runs = await client.read_task_runs(
-                flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id])))
-            return {r.name: r.state.name for r in runs}
-
-    import time
-
-    # Task states reach the server asynchronously: wait until every run is final.
-    for _ in range(100):
-        states = asyncio.run(read())
-        if states and all(s not in ("Running", "Pending", "Scheduled") for s in states.values()):
-            return states
-        time.sleep(0.2)
-    return states
-
-
 def run_tail(tail, store_url, seeded, config, capture):
-    state = tail(store_url, seeded, config.model_dump(mode="json"),
-                 str(capture / "gt" / "mesh.ply"), str(capture / "gt" / "landmarks.json"),
-                 return_state=True)
-    keys = state.result()
-    return keys, task_states(state.state_details.flow_run_id)
+    """The tail flow's keys, and the report rows it computed (the tasks' own word)."""
+    result = tail(store_url, seeded, config.model_dump(mode="json"),
+                  str(capture / "gt" / "mesh.ply"), str(capture / "gt" / "landmarks.json"))
+    return result["keys"], set(result["computed"])
 
 
 @pytest.fixture(scope="module")
@@ -155,16 +136,17 @@ def first_run(prefect_server, capture, tmp_path_factory):
     store_url = str(tmp / "store")
     seeded = seed_upstream(store_url, capture, tmp)
     tail = make_tail_flow()
-    keys, states = run_tail(tail, store_url, seeded, small_config(), capture)
+    keys, computed = run_tail(tail, store_url, seeded, small_config(), capture)
     return {"store": store_url, "seeded": seeded, "tail": tail, "keys": keys,
-            "states": states}
+            "computed": computed}
 
 
 def test_tail_reconstructs_the_capture(first_run, capture):
     store = ArtifactStore(first_run["store"])
     keys = first_run["keys"]
-    assert all(state == "Completed" for state in first_run["states"].values())
     depth = [k for name, k in keys.items() if name.startswith("depth_")]
+    assert first_run["computed"] == {"frames", "views", "fusion", "fitting", "evaluation",
+                                     *(f"depth_{i:05d}" for i in KEYFRAMES)}
     assert len(depth) == len(KEYFRAMES)
     evaluation = json.loads((store.get(keys["evaluation"]) / "evaluation.json").read_text())
     # Ground-truth cameras at 320 px: the fitted mesh is within a few mm of the truth.
@@ -180,24 +162,23 @@ def test_tail_reconstructs_the_capture(first_run, capture):
 def test_rerun_is_all_cached(first_run, capture):
     store = ArtifactStore(first_run["store"])
     before = set(store.keys())
-    keys, states = run_tail(first_run["tail"], first_run["store"], first_run["seeded"],
-                            small_config(), capture)
+    keys, computed = run_tail(first_run["tail"], first_run["store"], first_run["seeded"],
+                              small_config(), capture)
     assert keys == first_run["keys"]
     assert set(store.keys()) == before
-    assert states and all(state == "Cached" for state in states.values()), states
+    assert computed == set()
 
 
 def test_fusion_change_recomputes_only_fusion_fitting_evaluation(first_run, capture):
     store = ArtifactStore(first_run["store"])
     config = small_config()
-    config.mvs.fusion_max_normal_deg = 25.0
+    config.mvs.fusion.max_normal_deg = 25.0
     before = set(store.keys())
-    keys, states = run_tail(first_run["tail"], first_run["store"], first_run["seeded"], config,
-                            capture)
+    keys, computed = run_tail(first_run["tail"], first_run["store"], first_run["seeded"],
+                              config, capture)
     new = set(store.keys()) - before
     assert sorted(k.split("-")[0] for k in new) == ["evaluation", "fitting", "fusion"]
-    recomputed = {name for name, state in states.items() if state != "Cached"}
-    assert all(name.startswith(("fusion", "fitting", "evaluation")) for name in recomputed)
+    assert computed == {"fusion", "fitting", "evaluation"}
 
 
 def test_lost_depth_maps_are_recomputed_alone(first_run, capture):
@@ -208,8 +189,7 @@ def test_lost_depth_maps_are_recomputed_alone(first_run, capture):
     lost = [keys[f"depth_{i:05d}"] for i in KEYFRAMES[2:4]]
     for key in lost:
         store.delete(key)
-    new_keys, states = run_tail(first_run["tail"], first_run["store"], first_run["seeded"],
-                                small_config(), capture)
+    new_keys, computed = run_tail(first_run["tail"], first_run["store"], first_run["seeded"],
+                                  small_config(), capture)
     assert new_keys == keys
-    recomputed = sorted(name for name, state in states.items() if state != "Cached")
-    assert recomputed == sorted(f"depth[{i}] t" for i in KEYFRAMES[2:4]), states
+    assert computed == {f"depth_{i:05d}" for i in KEYFRAMES[2:4]}

@@ -11,7 +11,11 @@ from facecap_core.assets import packaged_ict_model
 from facecap_core.config import SynthConfig
 from facecap_core.synthetic import make_subject
 from facecap_core.template import (
-    ICT_SKIN_VERTEX_END, Template, ict_identity_vertices, ict_skin_faces, load_ict_model,
+    ICT_SKIN_VERTEX_END,
+    Template,
+    ict_identity_vertices,
+    ict_skin_faces,
+    load_ict_model,
 )
 
 DATA = packaged_ict_model().parent

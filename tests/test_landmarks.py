@@ -15,7 +15,11 @@ from facecap_core.errors import InputError
 from facecap_core.evaluation import umeyama
 from facecap_core.landmarks import stage
 from facecap_core.landmarks.stage import (
-    Cameras, load_ears3d, load_landmarks3d, triangulate_ears, write_gt_keyframe_cameras,
+    Cameras,
+    load_ears3d,
+    load_landmarks3d,
+    triangulate_ears,
+    write_gt_keyframe_cameras,
 )
 from facecap_core.landmarks.triangulate import dlt, normalised, triangulate
 from facecap_core.meshio import load_landmarks

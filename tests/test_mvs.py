@@ -9,16 +9,24 @@ import numpy as np
 import pytest
 
 from facecap_core.camera import look_at
-from facecap_core.config import MVSConfig, SynthConfig
+from facecap_core.config import DepthMapConfig, SynthConfig, ViewSelectionConfig
 from facecap_core.errors import InputError
 from facecap_core.evaluation import distances, region_sphere
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.mvs import (
-    DepthMap, coarse_prior, compute_depth_map, fuse, gaussian_score, pair_scores, prepare_view,
-    select_sources, sparse_from_mesh, write_ply,
+    DepthMap,
+    choose_sources,
+    coarse_prior,
+    compute_depth_map,
+    fuse,
+    gaussian_score,
+    pair_scores,
+    prepare_view,
+    select_sources,
+    sparse_from_mesh,
+    write_ply,
 )
 from facecap_core.mvs.patchmatch import patchmatch_depth
-from facecap_core.mvs.pipeline import choose_sources
 from facecap_core.mvs.testing import coarse_from_gt, gt_depth, load_views
 from facecap_core.render import RaycastScene
 
@@ -41,9 +49,9 @@ def scene(tmp_path_factory, ict_model):
     mesh = load_mesh(cap.gt_mesh)
     V, F = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
     views = load_views(folder, KEYFRAMES, WIDTH)
-    cfg = MVSConfig(processing_width=WIDTH, num_sources=6, window_radius=3, iterations=4)
+    cfg = DepthMapConfig(processing_width=WIDTH, window_radius=3, iterations=4)
     points, vis = sparse_from_mesh(views, V, F, count=1500)
-    sources = choose_sources(views, points, vis, cfg)
+    sources = choose_sources(views, points, vis, ViewSelectionConfig(num_sources=6))
     return {"views": views, "V": V, "F": F, "coarse": coarse_from_gt(V, F, seed=1),
             "config": cfg, "sources": sources,
             "sphere": region_sphere(load_landmarks(cap.gt_landmarks))}
@@ -110,7 +118,8 @@ def test_patchmatch_recovers_the_face(scene):
     coarse_d, _ = gt_depth(views[i], scene["coarse"], scene["F"])
     coarse_err = np.median(np.abs(coarse_d[face] - d[face]))
     # Measured at 320x180 (≈ 1.6 mm/px, a 7-px window ≈ 11 mm): median 0.95 mm, coverage
-    # 83 %, while the coarse mesh is 2.2 mm off (the benchmark's 640 px: ≈ 0.6 mm). The tolerance leaves room for noise, not for a broken matcher.
+    # 83 %, while the coarse mesh is 2.2 mm off (the benchmark's 640 px: ≈ 0.6 mm). The tolerance leaves
+    # room for noise, not for a broken matcher.
     assert np.median(err) < 1.4, np.median(err)
     assert np.median(err) < coarse_err
     assert ok.sum() >= 0.75 * face.sum()

@@ -8,8 +8,8 @@ from PIL import Image
 
 from facecap_core.errors import InputError
 from facecap_core.photos import probe_photos, read_photo
-from facecap_core.store import input_key
 from facecap_core.video import iter_frames, probe, read_frames
+from tasks.store import input_key
 
 
 def _photos(folder, sizes, orientation=None, exif_focal_35mm=None):
@@ -89,7 +89,8 @@ def test_shuffled_photos_get_every_camera_in_sweep_order(tmp_path, ict_model):
     """Photos of a sweep saved under shuffled names: exhaustive matching registers all, the
     views come out in sweep order, and the cameras are as good as the video's."""
     from facecap_core.config import PoseConfig, SynthConfig
-    from facecap_core.keyframes import load_keyframes, main as keyframes_main
+    from facecap_core.keyframes import load_keyframes
+    from facecap_core.keyframes import main as keyframes_main
     from facecap_core.pose.evaluate import pose_errors
     from facecap_core.pose.stage import estimate_poses
     from facecap_core.synthetic import load_gt_cameras, synthesize

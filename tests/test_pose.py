@@ -5,7 +5,8 @@ import pytest
 
 from facecap_core.camera import Intrinsics, rotation_matrix
 from facecap_core.config import PoseConfig, SynthConfig
-from facecap_core.keyframes import load_keyframes, main as keyframes_main
+from facecap_core.keyframes import load_keyframes
+from facecap_core.keyframes import main as keyframes_main
 from facecap_core.pose.colmap_sfm import Poses
 from facecap_core.pose.evaluate import pose_errors
 from facecap_core.pose.geometric import triangulate

@@ -13,7 +13,7 @@ import pytest
 from pydantic import BaseModel
 
 from facecap_core.errors import FacecapError, InputError
-from facecap_core.store import (
+from tasks.store import (
     ArtifactNotFoundError,
     ArtifactStore,
     CorruptArtifactError,

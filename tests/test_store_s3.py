@@ -29,7 +29,7 @@ import yaml
 from moto.server import ThreadedMotoServer
 
 from facecap_core.errors import InputError
-from facecap_core.store import (
+from tasks.store import (
     ArtifactNotFoundError,
     ArtifactStore,
     CorruptArtifactError,
@@ -468,7 +468,7 @@ def compose_worker_environment() -> dict[str, str]:
 WORKER_SCRIPT = """
 import sys
 from tasks.runner import default_store_url, open_store
-from facecap_core.store import artifact_key
+from tasks.store import artifact_key
 store = open_store(default_store_url())
 key = artifact_key("mesh", {}, None, sys.argv[1])
 store.put(key, {"mesh.ply": b"from a worker"}, stage="mesh", inputs={}, config=None,
@@ -482,7 +482,7 @@ def test_a_worker_configured_like_the_compose_workers_uses_the_store(
         s3, prefix, tmp_path, endpoint_variable):
     """A fresh process with only the worker's variables from docker-compose.yml (MinIO's
     address replaced by the test server's) writes to the bucket; the variable fsspec reads,
-    named in facecap_core/store.py, works as well."""
+    named in tasks/store.py, works as well."""
     compose_env = compose_worker_environment()
     endpoints = [name for name, value in compose_env.items() if value == "http://minio:9000"]
     assert endpoints == ["AWS_ENDPOINT_URL_S3"]

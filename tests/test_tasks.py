@@ -5,13 +5,20 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from facecap_core.errors import FacecapError, InputError
-from facecap_core.store import ArtifactStore, CorruptArtifactError, StoreWriteError
-from tasks.runner import ingest, is_transient, run_stage, stage_key
+from tasks.graph import BY_NAME, stage_key
+from tasks.runner import ingest, is_transient, run_stage
+from tasks.store import ArtifactStore, CorruptArtifactError, StoreWriteError
+
+
+def _stage(compute, name: str = "fusion"):
+    """A stage row with another body and no config section (its params reach the body)."""
+    return replace(BY_NAME[name], compute=compute, section=None)
 
 
 def test_key_depends_on_inputs_config_and_version(monkeypatch):
@@ -19,8 +26,9 @@ def test_key_depends_on_inputs_config_and_version(monkeypatch):
     assert base == stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 1})
     assert base != stage_key("fusion", {"frames": "input-" + "1" * 32}, {"a": 1})
     assert base != stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 2})
-    monkeypatch.setitem(__import__("tasks.runner").runner.VERSIONS, "fusion", "2")
-    assert base != stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 1})
+    assert base != stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 1}, {"index": 3})
+    bumped = replace(BY_NAME["fusion"], version="2")
+    assert base != bumped.key({"frames": "input-" + "0" * 32}, {"a": 1})
 
 
 def test_landmark_key_depends_on_the_ear_model(tmp_path, monkeypatch):
@@ -44,14 +52,14 @@ def test_concurrent_runs_compute_once(tmp_path):
     store = str(tmp_path / "store")
     calls = []
 
-    def slow(folders, out: Path, config):
+    def slow(folders, out: Path, config, params):
         calls.append(1)
         time.sleep(0.5)
-        (out / "result.txt").write_text(str(config["x"]))
+        (out / "result.txt").write_text(str(params["x"]))
 
     results = []
     threads = [threading.Thread(target=lambda: results.append(
-        run_stage(store, "fusion", {}, {"x": 7}, slow))) for _ in range(3)]
+        run_stage(store, _stage(slow), {}, {}, {"x": 7}))) for _ in range(3)]
     for t in threads:
         t.start()
     for t in threads:
@@ -66,12 +74,12 @@ def test_concurrent_runs_compute_once(tmp_path):
 def test_a_failed_stage_stores_nothing(tmp_path):
     store = str(tmp_path / "store")
 
-    def half(folders, out: Path, config):
+    def half(folders, out: Path, config, params):
         (out / "part.txt").write_text("half")
         raise InputError("the input is bad")
 
     with pytest.raises(InputError):
-        run_stage(store, "fusion", {}, {}, half)
+        run_stage(store, _stage(half), {}, {})
     assert ArtifactStore(store).keys() == []
 
 
@@ -84,11 +92,11 @@ def test_inputs_reach_the_stage_as_folders(tmp_path):
 
     seen = {}
 
-    def body(folders, out: Path, config):
+    def body(folders, out: Path, config, params):
         seen["bytes"] = (folders["video"] / "video.mp4").read_bytes()
         (out / "ok").write_text("1")
 
-    run_stage(store, "keyframes", {"video": key}, {}, body)
+    run_stage(store, _stage(body, "keyframes"), {"video": key}, {})
     assert seen["bytes"] == b"not really a video"
     with pytest.raises(InputError, match="not found"):
         ingest(store, tmp_path / "missing.mp4", "video.mp4")
@@ -112,8 +120,8 @@ def test_results_are_exported_only_as_they_were_committed(tmp_path):
     """The output folder shows this run's results only (an earlier run's heat map goes, the
     user's own files stay); a stored result changed after its commit (fx 500 -> 999 in
     cameras.json) is refused when exported, not handed to the user."""
-    from facecap_core.store import artifact_key
     from flows.capture import _export
+    from tasks.store import artifact_key
 
     store = ArtifactStore(str(tmp_path / "store"))
     key = artifact_key("poses", {"video": "input-x"}, {}, "1")

@@ -5,16 +5,16 @@ fused MVS point cloud (normal-ray median targets), the 51 inner 3D landmarks (+ 
 points) and keyframe silhouettes (Canny edges), with a stiffness that relaxes from global to
 local while the landmark weights fall. See docs/fitting.md.
 
-    from facecap_core.fitting import fit, main, Keyframe
+    from facecap_core.fitting import fit, fit_and_write, Keyframe
     result = fit(Template.default(), cloud, landmarks, keyframes)   # FitResult
-    main(cloud, landmarks, "out/fit")                                 # -> out/fit/mesh.ply
+    fit_and_write(cloud, landmarks, "out/fit")                                 # -> out/fit/mesh.ply
 """
 
 from facecap_core.fitting.constraints import Keyframe, cloud_targets, edge_targets
 from facecap_core.fitting.nicp import FitResult, FittingConfig, check_inputs, fit
-from facecap_core.fitting.run import keyframes_from_video, load_cloud, main, write_mesh
+from facecap_core.fitting.run import fit_and_write, keyframes_from_video, load_cloud, write_mesh
 from facecap_core.fitting.solver import NicpSystem
 
-__all__ = ["Keyframe", "FitResult", "FittingConfig", "NicpSystem", "fit", "main",
+__all__ = ["Keyframe", "FitResult", "FittingConfig", "NicpSystem", "fit", "fit_and_write",
            "write_mesh", "load_cloud", "keyframes_from_video", "check_inputs",
            "cloud_targets", "edge_targets"]

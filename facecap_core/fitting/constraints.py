@@ -47,7 +47,7 @@ class CloudGrid:
     starts: np.ndarray  # (prod(dims) + 1,) first point of each cell
 
     @classmethod
-    def build(cls, points: np.ndarray, normals: np.ndarray | None, cell: float) -> "CloudGrid":
+    def build(cls, points: np.ndarray, normals: np.ndarray | None, cell: float) -> CloudGrid:
         P = np.asarray(points, float)
         origin = P.min(0) - 1e-6
         dims = np.maximum(np.ceil((P.max(0) - origin) / cell).astype(np.int64), 1) + 1

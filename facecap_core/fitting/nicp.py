@@ -16,17 +16,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from facecap_core.config import FittingConfig
 from facecap_core.errors import InputError
 from facecap_core.evaluation import umeyama
 from facecap_core.fitting.constraints import (
-    CloudGrid, Keyframe, boundary_distance, cloud_targets, edge_map, edge_targets,
-    landmark_targets, nearest_edge_pixels,
+    CloudGrid,
+    Keyframe,
+    boundary_distance,
+    cloud_targets,
+    edge_map,
+    edge_targets,
+    landmark_targets,
+    nearest_edge_pixels,
 )
 from facecap_core.fitting.solver import NicpSystem
 from facecap_core.render import RaycastScene, vertex_normals
 from facecap_core.template import INNER_LANDMARKS, Template
-
-from facecap_core.config import FittingConfig
 
 log = logging.getLogger(__name__)
 

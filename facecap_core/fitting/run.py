@@ -25,7 +25,11 @@ from facecap_core.fitting.sanity import MeshSanity, check_mesh, relax_folds
 from facecap_core.meshio import load_landmarks, save_landmarks
 from facecap_core.template import Template
 
-__all__ = ["main", "write_mesh", "load_cloud", "keyframes_from_video"]
+MESH_PLY = "mesh.ply"
+MESH_OBJ = "mesh.obj"
+FIT_JSON = "fit.json"
+
+__all__ = ["fit_and_write", "write_mesh", "load_cloud", "keyframes_from_video"]
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +76,7 @@ def write_mesh(folder: str | Path, vertices: np.ndarray, faces: np.ndarray,
     if colours is not None:
         rgba = np.c_[np.asarray(colours, np.uint8), np.full(len(vertices), 255, np.uint8)]
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=rgba)
-    ply, obj = folder / "mesh.ply", folder / "mesh.obj"
+    ply, obj = folder / MESH_PLY, folder / MESH_OBJ
     for path, kwargs in ((ply, {"encoding": "binary"}), (obj, {"include_color": True,
                                                                "include_normals": False,
                                                                "include_texture": False})):
@@ -87,7 +91,7 @@ def _export(mesh: trimesh.Trimesh, kind: str, kwargs: dict) -> bytes:
     return data if isinstance(data, bytes) else data.encode()
 
 
-def main(cloud, landmarks, out_dir: str | Path, template: Template | None = None,
+def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | None = None,
          keyframes: list[Keyframe] | tuple = (), ear_points=None, cloud_normals=None,
          config: FittingConfig | None = None) -> Path:
     """Fit and write the mesh; returns the path of ``mesh.ply``.
@@ -128,7 +132,7 @@ def main(cloud, landmarks, out_dir: str | Path, template: Template | None = None
     ply, _ = write_mesh(out, result.vertices, result.faces, colours)
     save_landmarks(out / "landmarks.json", result.template.landmark_points,
                    template=template.name)
-    write_report(out / "fit.json", result, config, sanity, relaxed)
+    write_report(out / FIT_JSON, result, config, sanity, relaxed)
     return ply
 
 

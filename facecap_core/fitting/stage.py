@@ -2,7 +2,7 @@
 
 Reads the fused ``cloud.ply``, the coarse stage's folder (metric ``cameras.json``,
 ``landmarks3d.json`` with all 68 points in mm, ``ears3d.json``) and the keyframe PNGs, and
-writes what :func:`facecap_core.fitting.run.main` writes (``mesh.ply``, ``mesh.obj``,
+writes what :func:`facecap_core.fitting.run.fit_and_write` writes (``mesh.ply``, ``mesh.obj``,
 ``landmarks.json``, ``fit.json``).
 """
 
@@ -13,11 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-from facecap_core.camera import read_cameras_json
+from facecap_core.camera import CAMERAS_JSON, read_cameras_json
 from facecap_core.config import FittingConfig
 from facecap_core.fitting.constraints import Keyframe
-from facecap_core.fitting.run import main as fit_main
+from facecap_core.fitting.run import fit_and_write
 from facecap_core.frames import load_frame
+from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_3D
 from facecap_core.meshio import load_landmarks
 from facecap_core.template import Template
 
@@ -40,7 +41,7 @@ def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str |
     """Fit the template; returns ``mesh.ply``. ``cloud_ply`` None: landmarks only."""
     config = config or FittingConfig()
     coarse = Path(coarse_dir)
-    cams = read_cameras_json(coarse / "cameras.json")
+    cams = read_cameras_json(coarse / CAMERAS_JSON)
     keyframes = []
     if config.use_edges or config.texture:
         for i, R, t in zip(cams.frame_indices, cams.R, cams.t):
@@ -53,7 +54,7 @@ def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str |
             keyframes.append(Keyframe(image, cams.intrinsics, R, t))
     if cloud_ply is None:
         config = config.model_copy(update={"use_cloud": False})
-    landmarks = load_landmarks(coarse / "landmarks3d.json")
-    return fit_main(cloud_ply if cloud_ply is not None else np.zeros((0, 3)), landmarks,
-                    out_dir, template, keyframes, read_ear_points(coarse / "ears3d.json"),
+    landmarks = load_landmarks(coarse / LANDMARKS_3D)
+    return fit_and_write(cloud_ply if cloud_ply is not None else np.zeros((0, 3)), landmarks,
+                    out_dir, template, keyframes, read_ear_points(coarse / EARS_3D),
                     config=config)

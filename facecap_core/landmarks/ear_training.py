@@ -123,7 +123,7 @@ class SurfacePoints:
         return {"corners": self.corners.tolist(), "bary": self.bary.round(6).tolist()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SurfacePoints":
+    def from_dict(cls, d: dict) -> SurfacePoints:
         return cls(np.asarray(d["corners"], np.int64), np.asarray(d["bary"], float))
 
 

@@ -41,10 +41,17 @@ from facecap_core.config import LandmarkConfig
 from facecap_core.errors import InputError
 from facecap_core.landmarks import Detection, detect_68
 from facecap_core.landmarks.convention import (
-    correct, eye_distance, load_offsets, robust_head_frame,
+    correct,
+    eye_distance,
+    load_offsets,
+    robust_head_frame,
 )
 from facecap_core.landmarks.triangulate import Triangulation, triangulate
 from facecap_core.template import INNER_LANDMARKS
+
+LANDMARKS_2D = "landmarks2d.json"
+LANDMARKS_3D = "landmarks3d.json"
+EARS_3D = "ears3d.json"
 
 log = logging.getLogger(__name__)
 
@@ -382,8 +389,8 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
              "detector": "dlib HOG face detector + 68-point ERT predictor (iBUG 300-W)",
              "ear_model": ears is not None, "gate_widened": widened,
              "config": config.model_dump(mode="json"), "keyframes": records}
-    _write_json(out / "landmarks2d.json", doc2d)
-    _write_json(out / "ears3d.json", ears_doc)
+    _write_json(out / LANDMARKS_2D, doc2d)
+    _write_json(out / EARS_3D, ears_doc)
     doc3d = {"convention": "ibug68", "units": cams.units,
              "landmarks": [None if not np.all(np.isfinite(p)) else [round(float(x), 6)
                                                                      for x in p]
@@ -405,7 +412,7 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
              "seconds": {"wall": round(time.perf_counter() - t_wall, 3),
                          "cpu": round(time.process_time() - t_cpu, 3),
                          "cpu_detection": round(t_detect, 3)}}
-    return _write_json(out / "landmarks3d.json", doc3d)
+    return _write_json(out / LANDMARKS_3D, doc3d)
 
 
 def _write_json(path: Path, doc: dict) -> Path:

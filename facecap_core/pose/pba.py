@@ -33,8 +33,8 @@ import numba as nb
 import numpy as np
 
 from facecap_core.camera import Intrinsics, rotation_matrix
-from facecap_core.errors import FacecapError
 from facecap_core.config import PBAConfig
+from facecap_core.errors import FacecapError
 
 PATTERN = np.array([(0, -2), (-1, -1), (1, -1), (-2, 0), (0, 0), (2, 0), (-1, 1), (0, 2)],
                    np.float64)  # DSO's 8-pixel pattern (dx, dy)

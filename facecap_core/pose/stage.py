@@ -24,6 +24,11 @@ from facecap_core.pose.colmap_sfm import Poses, run_sfm
 from facecap_core.pose.geometric import refine_with_tracks, triangulate
 from facecap_core.pose.io import write_outputs
 
+POINTS = "points.ply"
+SPARSE = "sparse.npz"
+COLMAP_MODEL = ("colmap/cameras.txt", "colmap/images.txt", "colmap/points3D.txt")
+"""The COLMAP text model of the keyframes (the pose stage's own units)."""
+
 log = logging.getLogger(__name__)
 
 

@@ -52,15 +52,16 @@ import re
 import shutil
 import uuid
 from collections.abc import Callable, Iterator, Mapping
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, BinaryIO, Union
+from typing import Any, BinaryIO
 
 import fsspec
 from fsspec.core import url_to_fs
 from fsspec.implementations.local import LocalFileSystem
 from pydantic import BaseModel, Field, ValidationError
 
+from facecap_core.assets import facecap_home
 from facecap_core.errors import FacecapError, InputError
 
 __all__ = [
@@ -82,10 +83,10 @@ KEY_DIGEST_LENGTH = 32  # 128 bits of sha256 is plenty to avoid collisions, and 
 
 _STAGE_PATTERN = re.compile(r"[a-z0-9_]+")
 _WRITER_PATTERN = re.compile(r"w-[0-9a-f]{32}")
-_KEY_PATTERN = re.compile(r"([a-z0-9_]+)-[0-9a-f]{%d}" % KEY_DIGEST_LENGTH)
+_KEY_PATTERN = re.compile(rf"([a-z0-9_]+)-[0-9a-f]{{{KEY_DIGEST_LENGTH}}}")
 
 # What put() accepts for one file: its bytes, a path to copy, or an open binary file.
-FileSource = Union[bytes, bytearray, memoryview, str, os.PathLike[str], BinaryIO]
+FileSource = bytes | bytearray | memoryview | str | os.PathLike[str] | BinaryIO
 
 
 class ArtifactNotFoundError(FacecapError):
@@ -131,12 +132,14 @@ def artifact_key(
     inputs: Mapping[str, str],
     config: BaseModel | Mapping[str, Any] | None,
     version: str,
+    params: Mapping[str, Any] | None = None,
 ) -> str:
     """Content address of the artifact a stage makes from ``inputs`` with ``config``.
 
     The key is ``f"{stage}-{digest[:32]}"`` where ``digest`` is the sha256 of the canonical
-    JSON (sorted keys, no whitespace) of ``{stage, version, inputs, config}``. A pydantic
-    config and a mapping holding the same values give the same key.
+    JSON (sorted keys, no whitespace) of ``{stage, version, inputs, config}`` and, for a
+    stage run once per item (one depth map per keyframe), its ``params``. A pydantic config
+    and a mapping holding the same values give the same key.
     """
     _check_stage(stage)
     description = {
@@ -145,16 +148,19 @@ def artifact_key(
         "inputs": dict(inputs),
         "config": _config_as_json(config),
     }
+    if params:
+        description["params"] = json.loads(_canonical_json(dict(params)))
     digest = hashlib.sha256(_canonical_json(description)).hexdigest()
     return f"{stage}-{digest[:KEY_DIGEST_LENGTH]}"
 
 
 def file_digest(path: str | os.PathLike[str]) -> str:
-    """sha256 (hex) of a file's bytes, read in 1 MiB chunks."""
-    digest = hashlib.sha256()
-    for chunk in _path_chunks(path, label=os.fspath(path)):
-        digest.update(chunk)
-    return digest.hexdigest()
+    """sha256 (hex) of a file's bytes; an unreadable file is the caller's input error."""
+    try:
+        with open(path, "rb") as source:
+            return hashlib.file_digest(source, "sha256").hexdigest()
+    except OSError as exc:
+        raise InputError(f"cannot read {os.fspath(path)}: {_reason(exc)}") from exc
 
 
 def input_key(path: str | os.PathLike[str]) -> str:
@@ -355,8 +361,7 @@ def _reason(exc: BaseException) -> str:
 
 def _cache_root() -> Path:
     """Local folder for copies of remote artifacts: ``$FACECAP_HOME/store-cache``."""
-    home = os.environ.get("FACECAP_HOME") or "~/.cache/facecap"
-    return Path(home).expanduser() / "store-cache"
+    return facecap_home() / "store-cache"
 
 
 def _manifest_bytes(manifest: Manifest) -> bytes:
@@ -364,7 +369,7 @@ def _manifest_bytes(manifest: Manifest) -> bytes:
 
 
 def _now_utc() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
 
 
 # --------------------------------------------------------------------------- the store

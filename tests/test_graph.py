@@ -1,0 +1,133 @@
+"""The stage graph: every setting invalidates exactly the artifacts that depend on it.
+
+A change of one config field, any field of any section, must give new keys to the stages
+that read its section and to every stage after them, and the same keys to all others (a
+field a stage reads but its key ignores would serve a stale artifact; a key that hashes
+another stage's settings would recompute for nothing). The expected sets are written out
+here from the pipeline's data flow, not derived from the table under test.
+"""
+
+from __future__ import annotations
+
+import typing
+
+import pytest
+from pydantic import BaseModel, ValidationError
+
+from facecap_core.config import PipelineConfig
+from flows.capture import _inputs
+from tasks.graph import BY_NAME, STAGES, STEPS, section_model, stages_until
+
+AFTER_COARSE = {"views", "depth", "fusion", "fitting", "evaluation"}
+RECOMPUTED = {
+    "keyframes": {"keyframes", "poses", "frames", "landmarks", "coarse", *AFTER_COARSE},
+    "poses": {"poses", "frames", "landmarks", "coarse", *AFTER_COARSE},
+    "landmarks": {"landmarks", "coarse", *AFTER_COARSE},
+    "coarse": {"coarse", *AFTER_COARSE},
+    "mvs.views": AFTER_COARSE,
+    "mvs.depth": {"depth", "fusion", "fitting", "evaluation"},
+    "mvs.fusion": {"fusion", "fitting", "evaluation"},
+    "fitting": {"fitting", "evaluation"},
+}
+"""Stages with new keys when a field of a section changes."""
+KEYFRAMES = [0, 7, 12]
+RAW = {"video": "input-" + "1" * 32, "scan": "input-" + "2" * 32,
+       "scan_landmarks": "input-" + "3" * 32}
+
+
+def plan(cfg: PipelineConfig) -> dict[str, str]:
+    """{report row: artifact key} of a whole run, as the capture flow assembles them (the
+    depth maps of three fixed keyframes)."""
+    keys, rows = dict(RAW), {}
+    for stage in STAGES:
+        inputs = _inputs(stage, keys)
+        assert inputs is not None, stage.name
+        config = stage.config_data(cfg)
+        if stage.per_keyframe:
+            for i in KEYFRAMES:
+                row = stage.row_name({"index": i})
+                rows[row] = keys[row] = stage.key(inputs, config, {"index": i})
+        else:
+            rows[stage.name] = keys[stage.name] = stage.key(inputs, config)
+    return rows
+
+
+def leaf_fields(model: type[BaseModel], prefix: str = ""):
+    for name, field in model.model_fields.items():
+        if isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel):
+            yield from leaf_fields(field.annotation, f"{prefix}{name}.")
+        else:
+            yield f"{prefix}{name}", field
+
+
+def other_value(model: type[BaseModel], name: str, field):
+    """A valid value of the field other than its default."""
+    default = field.get_default(call_default_factory=True)
+    choices = typing.get_args(field.annotation)
+    if isinstance(default, bool):
+        candidates = [not default]
+    elif isinstance(default, int | float):
+        candidates = [default + 1, default * 1.1, default - 1, default * 0.9, default / 2]
+    elif isinstance(default, list | tuple):
+        candidates = [[v * 0.9 if isinstance(v, float) else v - 1 for v in default]]
+    elif default is None:
+        candidates = [1.0, 1, True, 63.0]  # 63 mm: an interpupillary distance
+    else:
+        candidates = [c for c in choices if c != default] + ["full", "nicp"]
+    for candidate in candidates:
+        try:
+            value = getattr(model.model_validate({name: candidate}), name)
+        except ValidationError:
+            continue
+        if value != default:
+            return candidate
+    raise AssertionError(f"no other valid value found for {name} (default {default!r})")
+
+
+def section_of(path: str) -> str | None:
+    sections = [s.section for s in STAGES if s.section and path.startswith(f"{s.section}.")]
+    return max(sections, key=len) if sections else None
+
+
+FIELDS = list(leaf_fields(PipelineConfig))
+
+
+def test_every_config_field_is_read_by_one_stage_or_changes_no_result():
+    unread = [path for path, _ in FIELDS if section_of(path) is None]
+    assert unread == ["mvs.workers"]  # how many depth maps run at once
+
+
+@pytest.mark.parametrize("path, field", FIELDS, ids=[path for path, _ in FIELDS])
+def test_a_changed_field_recomputes_exactly_what_depends_on_it(path, field):
+    section = section_of(path)
+    *parents, name = path.split(".")
+    model = section_model(".".join(parents)) if parents else PipelineConfig
+    value = other_value(model, name, field)
+    data = PipelineConfig().model_dump(mode="json")
+    node = data
+    for part in parents:
+        node = node[part]
+    node[name] = value
+    changed_cfg = PipelineConfig.model_validate(data)
+    before, after = plan(PipelineConfig()), plan(changed_cfg)
+    changed = {row.split("_")[0] if row.startswith("depth_") else row
+               for row in before if before[row] != after[row]}
+    assert changed == RECOMPUTED.get(section, set()), (path, value)
+
+
+def test_until_runs_a_prefix_of_the_graph():
+    assert STEPS == ("keyframes", "poses", "landmarks", "coarse", "mvs", "fitting",
+                     "evaluation")
+    assert [s.name for s in stages_until("landmarks")] == ["keyframes", "poses", "frames",
+                                                           "landmarks"]
+    assert [s.name for s in stages_until("evaluation")] == [s.name for s in STAGES]
+    with pytest.raises(ValueError, match="unknown step"):
+        stages_until("everything")
+
+
+def test_a_stage_without_its_input_is_skipped_and_fan_out_items_are_gathered():
+    keys = {"fitting": "fitting-" + "0" * 32}
+    assert _inputs(BY_NAME["evaluation"], keys) is None  # no scan given
+    keys.update({"frames": "f", "coarse": "c", "depth_00003": "d3", "depth_00009": "d9"})
+    assert _inputs(BY_NAME["fusion"], keys) == {"frames": "f", "coarse": "c",
+                                                "depth_00003": "d3", "depth_00009": "d9"}
