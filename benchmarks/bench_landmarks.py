@@ -49,7 +49,8 @@ sys.path.insert(0, str(ROOT))
 from facecap_core import coarse  # noqa: E402
 from facecap_core.camera import camera_center, rotation_matrix  # noqa: E402
 from facecap_core.config import CoarseConfig, LandmarkConfig, SynthConfig  # noqa: E402
-from facecap_core.evaluation import paper_table, score, score_json, umeyama  # noqa: E402
+from facecap_core.evaluation import paper_table, score, score_json  # noqa: E402
+from facecap_core.geometry import umeyama  # noqa: E402
 from facecap_core.landmarks import stage  # noqa: E402
 from facecap_core.landmarks.convention import OFFSETS_FILE, convention_offsets  # noqa: E402
 from facecap_core.meshio import load_landmarks, load_mesh  # noqa: E402
@@ -236,7 +237,7 @@ def calibration_capture(seed: int, out: Path, ict_model: str) -> Path:
 
 
 def calibrate(seeds: list[int], out: Path, ict_model: str) -> None:
-    from facecap_core.coarse import robust_similarity
+    from facecap_core.geometry import robust_similarity
     from facecap_core.template import ict_identity_vertices, load_ict_model
 
     offsets, used = [], []

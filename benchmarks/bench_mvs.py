@@ -194,7 +194,7 @@ def pipeline_subject(result: Path, config, peer: bool):
     from types import SimpleNamespace
 
     from facecap_core.camera import camera_center, read_cameras_json
-    from facecap_core.evaluation import umeyama
+    from facecap_core.geometry import umeyama
     from facecap_core.mvs.stage import load_depth_map, load_view, read_views
     from tasks.runner import open_store
 

@@ -41,49 +41,18 @@ import trimesh
 from facecap_core.camera import CAMERAS_JSON
 from facecap_core.config import CoarseConfig
 from facecap_core.errors import InputError
+from facecap_core.geometry import robust_similarity
 from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_3D
 from facecap_core.template import INNER_LANDMARKS, Template
 
 COARSE_PLY = "coarse.ply"
 COARSE_JSON = "coarse.json"
 
-__all__ = ["main", "weighted_similarity", "robust_similarity", "metric_scale", "combine_cues",
+__all__ = ["main", "metric_scale", "combine_cues",
            "eye_distance", "rbf_deform", "coarse_mesh"]
 
 
 # --------------------------------------------------------------------------- similarity
-
-
-def weighted_similarity(src: np.ndarray, dst: np.ndarray, weights: np.ndarray,
-                        with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
-    """Weighted Umeyama: ``dst ≈ s R src + t`` minimising ``sum w |.|²``; R proper."""
-    w = np.asarray(weights, float)
-    w = w / w.sum()
-    mu_s, mu_d = w @ src, w @ dst
-    xs, xd = src - mu_s, dst - mu_d
-    cov = (xd * w[:, None]).T @ xs
-    U, D, Vt = np.linalg.svd(cov)
-    S = np.ones(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2] = -1.0
-    R = (U * S) @ Vt
-    s = float(np.sum(D * S) / np.sum(w * np.sum(xs * xs, axis=1))) if with_scale else 1.0
-    return s, R, mu_d - s * R @ mu_s
-
-
-def robust_similarity(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None,
-                      iterations: int = 5, cauchy_mm: float = 3.0, with_scale: bool = True
-                      ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Similarity from ``src`` (template, mm) to ``dst`` reweighted by a Cauchy function of
-    the residuals in template millimetres; returns ``s, R, t`` and the final weights."""
-    base = np.ones(len(src)) if weights is None else np.asarray(weights, float)
-    w = base.copy()
-    s, R, t = weighted_similarity(src, dst, w, with_scale)
-    for _ in range(iterations):
-        r = np.linalg.norm(s * src @ R.T + t - dst, axis=1) / s
-        w = base / (1.0 + (r / cauchy_mm) ** 2)
-        s, R, t = weighted_similarity(src, dst, w, with_scale)
-    return s, R, t, w
 
 
 # --------------------------------------------------------------------------- scale

@@ -104,7 +104,7 @@ def mesh_consistency(a_vertices: np.ndarray, b_vertices: np.ndarray) -> dict:
     """Vertex-to-vertex distances (mm) between two meshes of one subject in template
     topology, after a rigid alignment (the captures' world frames differ): mean, median,
     95th percentile, max."""
-    from facecap_core.evaluation import umeyama
+    from facecap_core.geometry import umeyama
 
     a = np.asarray(a_vertices, float)
     b = np.asarray(b_vertices, float)

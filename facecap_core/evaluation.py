@@ -58,6 +58,7 @@ from scipy.spatial.transform import Rotation
 
 from facecap_core.camera import Intrinsics, look_at
 from facecap_core.errors import InputError
+from facecap_core.geometry import umeyama
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.render import RaycastScene, interpolate, shade_lambert, vertex_normals
 
@@ -65,7 +66,7 @@ EVALUATION_JSON = "evaluation.json"
 
 __all__ = [
     "EvaluationConfig", "Alignment", "Stats", "Score", "PROTOCOLS", "INNER_LANDMARKS",
-    "umeyama", "region_sphere", "face_region", "distances", "align", "score", "score_json",
+    "region_sphere", "face_region", "distances", "align", "score", "score_json",
     "evaluate", "error_heatmap", "mesh_render", "paper_table",
 ]
 
@@ -113,36 +114,6 @@ class EvaluationConfig(BaseModel):
 
 
 # --------------------------------------------------------------------------- transforms
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True
-            ) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity (or rigid) transform with ``dst ≈ s * R @ src + t``.
-
-    Umeyama (1991): ``R`` is always a proper rotation (det +1) — a reflection that would fit
-    better is replaced by the best rotation. Returns ``(s, R, t)``; ``s`` is 1.0 when
-    ``with_scale`` is False.
-    """
-    src = np.asarray(src, float)
-    dst = np.asarray(dst, float)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
-        raise ValueError(f"umeyama needs two (N>=3, 3) arrays of equal shape; got {src.shape} "
-                         f"and {dst.shape}")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    cov = xd.T @ xs / len(src)
-    U, D, Vt = np.linalg.svd(cov)
-    S = np.ones(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2] = -1.0  # flip the weakest axis: the best proper rotation, not a reflection
-    R = (U * S) @ Vt
-    if with_scale:
-        var_s = np.sum(xs * xs) / len(src)
-        s = float(np.sum(D * S) / var_s) if var_s > 0 else 1.0
-    else:
-        s = 1.0
-    t = mu_d - s * R @ mu_s
-    return s, R, t
 
 
 def _matrix(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -540,8 +540,9 @@ def test_credentials_come_only_from_the_environment():
     for function in entry_points:
         names = [p.lower() for p in inspect.signature(function).parameters]
         assert not [n for n in names if any(s in n for s in secretive)], function
-    source = (ROOT / "tasks" / "store.py").read_text()
-    assert "url_to_fs(text)" in source  # no storage options: nothing but the URL is passed
+    source = (ROOT / "tasks" / "store" / "base.py").read_text()
+    assert source.count("url_to_fs(") == 2  # both calls: nothing but the URL is passed
+    assert "url_to_fs(_expand(url))" in source
 
 
 def test_served_flows_validate_their_parameters():

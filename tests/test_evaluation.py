@@ -32,7 +32,6 @@ from facecap_core.evaluation import (
     region_sphere,
     score,
     score_json,
-    umeyama,
 )
 from facecap_core.meshio import save_landmarks
 from facecap_core.render import vertex_normals
@@ -99,21 +98,6 @@ def crop(v, f, keep):
 
 
 # --------------------------------------------------------------------------- building blocks
-
-
-def test_umeyama_recovers_similarity_and_never_reflects():
-    rng = np.random.default_rng(1)
-    src = rng.normal(size=(50, 3)) * 30
-    T, s, R, t = similarity(3)
-    s_hat, R_hat, t_hat = umeyama(src, T(src))
-    assert s_hat == pytest.approx(s, rel=1e-12)
-    np.testing.assert_allclose(R_hat, R, atol=1e-12)
-    np.testing.assert_allclose(t_hat, t, atol=1e-10)
-    s_rigid, R_rigid, _ = umeyama(src, src @ R.T + t, with_scale=False)
-    assert s_rigid == 1.0 and np.allclose(R_rigid, R, atol=1e-12)
-    # A mirror image is fitted by a proper rotation, not by the reflection.
-    _, R_m, _ = umeyama(src, src * np.array([-1.0, 1.0, 1.0]))
-    assert np.linalg.det(R_m) == pytest.approx(1.0)
 
 
 def test_distances_are_point_to_triangle_not_point_to_vertex():

@@ -304,7 +304,7 @@ def assert_same_cameras(a_path: Path, b_path: Path) -> None:
     import numpy as np
 
     from facecap_core.camera import camera_center, rotation_angle_deg
-    from facecap_core.evaluation import umeyama
+    from facecap_core.geometry import umeyama
 
     a, b = (json.loads(p.read_text()) for p in (a_path, b_path))
     assert [k["frame_index"] for k in a["keyframes"]] == [k["frame_index"] for k in b["keyframes"]]

@@ -12,7 +12,7 @@ import pytest
 from facecap_core.camera import Intrinsics, camera_center, look_at, project, rotation_matrix
 from facecap_core.config import LandmarkConfig, SynthConfig
 from facecap_core.errors import InputError
-from facecap_core.evaluation import umeyama
+from facecap_core.geometry import umeyama
 from facecap_core.landmarks import stage
 from facecap_core.landmarks.stage import (
     Cameras,

@@ -482,7 +482,7 @@ def test_a_worker_configured_like_the_compose_workers_uses_the_store(
         s3, prefix, tmp_path, endpoint_variable):
     """A fresh process with only the worker's variables from docker-compose.yml (MinIO's
     address replaced by the test server's) writes to the bucket; the variable fsspec reads,
-    named in tasks/store.py, works as well."""
+    named in tasks/store/remote.py, works as well."""
     compose_env = compose_worker_environment()
     endpoints = [name for name, value in compose_env.items() if value == "http://minio:9000"]
     assert endpoints == ["AWS_ENDPOINT_URL_S3"]

@@ -5,7 +5,7 @@ import pytest
 
 from facecap_core import assets
 from facecap_core.errors import FacecapError, InputError
-from facecap_core.evaluation import umeyama
+from facecap_core.geometry import umeyama
 from facecap_core.meshio import load_landmarks
 from facecap_core.template import Template, head_frame
 

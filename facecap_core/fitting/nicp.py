@@ -18,7 +18,6 @@ import numpy as np
 
 from facecap_core.config import FittingConfig
 from facecap_core.errors import InputError
-from facecap_core.evaluation import umeyama
 from facecap_core.fitting.constraints import (
     CloudGrid,
     Keyframe,
@@ -30,6 +29,7 @@ from facecap_core.fitting.constraints import (
     nearest_edge_pixels,
 )
 from facecap_core.fitting.solver import NicpSystem
+from facecap_core.geometry import umeyama
 from facecap_core.render import RaycastScene, vertex_normals
 from facecap_core.template import INNER_LANDMARKS, Template
 

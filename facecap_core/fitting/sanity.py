@@ -134,7 +134,7 @@ def _compare(vertices: np.ndarray, moved: np.ndarray, faces: np.ndarray,
 
 
 def _moved_template(template: np.ndarray, vertices: np.ndarray) -> np.ndarray:
-    from facecap_core.evaluation import umeyama
+    from facecap_core.geometry import umeyama
 
     s, R, t = umeyama(template, vertices, with_scale=True)
     return s * template @ R.T + t

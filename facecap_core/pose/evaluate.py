@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from facecap_core.camera import Intrinsics, camera_center, rotation_angle_deg
-from facecap_core.evaluation import umeyama
+from facecap_core.geometry import umeyama
 
 
 def pose_errors(R_est, t_est, intr_est: Intrinsics, R_gt, t_gt, intr_gt: Intrinsics) -> dict:

@@ -1,0 +1,83 @@
+"""The store in a folder of this machine: every artifact is written to ``.tmp/<uuid4>/`` and
+renamed into place in one atomic step."""
+
+from __future__ import annotations
+
+import shutil
+import uuid
+from collections.abc import Mapping
+from pathlib import Path
+
+from tasks.store.base import ArtifactStore, MakeManifest
+from tasks.store.files import (
+    MANIFEST_NAME,
+    ArtifactNotFoundError,
+    FileSource,
+    Manifest,
+    StoreWriteError,
+    fsync_dir,
+    manifest_bytes,
+    remove_tree,
+    rename_if_absent,
+    source_chunks,
+    write_durably,
+    write_local_file,
+)
+from tasks.store.keys import check_key
+
+
+class LocalStore(ArtifactStore):
+    """Artifacts in a local folder (a path or a ``file://`` URL)."""
+
+    is_local = True
+
+    def get(self, key: str, verify: bool = True) -> Path:
+        """The artifact folder itself: treat it as read-only."""
+        if verify:
+            self.verify(key)
+        else:
+            self.manifest(key)  # raises if the artifact is not committed
+        return Path(self._artifact_path(key))
+
+    def delete(self, key: str) -> None:
+        """Remove an artifact so that it will be recomputed: one atomic rename takes the
+        manifest and all files away at once."""
+        check_key(key)
+        folder = Path(self._artifact_path(key))
+        if not folder.exists():
+            raise ArtifactNotFoundError(f"artifact {key} not found in store {self.url}")
+        remove_tree(folder)
+
+    def _put(self, key: str, files: Mapping[str, FileSource],
+             make_manifest: MakeManifest) -> Manifest:
+        """Write into ``.tmp/<uuid4>/`` and rename the whole folder into place at once."""
+        root = Path(self._root)
+        temp_folder = root / ".tmp" / uuid.uuid4().hex
+        final_folder = Path(self._artifact_path(key))
+        try:
+            try:
+                temp_folder.mkdir(parents=True)
+                entries = {
+                    name: write_local_file(temp_folder / name, source_chunks(name, source))
+                    for name, source in files.items()
+                }
+                manifest = make_manifest(entries)
+                write_durably(temp_folder / MANIFEST_NAME, manifest_bytes(manifest))
+                fsync_dir(temp_folder)
+                final_folder.parent.mkdir(parents=True, exist_ok=True)
+                committed = rename_if_absent(temp_folder, final_folder)
+                if committed:
+                    fsync_dir(final_folder.parent)
+            except OSError as exc:
+                raise self._write_error(key, self.url, exc) from exc
+        finally:
+            # After a successful rename this folder is gone; otherwise it is debris.
+            shutil.rmtree(temp_folder, ignore_errors=True)
+        if committed:
+            return manifest
+        if self.exists(key):
+            return self.manifest(key)  # a concurrent writer committed the same key first
+        raise StoreWriteError(
+            f"could not write artifact {key}: {final_folder} exists but has no {MANIFEST_NAME} "
+            "(left by an interrupted operation); delete that folder and retry"
+        )
