@@ -39,9 +39,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import facecap_core.ear_training as et  # noqa: E402
 from facecap_core.camera import camera_center, project  # noqa: E402
 from facecap_core.config import EarTrainingConfig, SynthConfig, load_yaml  # noqa: E402
-from facecap_core.landmarks import ear_training as et  # noqa: E402
 from facecap_core.landmarks.ears import (  # noqa: E402
     EAR_VERTEX_IDS,
     detect_ears,

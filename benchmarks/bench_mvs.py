@@ -31,18 +31,18 @@ from pathlib import Path
 import numba
 import numpy as np
 import trimesh
+from planesweep import plane_sweep  # benchmarks/planesweep.py, the peer method
 from scipy.spatial import cKDTree
 
 from facecap_core.config import MVSConfig, SynthConfig
 from facecap_core.evaluation import distances, region_sphere
 from facecap_core.meshio import load_landmarks, load_mesh
+from facecap_core.mvs.depth import compute_depth_map
 from facecap_core.mvs.filtering import filter_with_prior, geometric_filter
 from facecap_core.mvs.fusion import fuse, write_ply
-from facecap_core.mvs.planesweep import plane_sweep
 from facecap_core.mvs.prior import coarse_prior
-from facecap_core.mvs.stage import choose_sources, compute_depth_map, sparse_from_mesh
 from facecap_core.mvs.testing import coarse_from_gt, even_keyframes, gt_depth, load_views
-from facecap_core.mvs.views import visible_points
+from facecap_core.mvs.views import choose_sources, sparse_from_mesh, visible_points
 from facecap_core.synthetic import load_gt_cameras, synthesize
 
 BARS = {"depth_median_mm": 0.5, "coverage_pct": 90.0, "accuracy_median_mm": 0.5,
@@ -195,7 +195,9 @@ def pipeline_subject(result: Path, config, peer: bool):
 
     from facecap_core.camera import camera_center, read_cameras_json
     from facecap_core.geometry import umeyama
-    from facecap_core.mvs.stage import load_depth_map, load_view, read_views
+    from facecap_core.mvs.depth import load_depth_map
+    from facecap_core.mvs.images import load_view
+    from facecap_core.mvs.views import read_views
     from tasks.runner import open_store
 
     report = json.loads((result / "report.json").read_text())

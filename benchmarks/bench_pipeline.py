@@ -50,7 +50,7 @@ def _config_file(out: Path, name: str, values: dict) -> str:
 
 
 def score_mesh(mesh_path: Path, gt: Path) -> dict:
-    from facecap_core.evaluation import evaluate_stage
+    from facecap_core.evaluation import main as evaluate_stage
 
     folder = mesh_path.parent / f"eval_{mesh_path.stem}"
     mesh_dir = folder / "mesh"
@@ -74,7 +74,8 @@ def _lm_dir(gt: Path, folder: Path) -> Path:
 def depth_speedup(store: str, report: dict, maps: int, scratch: Path) -> dict:
     """Seconds for ``maps`` depth maps one at a time and two at a time (same inputs)."""
     from facecap_core.config import DepthMapConfig
-    from facecap_core.mvs.stage import depth_main, read_views
+    from facecap_core.mvs import depth
+    from facecap_core.mvs.views import read_views
     from tasks.runner import open_store
 
     st = open_store(store)
@@ -86,7 +87,7 @@ def depth_speedup(store: str, report: dict, maps: int, scratch: Path) -> dict:
     pick = indices[len(indices) // 2 - maps // 2:][:maps]
 
     def one(i):
-        return depth_main(i, frames, coarse / "cameras.json", views / "views.json",
+        return depth.main(i, frames, coarse / "cameras.json", views / "views.json",
                           coarse / "coarse.ply", scratch, DepthMapConfig())
 
     one(pick[0])  # compile and warm the caches first

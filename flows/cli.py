@@ -51,12 +51,13 @@ def _cmd_synth(args) -> int:
 
 def _cmd_evaluate(args) -> int:
     from facecap_core import evaluation as ev
+    from facecap_core.meshio import load_mesh
 
     protocols = ev.PROTOCOLS if args.protocol == "both" else (args.protocol,)
     scores = ev.evaluate(args.mesh, args.scan, args.scan_landmarks, args.mesh_landmarks,
                          protocols=protocols)
     if args.heatmap:
-        mesh = ev.load_mesh(args.mesh)
+        mesh = load_mesh(args.mesh)
         for name, sc in scores.items():
             out = Path(args.heatmap)
             out = out.with_name(f"{out.stem}_{name}{out.suffix or '.png'}")
@@ -238,7 +239,7 @@ def _cmd_serve(args) -> int:
 
 
 def _cmd_train_ears(args) -> int:
-    from facecap_core.landmarks.ear_training import train
+    from facecap_core.ear_training import train
 
     path = train(args.out, progress=True)
     print(f"ear model written to {path}")

@@ -25,7 +25,8 @@ from facecap_core.fitting.run import FIT_JSON, MESH_OBJ, MESH_PLY
 from facecap_core.frames import FRAMES_JSON
 from facecap_core.keyframes import KEYFRAMES_JSON, TRACKS_NPZ
 from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_2D, LANDMARKS_3D
-from facecap_core.mvs.stage import CLOUD, FUSION, VIEWS, read_views
+from facecap_core.mvs.fusion import CLOUD, FUSION
+from facecap_core.mvs.views import VIEWS, read_views
 from facecap_core.pose.stage import COLMAP_MODEL, POINTS, SPARSE
 from tasks.store import artifact_key
 
@@ -146,25 +147,25 @@ def compute_coarse(f: Folders, out: Path, config, params: dict) -> None:
 
 
 def compute_views(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core.mvs.stage import views_main
+    from facecap_core.mvs import views
 
-    views_main(f["frames"], f["coarse"] / CAMERAS_JSON, f["coarse"] / COARSE_PLY, out,
+    views.main(f["frames"], f["coarse"] / CAMERAS_JSON, f["coarse"] / COARSE_PLY, out,
                config, f["poses"] / SPARSE)
 
 
 def compute_depth(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core.mvs.stage import depth_main
+    from facecap_core.mvs import depth
 
-    depth_main(params["index"], f["frames"], f["coarse"] / CAMERAS_JSON, f["views"] / VIEWS,
+    depth.main(params["index"], f["frames"], f["coarse"] / CAMERAS_JSON, f["views"] / VIEWS,
                f["coarse"] / COARSE_PLY, out, config)
 
 
 def compute_fusion(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core.mvs.stage import fusion_main
+    from facecap_core.mvs import fusion
 
     maps = sorted(p for name, folder in f.items() if name.startswith("depth_")
                   for p in folder.glob("depth_*.npz"))
-    fusion_main(maps, f["frames"], f["coarse"] / CAMERAS_JSON, out, config)
+    fusion.main(maps, f["frames"], f["coarse"] / CAMERAS_JSON, out, config)
 
 
 def compute_fitting(f: Folders, out: Path, config, params: dict) -> None:
@@ -174,9 +175,9 @@ def compute_fitting(f: Folders, out: Path, config, params: dict) -> None:
 
 
 def compute_evaluation(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core.evaluation import evaluate_stage
+    from facecap_core import evaluation
 
-    evaluate_stage(f["mesh"], f["scan"], out, scan_landmarks=f.get("scan_landmarks"))
+    evaluation.main(f["mesh"], f["scan"], out, scan_landmarks=f.get("scan_landmarks"))
 
 
 def _reference_keyframes(f: Folders) -> list[int]:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import facecap_core.ear_training as et
 from facecap_core.errors import InputError
-from facecap_core.landmarks import ear_training as et
 from facecap_core.landmarks import ears
 
 

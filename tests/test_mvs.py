@@ -61,7 +61,7 @@ def scene(tmp_path_factory, ict_model):
 
 
 def test_reference_views_are_evenly_spread_over_the_sweep():
-    from facecap_core.mvs.stage import reference_views
+    from facecap_core.mvs.views import reference_views
 
     picked = reference_views(73, 40)
     assert len(picked) == 40 and picked[0] == 0 and picked[-1] == 72

@@ -1,23 +1,30 @@
-"""Dense multi-view stereo (the paper's "Point cloud generation" stage).
+"""Dense multi-view stereo (the paper's "Point cloud generation" stage), three stages:
 
-View selection (:mod:`.views`), keyframe preparation (:mod:`.images`), the coarse-mesh prior
-(:mod:`.prior`), PatchMatch depth/normal maps (:mod:`.patchmatch`), filtering
-(:mod:`.filtering`), fusion (:mod:`.fusion`), and the three stages the service runs, view
-selection, one depth map per keyframe and fusion (:mod:`.stage`).
+* :mod:`.views`: which keyframes get a depth map and their source views (the paper's
+  view-selection score); ``views.main`` → ``views.json``;
+* :mod:`.depth`: one keyframe's depth map from the coarse mesh's prior (:mod:`.prior`) and
+  PatchMatch (:mod:`.patchmatch`), filtered (:mod:`.filtering`); ``depth.main`` →
+  ``depth_<index>.npz``;
+* :mod:`.fusion`: the consistency filter across maps and the fused cloud; ``fusion.main``
+  → ``cloud.ply``.
+
+Keyframe preparation (resize, undistort) is :mod:`.images`.
 """
 
+from facecap_core.mvs.depth import compute_depth_map, save_depth_map
 from facecap_core.mvs.filtering import filter_with_prior, geometric_filter
 from facecap_core.mvs.fusion import PointCloud, fuse, write_ply
 from facecap_core.mvs.images import MVSView, prepare_view
 from facecap_core.mvs.patchmatch import DepthMap, patchmatch_depth
 from facecap_core.mvs.prior import CoarsePrior, coarse_prior
-from facecap_core.mvs.stage import (
+from facecap_core.mvs.views import (
     choose_sources,
-    compute_depth_map,
-    save_depth_map,
+    gaussian_score,
+    pair_scores,
+    select_sources,
     sparse_from_mesh,
+    visible_points,
 )
-from facecap_core.mvs.views import gaussian_score, pair_scores, select_sources, visible_points
 
 __all__ = [
     "CoarsePrior", "DepthMap", "MVSView", "PointCloud", "choose_sources", "coarse_prior",

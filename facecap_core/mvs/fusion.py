@@ -9,15 +9,23 @@ point is not emitted again from another view.
 
 from __future__ import annotations
 
+import json
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from facecap_core.config import FusionConfig
 from facecap_core.errors import InputError
-from facecap_core.mvs.filtering import _partners, agreement, backproject
+from facecap_core.mvs.depth import load_depth_map
+from facecap_core.mvs.filtering import _partners, agreement, backproject, geometric_filter
+from facecap_core.mvs.images import load_view, metric_cameras
 from facecap_core.mvs.patchmatch import DepthMap
+
+CLOUD = "cloud.ply"
+FUSION = "fusion.json"
 
 
 @dataclass
@@ -99,3 +107,29 @@ def write_ply(cloud: PointCloud, path: str | Path) -> Path:
         raise InputError(f"could not write the point cloud to {path}")
     os.replace(tmp, path)
     return path
+
+
+def main(depth_npzs: list[str | Path], frames_dir: str | Path, cameras_json: str | Path,
+                out_dir: str | Path, config: FusionConfig | None = None) -> Path:
+    """Consistency-filter and fuse the depth maps; writes ``cloud.ply`` and ``fusion.json``."""
+    config = config or FusionConfig()
+    start = time.perf_counter()
+    cams = metric_cameras(cameras_json)
+    maps = sorted((load_depth_map(p) for p in depth_npzs), key=lambda m: m.index)
+    if len(maps) < 2:
+        raise InputError(f"fusion needs at least 2 depth maps; got {len(maps)}")
+    # The colours at the depth maps' own resolution (the depth stage's processing width).
+    images = [load_view(frames_dir, cams, m.index, m.intr.width).rgb for m in maps]
+    maps = geometric_filter(maps, config.min_consistent_views, config.max_depth_mm,
+                            config.max_reprojection_px, config.max_normal_deg)
+    cloud = fuse(maps, images, config.min_consistent_views, config.max_depth_mm,
+                 config.max_reprojection_px, config.max_normal_deg)
+    if len(cloud.points) == 0:
+        raise InputError("fusion kept no point: no two depth maps agree (check the cameras and "
+                         "the coarse mesh)")
+    out = Path(out_dir)
+    ply = write_ply(cloud, out / CLOUD)
+    (out / FUSION).write_text(json.dumps({
+        "points": len(cloud.points), "depth_maps": len(maps),
+        "seconds": round(time.perf_counter() - start, 2)}))
+    return ply

@@ -7,12 +7,14 @@ lens distortion is removed once per image here (OpenCV remap) instead of per sam
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from facecap_core.camera import Intrinsics, camera_center
+from facecap_core.camera import CameraSet, Intrinsics, camera_center, read_cameras_json
 from facecap_core.errors import InputError
+from facecap_core.frames import load_frame
 
 
 @dataclass
@@ -75,3 +77,18 @@ def prepare_view(index: int, image: np.ndarray, intr: Intrinsics, R: np.ndarray,
     R = np.asarray(R, float).reshape(3, 3)
     t = np.asarray(t, float).reshape(3)
     return MVSView(int(index), pinhole(cam), R, t, np.ascontiguousarray(rgb), grey)
+
+
+def load_view(frames_dir: str | Path, cams: CameraSet, index: int, width: int) -> MVSView:
+    """Keyframe ``index`` of the frames stage, prepared at ``width`` for matching."""
+    R, t = cams.pose(index)
+    return prepare_view(index, load_frame(frames_dir, index), cams.intrinsics, R, t, width)
+
+
+def metric_cameras(cameras_json: str | Path) -> CameraSet:
+    """The coarse stage's cameras; anything not in millimetres is refused."""
+    cams = read_cameras_json(cameras_json)
+    if cams.units != "mm":
+        raise InputError(f"{cameras_json} is not metric (units: {cams.units}); MVS needs the "
+                         "coarse stage's cameras in mm")
+    return cams

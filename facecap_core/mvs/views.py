@@ -9,9 +9,17 @@ occlusion) are scored down. MVSNet's score, as used by Agrawal et al. 2020.
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 
+from facecap_core.config import ViewSelectionConfig
 from facecap_core.errors import InputError
+from facecap_core.meshio import load_mesh
+from facecap_core.mvs.images import MVSView, metric_cameras
+
+VIEWS = "views.json"
 
 
 def gaussian_score(theta_deg: np.ndarray, theta0: float = 10.0, sigma1: float = 5.0,
@@ -85,3 +93,79 @@ def visible_points(points: np.ndarray, cameras: list, vertices: np.ndarray,
         hit = scene.cast(np.broadcast_to(c, d.shape), d / dist[:, None])["t_hit"]
         vis[k] = inside & (hit >= dist - tolerance_mm)
     return vis
+
+
+def choose_sources(views: list[MVSView], points: np.ndarray, visibility: np.ndarray,
+                   config: ViewSelectionConfig) -> list[np.ndarray]:
+    """Indices (into ``views``) of each view's sources by the paper's view-selection score."""
+    centres = np.stack([v.centre for v in views])
+    scores = pair_scores(points, visibility, centres, config.theta0_deg, config.sigma1,
+                         config.sigma2)
+    return select_sources(scores, config.num_sources)
+
+
+def sparse_from_mesh(views: list[MVSView], vertices: np.ndarray, faces: np.ndarray,
+                     count: int = 4000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse points (mesh vertices, subsampled) and their visibility per view, for when
+    no structure-from-motion points are at hand."""
+    rng = np.random.default_rng(seed)
+    v = np.asarray(vertices, float)
+    pick = rng.choice(len(v), size=min(count, len(v)), replace=False)
+    vis = visible_points(v[pick], [(w.intr, w.R, w.t) for w in views], vertices, faces)
+    return v[pick], vis
+
+
+def main(frames_dir: str | Path, cameras_json: str | Path, coarse_ply: str | Path,
+               out_dir: str | Path, config: ViewSelectionConfig | None = None,
+               sparse_npz: str | Path | None = None) -> Path:
+    """The keyframes MVS works on (:func:`reference_views`) and each one's sources among
+    them by the paper's score; writes ``views.json``."""
+    config = config or ViewSelectionConfig()
+    cams = metric_cameras(cameras_json)
+    if len(cams.frame_indices) < 2:
+        raise InputError(f"multi-view stereo needs at least 2 keyframes; got "
+                         f"{len(cams.frame_indices)}")
+    # MVS works on the references alone: every depth map's sources then have depth maps too,
+    # which the consistency filter and the fusion check it against.
+    count = len(cams.frame_indices)
+    references = reference_views(count, config.max_reference_views)
+    # Only cameras matter for the score: views without images are enough.
+    views = [MVSView(cams.frame_indices[k], cams.intrinsics, cams.R[k], cams.t[k],
+                     np.zeros((1, 1, 3), np.uint8), np.zeros((1, 1), np.float32))
+             for k in references]
+    source = "sparse points"
+    points = visibility = None
+    if sparse_npz is not None and Path(sparse_npz).is_file():
+        with np.load(sparse_npz) as z:
+            points, visibility = z["points"] * float(cams.metric_scale or 1.0), z["visibility"]
+        if visibility.shape != (count, len(points)) or len(points) < 10:
+            points = visibility = None
+        else:
+            visibility = visibility[references]
+    if points is None:
+        coarse = load_mesh(coarse_ply, "coarse mesh")
+        points, visibility = sparse_from_mesh(views, coarse.vertices, coarse.faces)
+        source = "coarse mesh vertices"
+    sources = choose_sources(views, points, visibility, config)
+    for i, s in enumerate(sources):
+        if len(s) == 0:
+            raise InputError(f"keyframe {views[i].index} shares no sparse point with any other "
+                             "keyframe; it cannot be matched")
+    path = Path(out_dir) / VIEWS
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({
+        "scored_with": source,
+        "sources": {str(views[i].index): [int(views[j].index) for j in s]
+                    for i, s in enumerate(sources)}}, indent=1))
+    return path
+
+
+def reference_views(count: int, limit: int) -> list[int]:
+    """At most ``limit`` of ``count`` keyframes (positions in sweep order), evenly spaced
+    and including both ends."""
+    return sorted({int(round(x)) for x in np.linspace(0, count - 1, min(count, limit))})
+
+
+def read_views(views_json: str | Path) -> dict[int, list[int]]:
+    doc = json.loads(Path(views_json).read_text())
+    return {int(k): [int(j) for j in v] for k, v in doc["sources"].items()}

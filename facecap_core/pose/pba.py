@@ -1,5 +1,9 @@
 """Photometric bundle adjustment (PBA) of keyframe poses, intrinsics and radial distortion.
 
+One module of ~650 lines on purpose: the residual, its derivatives, the numba accumulation
+and the Schur-complement solve share one parameter layout and one set of kernels; split,
+they would need an interface as wide as the algorithm.
+
 The method of DSO (Engel et al.), run as a batch over all keyframes:
 
 * **Points**: the initial reconstruction's sparse points, each hosted in the middle keyframe

@@ -1,0 +1,59 @@
+"""The evaluation stage: score the fitting stage's mesh against a scan, write the figures."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+from facecap_core.errors import InputError
+from facecap_core.evaluation.alignment import EvaluationConfig
+from facecap_core.evaluation.figures import error_heatmap
+from facecap_core.evaluation.scoring import evaluate, score_json
+from facecap_core.meshio import load_mesh
+
+EVALUATION_JSON = "evaluation.json"
+
+
+def find_file(folder: str | Path, suffixes: Sequence[str], what: str) -> Path:
+    """The single file in ``folder`` with one of ``suffixes`` (an input artifact's file)."""
+    found = sorted(p for p in Path(folder).iterdir()
+                   if p.is_file() and p.suffix.lower() in suffixes and p.name != "manifest.json")
+    if not found:
+        raise InputError(f"no {what} ({'/'.join(suffixes)}) in {folder}")
+    return found[0]
+
+
+def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
+                   scan_landmarks: str | Path | None = None,
+                   config: EvaluationConfig | None = None) -> Path:
+    """Score the fitting stage's ``mesh.ply`` against a scan; writes ``evaluation.json``
+    (:func:`score_json` per protocol) and ``heatmap_<protocol>.png``; returns the JSON."""
+    import json
+
+    from facecap_core.fitting.run import MESH_PLY
+
+    mesh_path = Path(mesh_dir) / MESH_PLY
+    scan_path = find_file(scan_dir, (".ply", ".obj", ".stl", ".off"), "scan mesh")
+    lm_path = (find_file(scan_landmarks, (".json", ".ljson", ".txt", ".pts"), "scan landmarks")
+               if scan_landmarks is not None else None)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    mesh = load_mesh(mesh_path, "mesh")
+    mesh_lm = Path(mesh_dir) / "landmarks.json"
+    if not mesh_lm.is_file():
+        # A mesh in template topology carries its landmarks: the template's landmark vertices.
+        from facecap_core.meshio import save_landmarks
+        from facecap_core.template import Template
+
+        template = Template.default()
+        if len(mesh.vertices) == len(template.vertices):
+            mesh_lm = save_landmarks(out / "mesh_landmarks.json",
+                                     mesh.vertices[template.landmarks])
+    scores = evaluate(mesh_path, scan_path, lm_path, mesh_lm if mesh_lm.is_file() else None,
+                      config=config)
+    for name, sc in scores.items():
+        error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces, sc.accuracy_per_vertex,
+                      out / f"heatmap_{name}.png")
+    path = out / EVALUATION_JSON
+    path.write_text(json.dumps({p: score_json(s) for p, s in scores.items()}, indent=1))
+    return path
