@@ -295,3 +295,18 @@ def _write(path: Path, doc: dict) -> Path:
     tmp.write_text(json.dumps(doc, indent=1))
     tmp.replace(path)
     return path
+
+
+def figures(folder: str | Path) -> dict:
+    """Headline figures of a coarse artifact: the metric scale, its cues and uncertainty,
+    and the angular coverage of the landmarks."""
+    folder = Path(folder)
+    cameras = json.loads((folder / CAMERAS_JSON).read_text())
+    scale = json.loads((folder / COARSE_JSON).read_text())["scale"]
+    fig = {"metric_scale": cameras.get("metric_scale"),
+           "scale": {k: scale.get(k) for k in ("metric_scale", "sigma_pct", "used", "cues",
+                                               "dropped", "how")}}
+    coverage = json.loads((folder / LANDMARKS_3D).read_text()).get("coverage")
+    if coverage:
+        fig["coverage"] = coverage
+    return fig

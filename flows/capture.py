@@ -33,6 +33,7 @@ from tasks.graph import (
     BY_NAME,
     EXPORTED,
     OUTPUT_NAMES,
+    STAGES,
     STEPS,
     Stage,
     capture_input_name,
@@ -209,7 +210,7 @@ def reconstruct_capture(video: str, out: str, config: str | None = None,
         "until": until, "wall_seconds": round(time.perf_counter() - start, 2),
         "computed": len(stages) - cached, "cached": cached, "stages": stages,
     }
-    figures = _figures(out_dir)
+    figures = _figures(store, runs)
     if figures:
         report["figures"] = figures
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
@@ -219,31 +220,13 @@ def reconstruct_capture(video: str, out: str, config: str | None = None,
     return report
 
 
-def _figures(out: Path) -> dict:
-    """Headline figures of the exported files (what the UI table and the report show)."""
-    fig = {}
-    if (out / "cameras.json").is_file():
-        doc = json.loads((out / "cameras.json").read_text())
-        fig["keyframes"] = len(doc["keyframes"])
-        fig["focal_px"] = round(doc["intrinsics"]["fx"], 2)
-        if doc.get("metric_scale") is not None:
-            fig["metric_scale"] = doc["metric_scale"]
-        fig["dropped_keyframes"] = doc.get("dropped", [])
-    if (out / "coarse.json").is_file():
-        scale = json.loads((out / "coarse.json").read_text())["scale"]
-        fig["scale"] = {k: scale.get(k) for k in ("metric_scale", "sigma_pct", "used", "cues",
-                                                   "dropped", "how")}
-    if (out / "landmarks3d.json").is_file():
-        doc = json.loads((out / "landmarks3d.json").read_text())
-        if doc.get("coverage"):
-            fig["coverage"] = doc["coverage"]
-    if (out / "fit.json").is_file():
-        fit = json.loads((out / "fit.json").read_text())
-        fig["fit_seconds"] = round(fit["timing"].get("wall_s", 0.0), 2)
-        if fit.get("sanity"):
-            fig["mesh_sanity"] = fit["sanity"]
-    if (out / "evaluation.json").is_file():
-        fig["evaluation"] = json.loads((out / "evaluation.json").read_text())
+def _figures(store: str, runs: dict[str, tuple[str, bool]]) -> dict:
+    """Headline figures of the run's artifacts, in graph order (what the UI table and the
+    report show); each stage module reads its own files."""
+    st, fig = open_store(store), {}
+    for stage in STAGES:
+        if stage.figures and stage.name in runs:
+            fig.update(stage.figures(st.get(runs[stage.name][0])))
     return fig
 
 

@@ -68,6 +68,8 @@ class Stage:
     each run gets ``params={"index": i}`` and its report row is ``<name>_<index:05d>``."""
     version_suffix: Callable[[], str] | None = field(default=None, repr=False)
     """Part of the version that is not code: the digest of a trained model the stage reads."""
+    figures: Callable[[Path], dict] | None = field(default=None, repr=False)
+    """Headline figures of its artifact folder for the run report and the UI."""
 
     def key(self, inputs: dict[str, str], config: dict | None, params: dict | None = None
             ) -> str:
@@ -184,6 +186,15 @@ def _reference_keyframes(f: Folders) -> list[int]:
     return sorted(read_views(f["views"] / VIEWS))
 
 
+def _figures(module: str) -> Callable[[Path], dict]:
+    """The ``figures(folder)`` function of a stage module, imported when called."""
+    def figures(folder: Path) -> dict:
+        import importlib
+
+        return importlib.import_module(f"facecap_core.{module}").figures(folder)
+    return figures
+
+
 def _ear_model_digest() -> str:
     # The ear model can be retrained, or replaced through $FACECAP_EAR_MODELS.
     from facecap_core.landmarks.ears import model_digest
@@ -198,7 +209,7 @@ STAGES: tuple[Stage, ...] = (
           (KEYFRAMES_JSON, TRACKS_NPZ)),
     Stage("poses", "poses", "2", ("video", "keyframes"), "poses", compute_poses,
           (CAMERAS_JSON, POINTS, SPARSE, *COLMAP_MODEL),
-          exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL)),
+          exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=_figures("pose.stage")),
     Stage("frames", "landmarks", "1", ("video", "poses"), None, compute_frames,
           (FRAMES_JSON, "frame_{index:06d}.png")),
     Stage("landmarks", "landmarks", "2", ("video", "poses"), "landmarks", compute_landmarks,
@@ -206,7 +217,8 @@ STAGES: tuple[Stage, ...] = (
           version_suffix=lambda: f"ears-{_ear_model_digest()}"),
     Stage("coarse", "coarse", "3", ("landmarks", "poses"), "coarse", compute_coarse,
           (CAMERAS_JSON, LANDMARKS_3D, EARS_3D, COARSE_PLY, COARSE_JSON),
-          exported=(CAMERAS_JSON, LANDMARKS_3D, EARS_3D, COARSE_PLY, COARSE_JSON)),
+          exported=(CAMERAS_JSON, LANDMARKS_3D, EARS_3D, COARSE_PLY, COARSE_JSON),
+          figures=_figures("coarse")),
     Stage("views", "mvs", "1", ("frames", "coarse", "poses"), "mvs.views", compute_views,
           (VIEWS,)),
     Stage("depth", "mvs", "1", ("frames", "coarse", "views"), "mvs.depth", compute_depth,
@@ -216,11 +228,11 @@ STAGES: tuple[Stage, ...] = (
           (CLOUD, FUSION), exported=(CLOUD,)),
     Stage("fitting", "fitting", "4", ("fusion", "coarse", "frames"), "fitting",
           compute_fitting, (MESH_PLY, MESH_OBJ, FIT_JSON),
-          exported=(MESH_PLY, MESH_OBJ, FIT_JSON)),
+          exported=(MESH_PLY, MESH_OBJ, FIT_JSON), figures=_figures("fitting.stage")),
     Stage("evaluation", "evaluation", "1", ("mesh", "scan"), None, compute_evaluation,
           (EVALUATION_JSON, *(f"heatmap_{p}.png" for p in PROTOCOLS)),
           exported=(EVALUATION_JSON, *(f"heatmap_{p}.png" for p in PROTOCOLS)),
-          optional=("scan_landmarks",)),
+          optional=("scan_landmarks",), figures=_figures("evaluation.stage")),
 )
 """The stages in the order they run."""
 

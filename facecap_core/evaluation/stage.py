@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -28,8 +29,6 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
                    config: EvaluationConfig | None = None) -> Path:
     """Score the fitting stage's ``mesh.ply`` against a scan; writes ``evaluation.json``
     (:func:`score_json` per protocol) and ``heatmap_<protocol>.png``; returns the JSON."""
-    import json
-
     from facecap_core.fitting.run import MESH_PLY
 
     mesh_path = Path(mesh_dir) / MESH_PLY
@@ -57,3 +56,8 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
     path = out / EVALUATION_JSON
     path.write_text(json.dumps({p: score_json(s) for p, s in scores.items()}, indent=1))
     return path
+
+
+def figures(folder: str | Path) -> dict:
+    """The scores of an evaluation artifact, per protocol."""
+    return {"evaluation": json.loads((Path(folder) / EVALUATION_JSON).read_text())}

@@ -16,7 +16,7 @@ import numpy as np
 from facecap_core.camera import CAMERAS_JSON, read_cameras_json
 from facecap_core.config import FittingConfig
 from facecap_core.fitting.constraints import Keyframe
-from facecap_core.fitting.run import fit_and_write
+from facecap_core.fitting.run import FIT_JSON, fit_and_write
 from facecap_core.frames import load_frame
 from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_3D
 from facecap_core.meshio import load_landmarks
@@ -58,3 +58,12 @@ def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str |
     return fit_and_write(cloud_ply if cloud_ply is not None else np.zeros((0, 3)), landmarks,
                     out_dir, template, keyframes, read_ear_points(coarse / EARS_3D),
                     config=config)
+
+
+def figures(folder: str | Path) -> dict:
+    """Headline figures of a fitting artifact: its time and the mesh checks."""
+    fit = json.loads((Path(folder) / FIT_JSON).read_text())
+    fig = {"fit_seconds": round(fit["timing"].get("wall_s", 0.0), 2)}
+    if fit.get("sanity"):
+        fig["mesh_sanity"] = fit["sanity"]
+    return fig

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import tempfile
 import time
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from facecap_core.camera import CAMERAS_JSON
 from facecap_core.config import MIN_YAW_SPAN_DEG, PoseConfig
 from facecap_core.errors import InputError
 from facecap_core.pose.colmap_sfm import Poses, run_sfm
@@ -182,3 +184,10 @@ def main(video: str | Path, keyframes_json: str | Path, out_dir: str | Path,
     return write_outputs(final, out, method=list(steps)[-1], dropped=dropped,
                          wall_seconds=round(time.perf_counter() - start, 2),
                          cpu_seconds=round(time.process_time() - cpu, 2))
+
+
+def figures(folder: str | Path) -> dict:
+    """Headline figures of a pose artifact for the run report and the UI."""
+    doc = json.loads((Path(folder) / CAMERAS_JSON).read_text())
+    return {"keyframes": len(doc["keyframes"]), "focal_px": round(doc["intrinsics"]["fx"], 2),
+            "dropped_keyframes": doc.get("dropped", [])}
