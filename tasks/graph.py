@@ -21,7 +21,7 @@ from facecap_core import config as cfg
 from facecap_core.camera import CAMERAS_JSON
 from facecap_core.coarse import COARSE_JSON, COARSE_PLY
 from facecap_core.evaluation import EVALUATION_JSON, PROTOCOLS
-from facecap_core.fitting.run import FIT_JSON, MESH_OBJ, MESH_PLY
+from facecap_core.fitting.run import FIT_JSON, MESH_LANDMARKS, MESH_OBJ, MESH_PLY
 from facecap_core.frames import FRAMES_JSON
 from facecap_core.keyframes import KEYFRAMES_JSON, TRACKS_NPZ
 from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_2D, LANDMARKS_3D
@@ -227,7 +227,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("fusion", "mvs", "1", ("frames", "coarse", "depth"), "mvs.fusion", compute_fusion,
           (CLOUD, FUSION), exported=(CLOUD,)),
     Stage("fitting", "fitting", "4", ("fusion", "coarse", "frames"), "fitting",
-          compute_fitting, (MESH_PLY, MESH_OBJ, FIT_JSON),
+          compute_fitting, (MESH_PLY, MESH_OBJ, MESH_LANDMARKS, FIT_JSON),
           exported=(MESH_PLY, MESH_OBJ, FIT_JSON), figures=_figures("fitting.stage")),
     Stage("evaluation", "evaluation", "1", ("mesh", "scan"), None, compute_evaluation,
           (EVALUATION_JSON, *(f"heatmap_{p}.png" for p in PROTOCOLS)),

@@ -29,7 +29,7 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
                    config: EvaluationConfig | None = None) -> Path:
     """Score the fitting stage's ``mesh.ply`` against a scan; writes ``evaluation.json``
     (:func:`score_json` per protocol) and ``heatmap_<protocol>.png``; returns the JSON."""
-    from facecap_core.fitting.run import MESH_PLY
+    from facecap_core.fitting.run import MESH_LANDMARKS, MESH_PLY
 
     mesh_path = Path(mesh_dir) / MESH_PLY
     scan_path = find_file(scan_dir, (".ply", ".obj", ".stl", ".off"), "scan mesh")
@@ -38,7 +38,7 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mesh = load_mesh(mesh_path, "mesh")
-    mesh_lm = Path(mesh_dir) / "landmarks.json"
+    mesh_lm = Path(mesh_dir) / MESH_LANDMARKS
     if not mesh_lm.is_file():
         # A mesh in template topology carries its landmarks: the template's landmark vertices.
         from facecap_core.meshio import save_landmarks

@@ -27,6 +27,7 @@ from facecap_core.template import Template
 
 MESH_PLY = "mesh.ply"
 MESH_OBJ = "mesh.obj"
+MESH_LANDMARKS = "landmarks.json"
 FIT_JSON = "fit.json"
 
 __all__ = ["fit_and_write", "write_mesh", "load_cloud", "keyframes_from_video"]
@@ -130,7 +131,7 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
                                     config.texture_min_cos)
     out = Path(out_dir)
     ply, _ = write_mesh(out, result.vertices, result.faces, colours)
-    save_landmarks(out / "landmarks.json", result.template.landmark_points,
+    save_landmarks(out / MESH_LANDMARKS, result.template.landmark_points,
                    template=template.name)
     write_report(out / FIT_JSON, result, config, sanity, relaxed)
     return ply
