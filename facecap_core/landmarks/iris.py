@@ -3,8 +3,9 @@
 MediaPipe's face mesh with iris refinement (the ``mediapipe`` package, Apache-2.0; its models
 ship inside the wheel) gives 478 points: 468 and 473 are the centres of the subject's right
 and left iris, 469/471 and 474/476 their horizontal edges. It runs on a crop around dlib's
-face box, so that it measures the face the 68 points belong to. The pupil is then refined
-to the centroid of the darkest pixels around MediaPipe's centre (:func:`pupil_centre`).
+face box, so that it measures the face the 68 points belong to. The pupil is then refined,
+along the eye's axis, to the centroid of the dark pixels around MediaPipe's centre
+(:func:`pupil_centre`).
 
 Against the renderer's truth (``benchmarks/bench_iris.py``, views within 15° of frontal at
 640x360, irises ~12 px wide): pupil error 0.33 px median (MediaPipe's own centre: 1.0 px),
@@ -34,7 +35,7 @@ LEFT_EYE = np.arange(42, 48)
 # MediaPipe's iris points: centre, then the subject's right/top/left/bottom edge... per side.
 _MESH_IRIS = {"right": (468, 469, 471), "left": (473, 474, 476)}
 DETECTOR = ("MediaPipe face mesh with iris refinement (478 points) on dlib's face box; pupils "
-            "refined to the dark centroid")
+            "refined along the eye's axis to the dark centroid")
 # An adult's visible iris is 0.35-0.5 of the eye's corner-to-corner width.
 _DIAMETER_OVER_WIDTH = (0.25, 0.65)
 
@@ -75,14 +76,19 @@ def eye_opening(eye_points: np.ndarray) -> float:
 
 
 def pupil_centre(image: np.ndarray, start: np.ndarray, iris_radius: float,
-                 iterations: int = 3) -> np.ndarray:
+                 axis: np.ndarray | None = None, iterations: int = 3) -> np.ndarray:
     """The pupil's centre near ``start``: the centroid of the pixels darker than midway
     between the darkest and the brightest within half the iris radius (weighted by how much
-    darker), on a quarter-pixel grid of bilinear samples, re-centred ``iterations`` times. Corneal reflections are removed first (a grey opening
-    with a disk of half the iris radius erases bright spots smaller than it, which would
-    otherwise push the centroid away from them); a window that is all pupil (a dilated one)
-    stays where it is."""
+    darker), on a quarter-pixel grid of bilinear samples, re-centred ``iterations`` times.
+
+    With ``axis`` (the eye's corner-to-corner direction) it moves along that axis only:
+    across it, the upper lid's shadow on a dark iris pulls the centroid up, and the scale
+    cues need the pupils' separation, which lies along the axis. Corneal reflections are
+    removed first (a grey opening with a disk of about half the iris radius erases bright
+    spots smaller than it, which would otherwise push the centroid away from them); a window
+    without contrast (all pupil, or an iris too dark to show one) stays where it is."""
     c = np.asarray(start, float)
+    u = None if axis is None else np.asarray(axis, float) / np.linalg.norm(axis)
     h, w = image.shape[:2]
     half = int(np.ceil(1.5 * iris_radius)) + 2
     x0, y0 = max(0, int(c[0]) - half), max(0, int(c[1]) - half)
@@ -106,7 +112,8 @@ def pupil_centre(image: np.ndarray, start: np.ndarray, iris_radius: float,
         if bright - dark < 8.0:  # no pupil edge in the window (8 grey levels of 255)
             break
         weights = np.clip(0.5 * (dark + bright) - vals, 0, None)
-        c = c + np.array([weights @ dx, weights @ dy]) / weights.sum()
+        step = np.array([weights @ dx, weights @ dy]) / weights.sum()
+        c = c + (step if u is None else (step @ u) * u)
     return c
 
 
@@ -147,7 +154,7 @@ def detect_irises(image: np.ndarray, points68: np.ndarray, box: tuple[float, ...
                 or not _DIAMETER_OVER_WIDTH[0] <= diameter / width <= _DIAMETER_OVER_WIDTH[1]):
             continue
         if refine_pupil:
-            centre = pupil_centre(image, centre, 0.5 * diameter)
+            centre = pupil_centre(image, centre, 0.5 * diameter, eye[3] - eye[0])
         if not _inside(centre, eye):
             continue
         found[side] = IrisFit(centre, diameter, opening)
