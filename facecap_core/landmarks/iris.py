@@ -20,6 +20,10 @@ the eye's dlib outline, or when the diameter is implausible for the eye's width.
 from __future__ import annotations
 
 import importlib.util
+import os
+import sys
+import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -59,12 +63,49 @@ def available() -> bool:
     return importlib.util.find_spec("mediapipe") is not None
 
 
+@contextmanager
+def _quiet_native_stderr(quiet: bool):
+    """MediaPipe's C++ side logs its graph's start (the TFLite delegate, absl warnings)
+    straight to file descriptor 2. It is hidden while the caller keeps glog-style native
+    logs quiet (``GLOG_minloglevel`` ≥ 2, as the CLI does unless ``--verbose``)."""
+    if not quiet:
+        yield
+        return
+    sys.stderr.flush()
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+def _native_logs_quiet() -> bool:
+    try:
+        return int(os.environ.get("GLOG_minloglevel", "0")) >= 2
+    except ValueError:
+        return False
+
+
 @lru_cache(maxsize=1)
 def _face_mesh():
     from mediapipe.python.solutions import face_mesh
 
-    return face_mesh.FaceMesh(static_image_mode=True, refine_landmarks=True, max_num_faces=1,
+    mesh = face_mesh.FaceMesh(static_image_mode=True, refine_landmarks=True, max_num_faces=1,
                               min_detection_confidence=0.3)
+    with _quiet_native_stderr(_native_logs_quiet()):
+        _process(mesh, np.zeros((64, 64, 3), np.uint8))  # the graph starts (and logs) here
+    return mesh
+
+
+def _process(mesh, image: np.ndarray):
+    with warnings.catch_warnings():
+        # protobuf 4 warns on every graph output that MediaPipe 0.10.14 reads the old way.
+        warnings.filterwarnings("ignore", message="SymbolDatabase.GetPrototype",
+                                category=UserWarning)
+        return mesh.process(image)
 
 
 def eye_opening(eye_points: np.ndarray) -> float:
@@ -136,7 +177,7 @@ def detect_irises(image: np.ndarray, points68: np.ndarray, box: tuple[float, ...
     if x1 - x0 < 32 or y1 - y0 < 32:
         return {}
     crop = np.ascontiguousarray(image[y0:y1, x0:x1, :3])
-    result = _face_mesh().process(crop)
+    result = _process(_face_mesh(), crop)
     if not result.multi_face_landmarks:
         return {}
     mesh = np.array([[q.x * (x1 - x0) + x0, q.y * (y1 - y0) + y0]
