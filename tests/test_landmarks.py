@@ -309,3 +309,25 @@ def test_eye_opening_tells_open_from_closed_eyes():
     closed = open_eye * [1, 0.15]
     assert eye_opening(open_eye) == pytest.approx(8 / 24)
     assert eye_opening(closed) < LandmarkConfig().min_eye_opening < eye_opening(open_eye)
+
+
+def test_irises_unmeasured_say_why(monkeypatch):
+    """Without the mediapipe package, or with the measurement switched off, or with too few
+    frontal keyframes whose eyes were measured, the landmark stage's iris document carries
+    no measurement and a reason, which the coarse stage reports."""
+    from facecap_core.landmarks import iris
+
+    R, t = _ring_cameras([-10, 0, 10])
+    cams = Cameras(INTR, [0, 1, 2], R, t, {"units": "arbitrary"})
+    records = [{"yaw_deg": y} for y in (-10, 0, 10)]
+    dets = [None, None, None]
+    doc = stage.triangulate_irises(dets, records, [], cams, np.eye(3),
+                                   LandmarkConfig(irises=False))
+    assert doc["iris_diameter"] is None and "off" in doc["reason"]
+    if iris.available():
+        doc = stage.triangulate_irises(dets, records, [], cams, np.eye(3), LandmarkConfig())
+        assert doc["pupil_distance"] is None and "two or more" in doc["reason"]
+    monkeypatch.setattr(iris, "available", lambda: False)
+    doc = stage.triangulate_irises(dets, records, [0, 1, 2], cams, np.eye(3), LandmarkConfig())
+    assert doc["pupils"] == {"right": None, "left": None}
+    assert doc["reason"] == "the mediapipe package is not installed"
