@@ -215,10 +215,12 @@ def main() -> Path:
         r = rows[-1]
         cues = r["no cue"]["cues_error_pct"]
         iris = (f"iris cue alone {cues['iris']:+6.2f} %" if "iris" in cues else "no iris cue")
-        print(f"{subject:<9} IPD {r['true_ipd_mm']:5.1f} mm | no cue {r['no cue']['error_pct']:+6.2f} % "
-              f"(±{r['no cue']['sigma_pct']:.1f}; landmarks {cues['landmarks']:+6.2f} %, {iris}"
-              f"{'; dropped ' + ', '.join(r['no cue']['dropped']) if r['no cue']['dropped'] else ''}"
-              f") | with IPD {r['ipd']['error_pct']:+6.2f} % "
+        dropped = r["no cue"]["dropped"]
+        print(f"{subject:<9} IPD {r['true_ipd_mm']:5.1f} mm | no cue "
+              f"{r['no cue']['error_pct']:+6.2f} % (±{r['no cue']['sigma_pct']:.1f}; landmarks "
+              f"{cues['landmarks']:+6.2f} %, {iris}"
+              f"{'; dropped ' + ', '.join(dropped) if dropped else ''}) | with IPD "
+              f"{r['ipd']['error_pct']:+6.2f} % "
               f"(±{r['ipd']['sigma_pct']:.1f}; IPD cue alone "
               f"{r['ipd']['cues_error_pct']['ipd']:+.2f} %) | {time.perf_counter() - start:.0f} s",
               flush=True)

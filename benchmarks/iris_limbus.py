@@ -1,5 +1,6 @@
-"""An own iris localisation, measured against MediaPipe's by ``bench_iris.py``: the iris's centre (the pupil) and its horizontal radius, found near the
-eye's six 68-point landmarks.
+"""An own iris localisation, measured against MediaPipe's by ``bench_iris.py`` (the pipeline
+uses MediaPipe): the iris's centre and horizontal radius, found near the eye's six 68-point
+landmarks.
 
 The limbus — the border between the dark iris and the bright sclera — is a circle. Its left
 and right arcs are seldom hidden by the eyelids, so a circle is fitted to them alone: the
