@@ -10,6 +10,9 @@ ICT_MODEL := $(or $(FACECAP_ICT_MODEL),facecap_core/data/ict_face_model_trimmed.
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # Shared libraries the wheels need but do not ship (open3d: libusb, libgomp).
 SYSTEM_LIBS := libusb-1.0.so.0:libusb-1.0-0 libgomp.so.1:libgomp1
+# The iris model (docs/landmarks.md, "Metric scale"), without its declared dependencies: they
+# would replace opencv-python-headless's cv2 (pyproject.toml lists what it needs).
+MEDIAPIPE := mediapipe==0.10.14
 
 .PHONY: demo test test-fast lint install system-libs compose-tool bench clean
 
@@ -33,6 +36,7 @@ $(VENV)/.installed: pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip setuptools wheel
 	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q --no-deps $(MEDIAPIPE)
 	@touch $@
 
 system-libs:

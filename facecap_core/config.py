@@ -555,6 +555,19 @@ class LandmarkConfig(StrictModel):
     """Fewest degrees of yaw around the head that the registered keyframes must span (the
     face's sides are seen from ±20° on; with less, depth from the frontal views alone is too
     ill-conditioned for a metric face). A full capture spans about 180°."""
+    irises: bool = True
+    """Measure the irises (pupil centres, horizontal iris diameter) in the frontal keyframes
+    with MediaPipe's face mesh, when the ``mediapipe`` package is installed
+    (``facecap_core/landmarks/iris.py``): the coarse stage's IPD and iris-size scale cues."""
+    iris_max_yaw_deg: float = Field(15.0, gt=0, le=60)
+    """Irises are measured in gated keyframes at most this far from frontal: beyond, the iris
+    is foreshortened and MediaPipe's diameter less certain (on the calibration renders, 15°
+    gave a 4.7 % spread of the measured diameter and 0.2 % of the pupil distance; 35°: 4.8 %
+    and 0.5 %)."""
+    min_eye_opening: float = Field(0.18, ge=0, le=1)
+    """An eye is measured only when its lids are this far apart, as a fraction of its
+    corner-to-corner width (dlib's points; ~0.3 open, below ~0.15 closed): the lids of a
+    half-closed eye cut the iris."""
     ear_min_views: int = Field(3, ge=2, le=100)
     """Fewest keyframes with an ear detection for that ear's points to be triangulated."""
     ear_outlier_threshold: float = Field(0.1, gt=0, le=1)
@@ -597,14 +610,40 @@ class CoarseConfig(StrictModel):
     """The subject's interpupillary distance in mm as an optician measures it ("far PD"),
     when known: the scale then comes mainly from the distance between the triangulated eye
     centres (``--ipd-mm`` on the command line)."""
-    ipd_ratio: float = Field(0.9745, gt=0.5, lt=1.5)
+    ipd_ratio: float = Field(0.9834, gt=0.5, lt=1.5)
     """Pupil distance over the distance between the triangulated centres of the two eyes'
-    six landmarks: the mean over the captures of ICT identities 1000-1007 (iris centroids
-    against the landmark stage's output with exact cameras; ``benchmarks/bench_scale.py
-    --calibrate``)."""
+    six landmarks: the mean over the captures of ICT identities 1000-1007 (the rendered
+    pupils against the landmark stage's output with exact cameras; ``benchmarks/
+    bench_scale.py --calibrate``). Used for ``ipd_mm`` when the pupils were not measured."""
     ipd_spread: float = Field(0.02, gt=0, lt=1)
-    """Relative 1σ of the IPD cue: the spread of that ratio over the calibration captures
-    (1.7 % over 8, rounded up: a spread from 8 faces is itself uncertain by a quarter)."""
+    """Relative 1σ of the IPD cue against the eye landmarks: the spread of that ratio over
+    the calibration captures (1.4 % over 8, rounded up: a spread from 8 faces is itself
+    uncertain by a quarter)."""
+    pupil_ratio: float = Field(1.0033, gt=0.5, lt=1.5)
+    """Pupil distance over the distance between the pupils as the landmark stage triangulates
+    them: the mean over the captures of ICT identities 1000-1007 (``benchmarks/
+    bench_scale.py --calibrate``). With pupils, ``ipd_mm`` uses them instead of the eye
+    landmarks."""
+    pupil_ipd_spread: float = Field(0.006, gt=0, lt=1)
+    """Relative 1σ of the IPD cue from the triangulated pupils: the spread of ``pupil_ratio``
+    over the calibration captures (0.22 % over 8), widened to 0.6 %: a spread from 8 faces is
+    itself uncertain by a quarter, rendered pupils are sharper than real ones, and a subject
+    who fixates a near point while the camera moves converges the eyes (a far gaze, or eyes
+    that follow the camera, give the far PD)."""
+    iris_cue: bool = True
+    """Use the iris size as a scale cue when the landmark stage measured the irises: an
+    adult's horizontal visible iris diameter is ``iris_diameter_mm`` give or take 4 %, a
+    tighter prior than the face's size."""
+    iris_diameter_mm: float = Field(11.7, gt=8, lt=16)
+    """Mean horizontal visible iris diameter of adults (11.7 ± 0.5 mm, 1σ)."""
+    iris_ratio: float = Field(0.9904, gt=0.5, lt=1.5)
+    """True iris diameter over the landmark stage's measurement (MediaPipe's iris edges at
+    the pupils' depth): the mean over the captures of ICT identities 1000-1007, whose renders
+    paint each subject's own iris diameter (``benchmarks/bench_scale.py --calibrate``)."""
+    iris_spread: float = Field(0.065, gt=0, lt=1)
+    """Relative 1σ of the iris cue: the population's 4.3 % (0.5 / 11.7) and the measurement's
+    4.5 % (the spread of ``iris_ratio`` over the calibration captures, 640x360 renders with
+    irises ~12 px wide), added in quadrature (6.2 %) and rounded up."""
     ear_width_cue: bool = False
     """Use the ear-to-ear width as a scale cue. Off: it is not calibrated (``ear_width_size``
     is the template's own width) and real-skin ear points can be far off."""

@@ -151,6 +151,9 @@ SKIN_TONES = np.array([  # linear RGB albedo
 ])
 IRIS_COLOURS = np.array([[0.20, 0.11, 0.05], [0.10, 0.18, 0.30], [0.14, 0.20, 0.10],
                          [0.30, 0.20, 0.08]])
+IRIS_DIAMETER_MM = (11.7, 0.5)
+"""Mean and 1σ of an adult's horizontal visible iris diameter; each ICT subject draws its own."""
+PUPIL_RADIUS_MM = 1.9
 HAIR_COLOURS = np.array([[0.05, 0.035, 0.025], [0.12, 0.07, 0.035], [0.25, 0.16, 0.08],
                          [0.02, 0.02, 0.02]])
 
@@ -262,12 +265,6 @@ def ict_subject(model_path: str | Path, seed: int | None, sigma: float = 1.0,
     faces = np.concatenate([skin, eyes, sockets])
     kind = np.concatenate([np.zeros(len(skin), int), np.ones(len(eyes), int),
                            np.full(len(sockets), 2)])
-    names = list(model["material_names"])
-    iris_ids = [names.index("M_IrisLeft"), names.index("M_IrisRight")]
-    face_mat = model["face_material"]
-    eye_material = face_mat[np.isin(face_mat, [names.index(m) for m in ICT_EYE_MATERIALS])]
-    is_iris = np.concatenate([np.zeros(len(skin), bool), np.isin(eye_material, iris_ids),
-                              np.zeros(len(sockets), bool)])
     # Hair: scalp above a hairline that falls from the forehead to the nape.
     w = np.abs(lm[[0, 16], 0]).mean()
     hairline = np.interp(verts[:, 2], [-1.4 * w, -0.6 * w, 0.3 * w, 2 * w],
@@ -277,13 +274,22 @@ def ict_subject(model_path: str | Path, seed: int | None, sigma: float = 1.0,
     hair_v = _smoothstep(verts[:, 1] - hairline, -4.0, 6.0) * lateral_ok
     skin_albedo = SkinAlbedo(lm, rng, detail=skin_detail)
     iris_rgb = IRIS_COLOURS[rng.integers(len(IRIS_COLOURS))]
-    eye_centres = {}
+    # Own stream: the other draws (and so existing renders' skin and hair) stay as they were.
+    iris_radius = 0.5 * (IRIS_DIAMETER_MM[0] if seed is None else
+                         np.random.default_rng([seed, 3]).normal(*IRIS_DIAMETER_MM))
+    # The eyes look straight ahead (+z of the head frame, parallel: a far gaze, as an
+    # optician's distance PD). The ICT eyeball's iris and sclera materials both wrap the whole
+    # ball, so the iris is painted: a disk of ``iris_radius`` around the gaze axis through the
+    # eyeball's centre, its pupil where the axis leaves the eye.
+    axis = np.array([0.0, 0.0, 1.0])
+    eye_centres, pupils = {}, {}
     for side in ("Left", "Right"):
-        tri = ict_faces_of(model, (f"M_Sclera{side}", f"M_Iris{side}"))
-        iris = ict_faces_of(model, (f"M_Iris{side}",))
-        centre = verts[np.unique(tri)].mean(0)
-        front = verts[np.unique(iris)].mean(0)
-        eye_centres[side] = (centre, (front - centre) / np.linalg.norm(front - centre), front)
+        ball = verts[np.unique(ict_faces_of(model, (f"M_Sclera{side}", f"M_Iris{side}")))]
+        centre = ball.mean(0)
+        d = ball - centre
+        on_axis = np.linalg.norm(d - (d @ axis)[:, None] * axis, axis=1) < 1.5
+        eye_centres[side] = centre
+        pupils[side.lower()] = centre + axis * float((d[on_axis] @ axis).max())
     n_skin = len(skin)
 
     def albedo(tri: np.ndarray, bary: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -298,14 +304,13 @@ def ict_subject(model_path: str | Path, seed: int | None, sigma: float = 1.0,
             p = points[e]
             rgb = np.tile([0.80, 0.76, 0.72], (len(p), 1)) * (
                 1 + 0.05 * skin_albedo.noise(p, 0.5, 3))[:, None]
-            iris = is_iris[tri[e]]
-            for centre, axis, front in eye_centres.values():
-                d = p - front
+            for centre in eye_centres.values():
+                d = p - centre
                 r = np.linalg.norm(d - (d @ axis)[:, None] * axis, axis=1)
-                near = np.linalg.norm(p - centre, axis=1) < 16
+                ahead = (d @ axis > 0) & (np.linalg.norm(d, axis=1) < 16)
                 ring = 1 + 0.25 * skin_albedo.noise(p, 0.4, 5)
-                col = np.where((r < 1.9)[:, None], 0.02, iris_rgb * ring[:, None])
-                sel = near & (iris | (r < 5.8))
+                col = np.where((r < PUPIL_RADIUS_MM)[:, None], 0.02, iris_rgb * ring[:, None])
+                sel = ahead & (r < iris_radius)
                 rgb[sel] = col[sel]
             out[e] = rgb
         o = k == 2
@@ -318,7 +323,9 @@ def ict_subject(model_path: str | Path, seed: int | None, sigma: float = 1.0,
     info = {"kind": "ict", "seed": seed, "sigma": sigma,
             "identity_modes": int(len(model["identity_basis"])),
             "coefficients": None if coeffs is None else coeffs.round(6).tolist(),
-            "skin_tone": skin_albedo.tone.round(4).tolist()}
+            "skin_tone": skin_albedo.tone.round(4).tolist(),
+            "iris_diameter_mm": round(2 * iris_radius, 4),
+            "pupils_mm": {k: v.round(4).tolist() for k, v in pupils.items()}}
     return Subject(f"ict-{'mean' if seed is None else seed}", verts, faces, lm, albedo, gt,
                    optional, info)
 

@@ -328,7 +328,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="last stage to run")
     r.add_argument("--ipd-mm", type=float, help="the subject's interpupillary distance in mm "
                                                  "as an optician measures it (far PD): a scale "
-                                                 "cue of about 2 %% instead of 5 %%")
+                                                 "cue of about 1 %% instead of 4 %%")
     r.add_argument("--scan", help="ground-truth scan (mm) to score the mesh against")
     r.add_argument("--scan-landmarks", help="68 3D landmarks of the scan")
     r.add_argument("--store", help="artifact store: folder or s3://bucket/prefix "

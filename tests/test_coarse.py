@@ -183,3 +183,52 @@ def test_coarse_needs_landmarks(template, tmp_path):
         coarse.main(tmp_path / "lm", cams, tmp_path / "out", template)
     with pytest.raises(InputError, match="not found"):
         coarse.main(tmp_path / "nothing", cams, tmp_path / "out", template)
+
+
+def test_iris_cue_recovers_the_scale_and_a_wrong_one_is_dropped(template):
+    """The iris cue's arithmetic: an iris measured at exactly the population's mean diameter
+    (``iris_diameter_mm`` over the stated ``iris_ratio``) in a world scaled by 1/37 gives that
+    scale; combined with the landmark prior (a face of the prior's size) by inverse variance,
+    the result is the truth with the combined spread. An iris 30 % off (beyond the cues'
+    agreement) is dropped and reported, the landmark prior kept (the smaller spread of the
+    two). A measurement that could not be made is reported with the stage's reason. With
+    an IPD and triangulated pupils, the IPD comes from the pupils."""
+    config = CoarseConfig()
+    truth = 37.0
+    rot = rotation_matrix([0.1, 1.0, 0.0], 1.1)
+    L = (template.landmark_points * config.landmark_size @ rot.T + 5.0) / truth
+    L[:17] = np.nan
+    none = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, str)
+    diameter = config.iris_diameter_mm / config.iris_ratio / truth
+    irises = {"iris_diameter": diameter, "iris_diameter_views": [[0, "left", diameter]] * 6,
+              "pupil_distance": None}
+    doc = coarse.metric_scale(template, L, *none, config, irises)
+    assert doc["used"] == ["landmarks", "iris"] and doc["dropped"] == []
+    iris_cue = next(c for c in doc["cues"] if c["name"] == "iris")
+    assert iris_cue["mm_per_unit"] == pytest.approx(truth, rel=1e-9)
+    assert doc["metric_scale"] == pytest.approx(truth, rel=1e-6)
+    w = 1 / config.landmark_size_spread ** 2 + 1 / config.iris_spread ** 2
+    assert doc["sigma_pct"] == pytest.approx(100 / np.sqrt(w), abs=0.01)
+    assert doc["iris_diameter_units"] == diameter
+
+    wrong = {**irises, "iris_diameter": 1.3 * diameter}
+    doc = coarse.metric_scale(template, L, *none, config, wrong)
+    assert doc["used"] == ["landmarks"] and [d["name"] for d in doc["dropped"]] == ["iris"]
+    assert doc["dropped"][0]["disagreement_sigmas"] > config.cue_agreement_sigmas
+    assert doc["metric_scale"] == pytest.approx(truth, rel=1e-6)
+    assert "iris dropped: disagrees" in doc["how"]
+
+    unmeasured = {"iris_diameter": None, "pupil_distance": None,
+                  "reason": "the mediapipe package is not installed"}
+    doc = coarse.metric_scale(template, L, *none, config, unmeasured)
+    assert doc["used"] == ["landmarks"]
+    assert doc["dropped"] == [{"name": "iris", "reason": unmeasured["reason"]}]
+    assert coarse.metric_scale(template, L, *none, CoarseConfig(iris_cue=False),
+                               irises)["used"] == ["landmarks"]
+
+    pupils_units = 63.0 / config.pupil_ratio / truth
+    ipd = CoarseConfig(ipd_mm=63.0, iris_cue=False)
+    doc = coarse.metric_scale(template, L, *none, ipd, {**irises, "pupil_distance": pupils_units})
+    ipd_cue = next(c for c in doc["cues"] if c["name"] == "ipd")
+    assert ipd_cue["mm_per_unit"] == pytest.approx(truth, rel=1e-9)
+    assert ipd_cue["sigma"] == ipd.pupil_ipd_spread and "pupils" in ipd_cue["how"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -192,6 +193,40 @@ def test_stage_estimates_yaw_and_gates_near_frontal_views(capture, stage_run):
 
 
 @pytest.mark.slow
+def test_stage_measures_pupils_and_iris_size(capture, stage_run):
+    """The frontal keyframes' irises (MediaPipe): the triangulated pupils lie on the rendered
+    ones and the iris diameter, in world units, is the rendered subject's. At 640x360 an iris
+    is ~12 px wide and a pixel ~0.8 mm at the eyes: MediaPipe's pupils are off by ~1 px
+    (median; ``bench_iris.py``), so ~1.5 mm across the view; along it, views within 15° of
+    frontal see depth ~1 / sin 15° ≈ 4 times worse, so 6 mm (it changes the iris's scale by
+    1.5 % at 400 mm, the pupil distance by less). The diameter's per-capture error has a 1σ of
+    ~5 % (``bench_scale.py --calibrate``), so 15 % is 3σ."""
+    from facecap_core.landmarks import iris
+
+    assert iris.available(), "mediapipe is not installed: run `make install`"
+    out, path = stage_run
+    _, doc = load_landmarks3d(path)
+    irises = doc["irises"]
+    subject = json.loads((capture.gt_cameras.parent / "subject.json").read_text())
+    config = LandmarkConfig()
+    assert irises["reason"] is None and len(irises["views"]) >= 2
+    for side, true_pupil in subject["pupils_mm"].items():
+        error = _to_gt_frame(np.array(irises["pupils"][side])) - true_pupil  # +z: the view
+        assert np.hypot(*error[:2]) < 1.5 and abs(error[2]) < 6.0, (side, error)
+    true_distance = np.linalg.norm(np.subtract(*subject["pupils_mm"].values()))
+    assert irises["pupil_distance"] / WORLD["scale"] == pytest.approx(true_distance, rel=0.03)
+    diameter = irises["iris_diameter"] / WORLD["scale"]
+    assert diameter == pytest.approx(subject["iris_diameter_mm"], rel=0.15)
+    # Only open eyes in near-frontal keyframes are measured, and each is recorded in 2D.
+    keyframes = json.loads((out / "landmarks2d.json").read_text())["keyframes"]
+    by_frame = {k["frame_index"]: k for k in keyframes}
+    for frame in irises["views"]:
+        assert abs(by_frame[frame]["yaw_deg"]) <= config.iris_max_yaw_deg
+    measured = [f for k in keyframes for f in k.get("irises", {}).values()]
+    assert measured and all(f["opening"] >= config.min_eye_opening for f in measured)
+
+
+@pytest.mark.slow
 def test_stage_without_ear_model_writes_empty_ears(stage_run):
     out, _ = stage_run
     ids, pts, doc = load_ears3d(out / "ears3d.json")
@@ -245,3 +280,58 @@ def test_cameras_that_do_not_fit_the_video_are_named(tmp_path):
         stage.main(video, tmp_path / "bad.json", tmp_path / "out")
     with pytest.raises(InputError, match="not found"):
         stage.main(video, tmp_path / "missing.json", tmp_path / "out")
+
+
+# --------------------------------------------------------------------------- irises
+
+
+def test_pupil_centre_finds_a_dark_disk_to_a_fraction_of_a_pixel():
+    """An eye as a 1080p phone video sees it at 40 cm (iris 36 px wide, pupil radius 6 px) with
+    a corneal reflection inside the pupil, and as the benchmark renders see it (iris 12 px,
+    pupil radius 2.4 px, no reflection); the pupil, at a sub-pixel position, is found from a
+    start 1.5 px off."""
+    from facecap_core.landmarks.iris import pupil_centre
+
+    yy, xx = np.mgrid[0:120, 0:160].astype(float)
+    truth = np.array([80.3, 59.6])
+    r = np.hypot(xx - truth[0], yy - truth[1])
+    for iris_radius, pupil_radius, reflection in ((18.0, 6.0, True), (6.0, 2.4, False)):
+        image = np.where(r < iris_radius, 90.0, 200.0)
+        image = np.where(r < pupil_radius, 10.0, image)
+        if reflection:
+            image[np.hypot(xx - truth[0] - 2.5, yy - truth[1] + 1.5) < 1.5] = 255.0
+        image = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 0.7)
+        found = pupil_centre(np.repeat(image[..., None], 3, -1), truth + [1.2, -0.9],
+                             iris_radius)
+        assert np.linalg.norm(found - truth) < 0.2, (iris_radius, found)
+
+
+def test_eye_opening_tells_open_from_closed_eyes():
+    from facecap_core.landmarks.iris import eye_opening
+
+    open_eye = np.array([[0, 0], [8, -4], [16, -4], [24, 0], [16, 4], [8, 4]], float)
+    closed = open_eye * [1, 0.15]
+    assert eye_opening(open_eye) == pytest.approx(8 / 24)
+    assert eye_opening(closed) < LandmarkConfig().min_eye_opening < eye_opening(open_eye)
+
+
+def test_irises_unmeasured_say_why(monkeypatch):
+    """Without the mediapipe package, or with the measurement switched off, or with too few
+    frontal keyframes whose eyes were measured, the landmark stage's iris document carries
+    no measurement and a reason, which the coarse stage reports."""
+    from facecap_core.landmarks import iris
+
+    R, t = _ring_cameras([-10, 0, 10])
+    cams = Cameras(INTR, [0, 1, 2], R, t, {"units": "arbitrary"})
+    records = [{"yaw_deg": y} for y in (-10, 0, 10)]
+    dets = [None, None, None]
+    doc = stage.triangulate_irises(dets, records, [], cams, np.eye(3),
+                                   LandmarkConfig(irises=False))
+    assert doc["iris_diameter"] is None and "off" in doc["reason"]
+    if iris.available():
+        doc = stage.triangulate_irises(dets, records, [], cams, np.eye(3), LandmarkConfig())
+        assert doc["pupil_distance"] is None and "two or more" in doc["reason"]
+    monkeypatch.setattr(iris, "available", lambda: False)
+    doc = stage.triangulate_irises(dets, records, [0, 1, 2], cams, np.eye(3), LandmarkConfig())
+    assert doc["pupils"] == {"right": None, "left": None}
+    assert doc["reason"] == "the mediapipe package is not installed"

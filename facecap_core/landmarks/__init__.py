@@ -30,6 +30,7 @@ class Detection:
     score: float
     box: tuple[int, int, int, int]
     view: int = 0
+    irises: dict | None = None  # {"right", "left"}: iris.IrisFit, when measured
 
 
 PREDICTOR_68 = "shape_predictor_68_face_landmarks.dat"

@@ -19,6 +19,11 @@
    profile-side keyframe (``ear_min_yaw_deg`` ≤ |yaw| ≤ ``ear_max_yaw_deg``) looks for the
    ear that faces its camera (+yaw: the subject's left), and each ear's contour points are
    triangulated over the keyframes that found it.
+6. **Irises**, when ``mediapipe`` is installed (:mod:`.iris`): each detected keyframe's pupil
+   centres and horizontal iris diameters (``landmarks2d.json``, per keyframe); over the gated
+   keyframes within ``iris_max_yaw_deg`` of frontal, the pupils triangulated and the iris
+   diameter in world units (``landmarks3d.json``: ``irises``), for the coarse stage's scale
+   cues.
 
 Outputs (``out_dir``): ``landmarks2d.json``, ``landmarks3d.json`` (camera units; the jaw
 contour and any inner point too uncertain to keep — ``max_point_spread`` — are null),
@@ -39,7 +44,7 @@ import numpy as np
 from facecap_core.camera import Intrinsics, camera_center
 from facecap_core.config import LandmarkConfig
 from facecap_core.errors import InputError
-from facecap_core.landmarks import Detection, detect_68
+from facecap_core.landmarks import Detection, detect_68, iris
 from facecap_core.landmarks.convention import (
     correct,
     eye_distance,
@@ -179,6 +184,7 @@ def detect_keyframes(video: str | Path, cams: Cameras, config: LandmarkConfig
     from facecap_core.video import iter_frames
 
     found: dict[int, Detection | None] = {}
+    measure_irises = config.irises and iris.available()
     for frame in iter_frames(video, indices=cams.frame_indices):
         det = detect_68(frame.image, config.upsample, config.detect_width,
                         config.min_detector_score)
@@ -186,7 +192,16 @@ def detect_keyframes(video: str | Path, cams: Cameras, config: LandmarkConfig
             pts = _to_intrinsics(det.points, frame.image.shape, cams.intrinsics)
             box = _to_intrinsics(np.reshape(det.box, (2, 2)), frame.image.shape,
                                  cams.intrinsics).ravel()
-            det = Detection(pts, det.score, tuple(float(b) for b in box), det.view)
+            irises = None
+            if measure_irises:
+                irises = iris.detect_irises(frame.image, det.points, det.box,
+                                            config.min_eye_opening)
+                zoom = cams.intrinsics.width / frame.image.shape[1]
+                irises = {side: iris.IrisFit(_to_intrinsics(f.centre[None], frame.image.shape,
+                                                            cams.intrinsics)[0],
+                                             f.diameter * zoom, f.opening)
+                          for side, f in irises.items()}
+            det = Detection(pts, det.score, tuple(float(b) for b in box), det.view, irises)
         found[frame.index] = det
     missing = [i for i in cams.frame_indices if i not in found]
     if missing:
@@ -290,6 +305,69 @@ def triangulate_ears(found: dict[str, list], cams: Cameras, vertex_ids: dict[str
             "points": points, "sides": sides, "views": views}
 
 
+def triangulate_irises(dets: list[Detection | None], records: list[dict], gated: list[int],
+                       cams: Cameras, head_R: np.ndarray, config: LandmarkConfig) -> dict:
+    """Pupil centres triangulated over the gated keyframes within ``iris_max_yaw_deg`` of
+    frontal, and the horizontal iris diameter in world units: each view's pixel diameter
+    times the pupil's depth over the focal length, undone of the foreshortening of an iris
+    that looks along the head's +z (cos of the view's yaw at that eye); the median over views
+    and eyes."""
+    doc = {"detector": iris.DETECTOR if iris.available() else None, "units": cams.units,
+           "views": [], "pupils": {"right": None, "left": None}, "pupil_distance": None,
+           "iris_diameter": None, "iris_diameter_spread_rel": None, "iris_diameter_views": [],
+           "reason": None}
+    if not config.irises:
+        doc["reason"] = "iris measurement is off (LandmarkConfig.irises)"
+        return doc
+    if not iris.available():
+        doc["reason"] = "the mediapipe package is not installed"
+        return doc
+    views = [k for k in gated if abs(records[k]["yaw_deg"]) <= config.iris_max_yaw_deg
+             and dets[k].irises]
+    doc["views"] = [cams.frame_indices[k] for k in views]
+    if len(views) < 2:
+        doc["reason"] = (f"irises measured in {len(views)} frontal keyframe(s) (|yaw| <= "
+                         f"{config.iris_max_yaw_deg:g}°, eyes open); two or more are needed")
+        return doc
+    sides = ("right", "left")
+    uv = np.full((len(views), 2, 2), np.nan)
+    for v, k in enumerate(views):
+        for j, side in enumerate(sides):
+            if side in dets[k].irises:
+                uv[v, j] = dets[k].irises[side].centre
+    size = np.array([_box_size(dets[k].box) for k in views])
+    tri = triangulate(uv, cams.R[views], cams.t[views], cams.intrinsics,
+                      config.outlier_threshold * size, config.huber * size, 2,
+                      config.min_parallax_deg)
+    focal = 0.5 * (cams.intrinsics.fx + cams.intrinsics.fy)
+    diameters = []
+    for j, side in enumerate(sides):
+        P = tri.points[j]
+        if not np.all(np.isfinite(P)):
+            continue
+        doc["pupils"][side] = [round(float(x), 6) for x in P]
+        for v, k in enumerate(views):
+            if not tri.inliers[v, j]:
+                continue
+            depth = float(cams.R[k][2] @ P + cams.t[k][2])
+            to_camera = head_R @ (camera_center(cams.R[k], cams.t[k]) - P)
+            cos_yaw = abs(to_camera[2]) / np.hypot(to_camera[0], to_camera[2])
+            d = dets[k].irises[side].diameter * depth / focal / cos_yaw
+            diameters.append(d)
+            doc["iris_diameter_views"].append([cams.frame_indices[k], side, round(d, 6)])
+    if all(p is not None for p in doc["pupils"].values()):
+        doc["pupil_distance"] = float(np.linalg.norm(tri.points[0] - tri.points[1]))
+    if len(diameters) >= 2:
+        d = np.array(diameters)
+        med = float(np.median(d))
+        doc["iris_diameter"] = med
+        doc["iris_diameter_spread_rel"] = round(float(1.4826 * np.median(np.abs(d - med)) / med),
+                                                5)
+    else:
+        doc["reason"] = "fewer than two iris measurements agree with the triangulated pupils"
+    return doc
+
+
 def yaw_coverage(records: list[dict]) -> dict:
     """The yaw range around the head that the registered keyframes span (+: the subject's
     left), and each keyframe's yaw."""
@@ -375,6 +453,11 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
     uncertain = inner[~(spread <= config.max_point_spread)]
     landmarks[uncertain] = np.nan
 
+    iris_doc = triangulate_irises(dets, records, gated, cams, head_R, config)
+    for k, det in enumerate(dets):
+        if det is not None and det.irises is not None:
+            records[k]["irises"] = {side: f.as_dict() for side, f in det.irises.items()}
+
     ears_doc = {"template": EAR_TEMPLATE, "units": cams.units, "vertex_ids": [],
                 "points": [], "sides": [], "views": {}}
     ears = _ear_module()
@@ -408,6 +491,7 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
                                  "rms": float(np.sqrt(np.mean(errs ** 2))) if errs.size
                                  else None},
              "head_frame": {"R": head_R.tolist(), "origin": head_o.tolist()},
+             "irises": iris_doc,
              "detected": len(detected), "keyframes": n, "coverage": coverage,
              "seconds": {"wall": round(time.perf_counter() - t_wall, 3),
                          "cpu": round(time.process_time() - t_cpu, 3),

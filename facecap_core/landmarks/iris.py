@@ -1,0 +1,202 @@
+"""The irises in an image: each pupil's centre and the iris's horizontal diameter in pixels.
+
+MediaPipe's face mesh with iris refinement (the ``mediapipe`` package, Apache-2.0; its models
+ship inside the wheel) gives 478 points: 468 and 473 are the centres of the subject's right
+and left iris, 469/471 and 474/476 their horizontal edges. It runs on a crop around dlib's
+face box, so that it measures the face the 68 points belong to. The pupil is then refined,
+along the eye's axis, to the centroid of the dark pixels around MediaPipe's centre
+(:func:`pupil_centre`).
+
+Against the renderer's truth (``benchmarks/bench_iris.py``, views within 15° of frontal at
+640x360, irises ~12 px wide): pupil error 0.33 px median (MediaPipe's own centre: 1.0 px),
+diameter error 5.4 % RMS per eye. An own limbus fit near dlib's eye points did worse (see
+docs/landmarks.md, "Metric scale").
+
+An eye is refused when it is not open enough (its dlib eye opening, the lids' mean distance
+over the corner-to-corner width, below ``min_eye_opening``), when the iris centre lies outside
+the eye's dlib outline, or when the diameter is implausible for the eye's width.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+import warnings
+from contextlib import contextmanager
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["IrisFit", "available", "detect_irises", "eye_opening", "pupil_centre", "RIGHT_EYE",
+           "LEFT_EYE", "DETECTOR"]
+
+RIGHT_EYE = np.arange(36, 42)  # the subject's right eye (image left in a frontal view)
+LEFT_EYE = np.arange(42, 48)
+# MediaPipe's iris points: centre, then the subject's right/top/left/bottom edge... per side.
+_MESH_IRIS = {"right": (468, 469, 471), "left": (473, 474, 476)}
+DETECTOR = ("MediaPipe face mesh with iris refinement (478 points) on dlib's face box; pupils "
+            "refined along the eye's axis to the dark centroid")
+# An adult's visible iris is 0.35-0.5 of the eye's corner-to-corner width.
+_DIAMETER_OVER_WIDTH = (0.25, 0.65)
+
+
+@dataclass
+class IrisFit:
+    """One iris: its centre (x, y) and horizontal diameter in pixels, and the eye's opening."""
+
+    centre: np.ndarray
+    diameter: float
+    opening: float
+
+    def as_dict(self) -> dict:
+        return {"centre": [round(float(c), 3) for c in self.centre],
+                "diameter_px": round(float(self.diameter), 4),
+                "opening": round(float(self.opening), 4)}
+
+
+def available() -> bool:
+    """Whether the ``mediapipe`` package is installed."""
+    return importlib.util.find_spec("mediapipe") is not None
+
+
+@contextmanager
+def _quiet_native_stderr(quiet: bool):
+    """MediaPipe's C++ side logs its graph's start (the TFLite delegate, absl warnings)
+    straight to file descriptor 2. It is hidden while the caller keeps glog-style native
+    logs quiet (``GLOG_minloglevel`` ≥ 2, as the CLI does unless ``--verbose``)."""
+    if not quiet:
+        yield
+        return
+    sys.stderr.flush()
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+def _native_logs_quiet() -> bool:
+    try:
+        return int(os.environ.get("GLOG_minloglevel", "0")) >= 2
+    except ValueError:
+        return False
+
+
+@lru_cache(maxsize=1)
+def _face_mesh():
+    from mediapipe.python.solutions import face_mesh
+
+    mesh = face_mesh.FaceMesh(static_image_mode=True, refine_landmarks=True, max_num_faces=1,
+                              min_detection_confidence=0.3)
+    with _quiet_native_stderr(_native_logs_quiet()):
+        _process(mesh, np.zeros((64, 64, 3), np.uint8))  # the graph starts (and logs) here
+    return mesh
+
+
+def _process(mesh, image: np.ndarray):
+    with warnings.catch_warnings():
+        # protobuf 4 warns on every graph output that MediaPipe 0.10.14 reads the old way.
+        warnings.filterwarnings("ignore", message="SymbolDatabase.GetPrototype",
+                                category=UserWarning)
+        return mesh.process(image)
+
+
+def eye_opening(eye_points: np.ndarray) -> float:
+    """Mean distance between the upper and lower lid points of an eye's six 68-point
+    landmarks over its corner-to-corner width (~0.3 open, below ~0.15 closed)."""
+    p = np.asarray(eye_points, float)
+    width = np.linalg.norm(p[3] - p[0])
+    return float((np.linalg.norm(p[1] - p[5]) + np.linalg.norm(p[2] - p[4])) / (2 * width))
+
+
+def pupil_centre(image: np.ndarray, start: np.ndarray, iris_radius: float,
+                 axis: np.ndarray | None = None, iterations: int = 3) -> np.ndarray:
+    """The pupil's centre near ``start``: the centroid of the pixels darker than midway
+    between the darkest and the brightest within half the iris radius (weighted by how much
+    darker), on a quarter-pixel grid of bilinear samples, re-centred ``iterations`` times.
+
+    With ``axis`` (the eye's corner-to-corner direction) it moves along that axis only:
+    across it, the upper lid's shadow on a dark iris pulls the centroid up, and the scale
+    cues need the pupils' separation, which lies along the axis. Corneal reflections are
+    removed first (a grey opening with a disk of about half the iris radius erases bright
+    spots smaller than it, which would otherwise push the centroid away from them); a window
+    without contrast (all pupil, or an iris too dark to show one) stays where it is."""
+    c = np.asarray(start, float)
+    u = None if axis is None else np.asarray(axis, float) / np.linalg.norm(axis)
+    h, w = image.shape[:2]
+    half = int(np.ceil(1.5 * iris_radius)) + 2
+    x0, y0 = max(0, int(c[0]) - half), max(0, int(c[1]) - half)
+    x1, y1 = min(w, int(c[0]) + half + 1), min(h, int(c[1]) + half + 1)
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return c
+    img = np.asarray(image[y0:y1, x0:x1], np.float32)
+    grey = img[..., :3] @ np.array([0.299, 0.587, 0.114], np.float32) if img.ndim == 3 else img
+    k = 2 * max(1, int(round(iris_radius / 4))) + 1
+    grey = cv2.morphologyEx(grey, cv2.MORPH_OPEN,
+                            cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    r = 0.5 * iris_radius
+    g = np.arange(-r, r + 1e-9, 0.25)
+    X, Y = np.meshgrid(g, g)
+    inside = X ** 2 + Y ** 2 <= r * r
+    dx, dy = X[inside], Y[inside]
+    for _ in range(iterations):
+        vals = ndimage.map_coordinates(grey, [c[1] - y0 + dy, c[0] - x0 + dx], order=1,
+                                       mode="nearest")
+        dark, bright = np.percentile(vals, [2, 98])
+        if bright - dark < 8.0:  # no pupil edge in the window (8 grey levels of 255)
+            break
+        weights = np.clip(0.5 * (dark + bright) - vals, 0, None)
+        step = np.array([weights @ dx, weights @ dy]) / weights.sum()
+        c = c + (step if u is None else (step @ u) * u)
+    return c
+
+
+def _inside(point: np.ndarray, polygon: np.ndarray) -> bool:
+    return cv2.pointPolygonTest(polygon.astype(np.float32), tuple(map(float, point)), False) >= 0
+
+
+def detect_irises(image: np.ndarray, points68: np.ndarray, box: tuple[float, ...],
+                  min_eye_opening: float = 0.18, refine_pupil: bool = True
+                  ) -> dict[str, IrisFit]:
+    """The irises ({"right", "left"}: :class:`IrisFit`) of the face whose 68 points and box
+    are given, in an RGB uint8 ``image``; an eye that is refused is missing. Without
+    ``refine_pupil`` the centre is MediaPipe's own."""
+    left, top, right, bottom = box
+    size = max(right - left, bottom - top)
+    cx, cy = 0.5 * (left + right), 0.5 * (top + bottom)
+    h, w = image.shape[:2]
+    x0, y0 = int(max(0, np.floor(cx - size))), int(max(0, np.floor(cy - size)))
+    x1, y1 = int(min(w, np.ceil(cx + size))), int(min(h, np.ceil(cy + size)))
+    if x1 - x0 < 32 or y1 - y0 < 32:
+        return {}
+    crop = np.ascontiguousarray(image[y0:y1, x0:x1, :3])
+    result = _process(_face_mesh(), crop)
+    if not result.multi_face_landmarks:
+        return {}
+    mesh = np.array([[q.x * (x1 - x0) + x0, q.y * (y1 - y0) + y0]
+                     for q in result.multi_face_landmarks[0].landmark])
+    if len(mesh) < 478:
+        return {}
+    found = {}
+    for side, ids in (("right", RIGHT_EYE), ("left", LEFT_EYE)):
+        eye = np.asarray(points68, float)[ids]
+        centre, a, b = mesh[list(_MESH_IRIS[side])]
+        diameter = float(np.linalg.norm(a - b))
+        width = float(np.linalg.norm(eye[3] - eye[0]))
+        opening = eye_opening(eye)
+        if (opening < min_eye_opening or not _inside(centre, eye)
+                or not _DIAMETER_OVER_WIDTH[0] <= diameter / width <= _DIAMETER_OVER_WIDTH[1]):
+            continue
+        if refine_pupil:
+            centre = pupil_centre(image, centre, 0.5 * diameter, eye[3] - eye[0])
+        if not _inside(centre, eye):
+            continue
+        found[side] = IrisFit(centre, diameter, opening)
+    return found
