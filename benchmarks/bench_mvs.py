@@ -41,9 +41,9 @@ from facecap_core.mvs.depth import compute_depth_map
 from facecap_core.mvs.filtering import filter_with_prior, geometric_filter
 from facecap_core.mvs.fusion import fuse, write_ply
 from facecap_core.mvs.prior import coarse_prior
-from facecap_core.mvs.testing import coarse_from_gt, even_keyframes, gt_depth, load_views
 from facecap_core.mvs.views import choose_sources, sparse_from_mesh, visible_points
 from facecap_core.synthetic import load_gt_cameras, synthesize
+from facecap_core.synthetic.ground_truth import coarse_from_gt, even_keyframes, gt_depth, load_views
 
 BARS = {"depth_median_mm": 0.5, "coverage_pct": 90.0, "accuracy_median_mm": 0.5,
         "completion_pct": 95.0, "s_per_map": 10.0}

@@ -19,8 +19,8 @@ from facecap_core.evaluation import distances, score
 from facecap_core.fitting import FittingConfig, Keyframe, NicpSystem, fit, fit_and_write
 from facecap_core.fitting.constraints import CloudGrid, cloud_targets, nearest_edge_pixels
 from facecap_core.fitting.nicp import initial_similarity
-from facecap_core.fitting.synthetic_cloud import mvs_like_cloud
 from facecap_core.render import RaycastScene, interpolate
+from facecap_core.synthetic.cloud import mvs_like_cloud
 from facecap_core.template import INNER_LANDMARKS, Template, head_frame
 from facecap_core.texture import vertex_colours
 

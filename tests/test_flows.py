@@ -66,8 +66,8 @@ def _cameras_doc(intr, frames, indices, scale: float, units: str) -> dict:
 
 def seed_upstream(store_url: str, capture: Path, tmp: Path) -> dict[str, str]:
     """Store ground-truth pose and coarse artifacts; returns their keys and the video's."""
-    from facecap_core.mvs.testing import coarse_from_gt
     from facecap_core.synthetic import load_gt_cameras
+    from facecap_core.synthetic.ground_truth import coarse_from_gt
     from tasks.graph import stage_key
     from tasks.runner import ingest
 

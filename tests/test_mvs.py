@@ -27,8 +27,8 @@ from facecap_core.mvs import (
     write_ply,
 )
 from facecap_core.mvs.patchmatch import patchmatch_depth
-from facecap_core.mvs.testing import coarse_from_gt, gt_depth, load_views
 from facecap_core.render import RaycastScene
+from facecap_core.synthetic.ground_truth import coarse_from_gt, gt_depth, load_views
 
 # 320x180: 1 px ≈ 1.6 mm on the face, a quarter of the benchmark's pixels (docs/mvs.md).
 WIDTH, HEIGHT, FRAMES = 320, 180, 18

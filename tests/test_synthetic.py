@@ -128,7 +128,7 @@ def test_bad_subjects_are_named(tmp_path, monkeypatch):
 
 from facecap_core.camera import rotation_angle_deg  # noqa: E402
 from facecap_core.config import build  # noqa: E402
-from facecap_core.synthetic import Room, _to_srgb8, ict_subject, prepare  # noqa: E402
+from facecap_core.synthetic import Room, ict_subject, prepare, to_srgb8  # noqa: E402
 from facecap_core.video import iter_frames, probe  # noqa: E402
 
 
@@ -173,7 +173,7 @@ def test_portrait_decodes_upright(tmp_path, ict_model, rotation):
         stored = next(c.decode(video=0))
         assert (stored.width, stored.height) == (128, 72)  # landscape in the file
     upright = next(iter_frames(cap.video)).image
-    expected = _to_srgb8(prepare(config).frame(0).image)
+    expected = to_srgb8(prepare(config).frame(0).image)
     assert upright.shape == expected.shape == (128, 72, 3)
     err = np.abs(upright.astype(int) - expected).mean()
     assert err < 3.0 and np.abs(upright.astype(int) - expected[::-1, ::-1]).mean() > 5 * err

@@ -104,7 +104,7 @@ def fit_template_to_head(template: Template, vertices: np.ndarray, faces: np.nda
                          landmarks: np.ndarray) -> np.ndarray:
     """Template vertices fitted (NICP, dense surface samples + 68 landmarks) to a head mesh."""
     from facecap_core.fitting import fit
-    from facecap_core.fitting.synthetic_cloud import mvs_like_cloud
+    from facecap_core.synthetic.cloud import mvs_like_cloud
 
     cloud, normals = mvs_like_cloud(vertices, faces, density=2.0, noise_mm=0.0, holes=0.0,
                                     outliers=0.0, normal_jitter_deg=0.0)

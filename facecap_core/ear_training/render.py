@@ -18,6 +18,8 @@ from facecap_core.ear_training.contour import (
     SurfacePoints,
 )
 from facecap_core.render import RaycastScene
+from facecap_core.synthetic.sensor import to_srgb8
+from facecap_core.synthetic.subjects import smoothstep
 
 
 @dataclass
@@ -74,15 +76,6 @@ def _lights(rng: np.random.Generator, view_dir: np.ndarray) -> list[tuple[np.nda
     return [(key, rng.uniform(0.45, 0.8)), (fill, rng.uniform(0.1, 0.3))]
 
 
-def _to_srgb8(linear: np.ndarray) -> np.ndarray:
-    x = np.clip(linear, 0.0, 1.0)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return np.round(srgb * 255).astype(np.uint8)
-
-
-def _smoothstep(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    t = np.clip((x - lo) / (hi - lo), 0.0, 1.0)
-    return t * t * (3 - 2 * t)
 
 
 class HairAroundEars:
@@ -121,7 +114,7 @@ class HairAroundEars:
             # Often right at the rim, so that the hair frames the (bare) ear.
             offset = rng.uniform(-0.3, 0.6) * height
             across = (centre[2] - P[:, 2]) * np.cos(theta) + (P[:, 1] - centre[1]) * np.sin(theta)
-            w = _smoothstep(across - offset + wavy, -1.5, 1.5)
+            w = smoothstep(across - offset + wavy, -1.5, 1.5)
             w *= np.sign(P[:, 0]) == SIDE_SIGN[side]
             if rng.uniform() < 0.75:
                 w[self.ear_mask] = 0.0  # the ear itself stays bare most of the time
@@ -139,7 +132,7 @@ class HairAroundEars:
         w = interpolate(self.weight[:, None], self.subject.faces, tri, bary)[:, 0]
         if not np.any(w > 0):
             return rgb
-        strands = _smoothstep(self.noise(points, 0.6, 6, stretch=(1.0, 6.0, 1.0)), -0.3, 0.6)
+        strands = smoothstep(self.noise(points, 0.6, 6, stretch=(1.0, 6.0, 1.0)), -0.3, 0.6)
         hair = self.colour * (0.7 + 0.5 * strands)[:, None]
         w = w[:, None] * (0.85 + 0.15 * strands[:, None])
         return rgb * (1 - w) + hair * w
@@ -220,7 +213,7 @@ class EarRenderer:
             sigma = np.sqrt(rng.uniform(0.003, 0.012) ** 2
                             + rng.uniform(0.005, 0.02) ** 2 * np.clip(lin, 0, 1))
             lin = lin + sigma * rng.standard_normal(lin.shape)
-        img = _to_srgb8(lin)
+        img = to_srgb8(lin)
         if realism:
             blur = rng.uniform(0.0, 1.2)
             if blur > 0.3:
