@@ -47,7 +47,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from facecap_core import coarse  # noqa: E402
-from facecap_core.camera import camera_center, rotation_matrix  # noqa: E402
+from facecap_core.camera import (  # noqa: E402
+    CameraSet,
+    camera_center,
+    read_cameras_json,
+    rotation_matrix,
+)
 from facecap_core.config import CoarseConfig, LandmarkConfig, SynthConfig  # noqa: E402
 from facecap_core.evaluation import paper_table, score, score_json  # noqa: E402
 from facecap_core.geometry import umeyama  # noqa: E402
@@ -98,7 +103,7 @@ def region_stats(e: np.ndarray) -> dict:
     return out
 
 
-def true_scale_pipeline(cams: stage.Cameras, gt_cameras: Path) -> float:
+def true_scale_pipeline(cams: CameraSet, gt_cameras: Path) -> float:
     """mm per camera unit of estimated cameras: similarity of their centres to the GT's."""
     _, poses = load_gt_cameras(gt_cameras)
     by_index = {int(p["index"]): p for p in poses}
@@ -142,7 +147,7 @@ def run_capture(capture: Path, out: Path, cameras: str, deformations: list[str],
         cams_path = pipeline_cameras(capture, out)
         if cams_path is None:
             return {}
-        mm_per_unit = true_scale_pipeline(stage.load_cameras(cams_path),
+        mm_per_unit = true_scale_pipeline(read_cameras_json(cams_path),
                                           capture / "gt" / "cameras.json")
     lm_path, cpu, wall = cpu_wall(stage.main, capture / "video.mp4", cams_path, work / "landmarks")
     L, doc = stage.load_landmarks3d(lm_path)

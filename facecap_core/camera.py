@@ -13,7 +13,7 @@ Conventions (the same everywhere in facecap, and OpenCV's):
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -145,14 +145,22 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
 
 @dataclass
 class CameraSet:
-    """A ``cameras.json``: one shared camera and every keyframe's world-to-camera pose."""
+    """A ``cameras.json``: one shared camera and every keyframe's world-to-camera pose, and
+    the document itself (units, metadata)."""
 
     intrinsics: Intrinsics
     frame_indices: list[int]
-    R: list[np.ndarray]
-    t: list[np.ndarray]
-    units: str = "arbitrary"
-    metric_scale: float | None = None
+    R: np.ndarray  # (K, 3, 3)
+    t: np.ndarray  # (K, 3)
+    doc: dict = field(default_factory=dict)
+
+    @property
+    def units(self) -> str:
+        return str(self.doc.get("units", "arbitrary"))
+
+    @property
+    def metric_scale(self) -> float | None:
+        return self.doc.get("metric_scale")
 
     def pose(self, frame_index: int) -> tuple[np.ndarray, np.ndarray]:
         k = self.frame_indices.index(int(frame_index))
@@ -168,16 +176,21 @@ def read_cameras_json(path) -> CameraSet:
     from facecap_core.errors import InputError
 
     path = Path(path)
+    if not path.is_file():
+        raise InputError(f"cameras file not found: {path} (run the pose stage first)")
     try:
         doc = json.loads(path.read_text())
         intr = Intrinsics.from_dict(doc["intrinsics"])
         frames = doc["keyframes"]
-        return CameraSet(intr, [int(f["frame_index"]) for f in frames],
-                         [np.asarray(f["R"], float).reshape(3, 3) for f in frames],
-                         [np.asarray(f["t"], float).reshape(3) for f in frames],
-                         str(doc.get("units", "arbitrary")), doc.get("metric_scale"))
-    except FileNotFoundError:
-        raise InputError(f"cameras file not found: {path}") from None
+        indices = [int(f["frame_index"]) for f in frames]
+        R = np.array([f["R"] for f in frames], float).reshape(-1, 3, 3)
+        t = np.array([f["t"] for f in frames], float).reshape(-1, 3)
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"{path} is not a facecap cameras.json ({type(exc).__name__}: "
-                         f"{exc}); rerun the pose stage") from None
+                         f"{exc}); expected intrinsics and keyframes with frame_index, R, t; "
+                         "rerun the pose stage") from None
+    if not indices:
+        raise InputError(f"{path} lists no keyframes")
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        raise InputError(f"{path} holds non-finite camera poses")
+    return CameraSet(intr, indices, R, t, doc)

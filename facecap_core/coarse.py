@@ -250,12 +250,8 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     ``landmarks_dir``; writes ``coarse.ply``, ``cameras.json``, ``landmarks3d.json``,
     ``ears3d.json`` and ``coarse.json`` into ``out_dir``; returns the path of
     ``coarse.ply``."""
-    from facecap_core.landmarks.stage import (
-        EAR_TEMPLATE,
-        load_cameras,
-        load_ears3d,
-        load_landmarks3d,
-    )
+    from facecap_core.camera import read_cameras_json
+    from facecap_core.landmarks.stage import EAR_TEMPLATE, load_ears3d, load_landmarks3d
 
     config = config or CoarseConfig()
     t_wall, t_cpu = time.perf_counter(), time.process_time()
@@ -275,7 +271,7 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     if len(ear_ids) and ear_ids.max() >= len(template.vertices):
         raise InputError(f"ears3d.json names vertex {ear_ids.max()} of a "
                          f"{len(template.vertices)}-vertex template")
-    cams = load_cameras(cameras_json)
+    cams = read_cameras_json(cameras_json)
 
     scale_doc = metric_scale(template, L, ear_ids, ear_pts, ear_sides, config,
                              landmarks_doc.get("irises"))

@@ -144,10 +144,19 @@ def test_colmap_logs_go_to_the_log_not_the_terminal(capfd, caplog):
 
     from facecap_core.pose.geometric import native_stderr_to_log
 
+    # The module's log alone: handlers other tests left on the root logger (Prefect's
+    # console) would print its WARNING line, formatted, as they print any warning.
+    log = logging.getLogger("facecap_core.pose.geometric")
+    log.addHandler(caplog.handler)
+    propagate, log.propagate = log.propagate, False
     capfd.readouterr()
-    with caplog.at_level(logging.DEBUG, logger="facecap_core.pose.geometric"):
-        with native_stderr_to_log():
-            pycolmap.bundle_adjustment(pycolmap.Reconstruction(),
-                                       pycolmap.BundleAdjustmentOptions())
+    try:
+        with caplog.at_level(logging.DEBUG, logger="facecap_core.pose.geometric"):
+            with native_stderr_to_log():
+                pycolmap.bundle_adjustment(pycolmap.Reconstruction(),
+                                           pycolmap.BundleAdjustmentOptions())
+    finally:
+        log.propagate = propagate
+        log.removeHandler(caplog.handler)
     assert capfd.readouterr().err == ""
     assert any("bundle adjustment" in r.getMessage().lower() for r in caplog.records)

@@ -36,12 +36,11 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from facecap_core.camera import Intrinsics, camera_center
+from facecap_core.camera import CameraSet, Intrinsics, camera_center, read_cameras_json
 from facecap_core.config import LandmarkConfig
 from facecap_core.errors import InputError
 from facecap_core.landmarks import Detection, detect_68, iris
@@ -60,51 +59,13 @@ EARS_3D = "ears3d.json"
 
 log = logging.getLogger(__name__)
 
-__all__ = ["main", "Cameras", "load_cameras", "load_landmarks3d", "load_ears3d",
+__all__ = ["main", "load_landmarks3d", "load_ears3d",
            "camera_yaw_pitch_deg", "write_gt_keyframe_cameras", "robust_head_frame"]
 
 EAR_TEMPLATE = "menpo3d-bfm"  # the template whose vertex ids ears3d.json refers to
 
 
 # --------------------------------------------------------------------------- cameras
-
-
-@dataclass
-class Cameras:
-    """Keyframe cameras of a ``cameras.json``: intrinsics, frame indices, world-to-camera
-    poses, and the document itself (units, metadata)."""
-
-    intrinsics: Intrinsics
-    frame_indices: list[int]
-    R: np.ndarray  # (K, 3, 3)
-    t: np.ndarray  # (K, 3)
-    doc: dict
-
-    @property
-    def units(self) -> str:
-        return str(self.doc.get("units", "camera units"))
-
-
-def load_cameras(path: str | Path) -> Cameras:
-    """Read a ``cameras.json`` as written by :func:`facecap_core.pose.io.write_cameras_json`."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"cameras file not found: {path} (run the pose stage first)")
-    try:
-        doc = json.loads(path.read_text())
-        intr = Intrinsics.from_dict(doc["intrinsics"])
-        frames = doc["keyframes"]
-        indices = [int(k["frame_index"]) for k in frames]
-        R = np.array([k["R"] for k in frames], float).reshape(-1, 3, 3)
-        t = np.array([k["t"] for k in frames], float).reshape(-1, 3)
-    except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"{path} is not a facecap cameras.json ({type(exc).__name__}: {exc}); "
-                         "expected intrinsics and keyframes with frame_index, R, t") from None
-    if not len(indices):
-        raise InputError(f"{path} lists no keyframes")
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-        raise InputError(f"{path} holds non-finite camera poses")
-    return Cameras(intr, indices, R, t, doc)
 
 
 def write_gt_keyframe_cameras(gt_cameras: str | Path, out_path: str | Path,
@@ -178,7 +139,7 @@ def _to_intrinsics(points: np.ndarray, image_shape, intr: Intrinsics) -> np.ndar
 # --------------------------------------------------------------------------- detection
 
 
-def detect_keyframes(video: str | Path, cams: Cameras, config: LandmarkConfig
+def detect_keyframes(video: str | Path, cams: CameraSet, config: LandmarkConfig
                      ) -> list[Detection | None]:
     """One :class:`Detection` (points at the intrinsics' resolution) or None per keyframe."""
     from facecap_core.video import iter_frames
@@ -235,7 +196,7 @@ def _observations(dets: list[Detection | None], ids: np.ndarray, points: np.ndar
     return uv
 
 
-def _triangulate_faces(dets, views, points, cams: Cameras, config: LandmarkConfig,
+def _triangulate_faces(dets, views, points, cams: CameraSet, config: LandmarkConfig,
                        min_views: int = 2) -> Triangulation:
     views = np.asarray(views, int)
     size = np.array([_box_size(dets[v].box) for v in views])
@@ -259,7 +220,7 @@ def _gate(records: list[dict], config: LandmarkConfig) -> tuple[list[int], bool]
     return sorted(order[:max(config.min_views, 2)]), True
 
 
-def _detect_ears(video, cams: Cameras, records: list[dict], ears, config: LandmarkConfig):
+def _detect_ears(video, cams: CameraSet, records: list[dict], ears, config: LandmarkConfig):
     """Ear detections of the profile-side keyframes: {side: [(keyframe position, det)]}."""
     from facecap_core.video import iter_frames
 
@@ -283,7 +244,7 @@ def _detect_ears(video, cams: Cameras, records: list[dict], ears, config: Landma
     return found
 
 
-def triangulate_ears(found: dict[str, list], cams: Cameras, vertex_ids: dict[str, np.ndarray],
+def triangulate_ears(found: dict[str, list], cams: CameraSet, vertex_ids: dict[str, np.ndarray],
                      config: LandmarkConfig) -> dict:
     """Triangulate each ear's contour points; returns the ears3d.json document."""
     ids, points, sides, views = [], [], [], {}
@@ -306,7 +267,7 @@ def triangulate_ears(found: dict[str, list], cams: Cameras, vertex_ids: dict[str
 
 
 def triangulate_irises(dets: list[Detection | None], records: list[dict], gated: list[int],
-                       cams: Cameras, head_R: np.ndarray, config: LandmarkConfig) -> dict:
+                       cams: CameraSet, head_R: np.ndarray, config: LandmarkConfig) -> dict:
     """Pupil centres triangulated over the gated keyframes within ``iris_max_yaw_deg`` of
     frontal, and the horizontal iris diameter in world units: each view's pixel diameter
     times the pupil's depth over the focal length, undone of the foreshortening of an iris
@@ -385,7 +346,7 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
     ``out_dir``; returns the path of ``landmarks3d.json``."""
     config = config or LandmarkConfig()
     t_wall, t_cpu = time.perf_counter(), time.process_time()
-    cams = load_cameras(cameras_json)
+    cams = read_cameras_json(cameras_json)
     dets = detect_keyframes(video, cams, config)
     n = len(dets)
     detected = [k for k, d in enumerate(dets) if d is not None]
