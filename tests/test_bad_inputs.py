@@ -414,12 +414,12 @@ def test_refused_by_a_stage(case, media, kept, tmp_path, capfd, prefect_server):
 def test_full_disk(media, kept, capfd, monkeypatch, prefect_server):
     """The store's disk fills up (ENOSPC on every write): one line, not retried, nothing
     half-written left in the store."""
-    from tasks.store import ArtifactStore as Store
+    from tasks.store import local
 
     def disk_full(path, chunks):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
 
-    monkeypatch.setattr(Store, "_write_local_file", staticmethod(disk_full))
+    monkeypatch.setattr(local, "write_local_file", disk_full)
     before = snapshot(kept["store"], kept["out"])
     code, out, err = facecap(capfd, *_with_defaults(["reconstruct", media["orbit"]], kept))
     assert_one_line_error(code, err, ["no space left on device", "free space"])

@@ -142,7 +142,7 @@ def test_colmap_logs_go_to_the_log_not_the_terminal(capfd, caplog):
 
     import pycolmap
 
-    from facecap_core.pose.geometric import native_stderr_to_log
+    from facecap_core.native_logs import native_stderr_to_log
 
     # The module's log alone: handlers other tests left on the root logger (Prefect's
     # console) would print its WARNING line, formatted, as they print any warning.
@@ -152,7 +152,7 @@ def test_colmap_logs_go_to_the_log_not_the_terminal(capfd, caplog):
     capfd.readouterr()
     try:
         with caplog.at_level(logging.DEBUG, logger="facecap_core.pose.geometric"):
-            with native_stderr_to_log():
+            with native_stderr_to_log(log, prefix="colmap: "):
                 pycolmap.bundle_adjustment(pycolmap.Reconstruction(),
                                            pycolmap.BundleAdjustmentOptions())
     finally:

@@ -20,10 +20,8 @@ the eye's dlib outline, or when the diameter is implausible for the eye's width.
 from __future__ import annotations
 
 import importlib.util
-import os
-import sys
+import logging
 import warnings
-from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -31,8 +29,12 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from facecap_core.native_logs import native_stderr_to_log
+
 __all__ = ["IrisFit", "available", "detect_irises", "eye_opening", "pupil_centre", "RIGHT_EYE",
            "LEFT_EYE", "DETECTOR"]
+
+log = logging.getLogger(__name__)
 
 RIGHT_EYE = np.arange(36, 42)  # the subject's right eye (image left in a frontal view)
 LEFT_EYE = np.arange(42, 48)
@@ -63,39 +65,15 @@ def available() -> bool:
     return importlib.util.find_spec("mediapipe") is not None
 
 
-@contextmanager
-def _quiet_native_stderr(quiet: bool):
-    """MediaPipe's C++ side logs its graph's start (the TFLite delegate, absl warnings)
-    straight to file descriptor 2. It is hidden while the caller keeps glog-style native
-    logs quiet (``GLOG_minloglevel`` ≥ 2, as the CLI does unless ``--verbose``)."""
-    if not quiet:
-        yield
-        return
-    sys.stderr.flush()
-    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(devnull)
-
-
-def _native_logs_quiet() -> bool:
-    try:
-        return int(os.environ.get("GLOG_minloglevel", "0")) >= 2
-    except ValueError:
-        return False
-
-
 @lru_cache(maxsize=1)
 def _face_mesh():
     from mediapipe.python.solutions import face_mesh
 
     mesh = face_mesh.FaceMesh(static_image_mode=True, refine_landmarks=True, max_num_faces=1,
                               min_detection_confidence=0.3)
-    with _quiet_native_stderr(_native_logs_quiet()):
+    # Its C++ side logs the graph's start (the TFLite delegate, absl notices) to stderr:
+    # kept in the log at DEBUG, none of it is a warning to the user.
+    with native_stderr_to_log(log, warnings=(), prefix="mediapipe: "):
         _process(mesh, np.zeros((64, 64, 3), np.uint8))  # the graph starts (and logs) here
     return mesh
 

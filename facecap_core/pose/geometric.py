@@ -10,50 +10,18 @@ cameras' rotations. Ceres (through pycolmap) does the adjustment.
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
 import shutil
-import sys
-import tempfile
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
 from facecap_core.camera import Intrinsics, camera_center, project, undistort
+from facecap_core.native_logs import native_stderr_to_log
 from facecap_core.pose.colmap_sfm import Poses
 
 log = logging.getLogger(__name__)
-
-
-_STDERR_LOCK = threading.Lock()
-
-
-@contextlib.contextmanager
-def native_stderr_to_log():
-    """What native code writes to stderr meanwhile goes to this module's log instead of the
-    user's terminal (glog's warnings and errors at WARNING, the rest at DEBUG): pycolmap's
-    bundle adjustment logs its heading through glog whatever ``GLOG_minloglevel`` says (it
-    resets the level on each call). File descriptor 2 is the process's: one redirection at
-    a time."""
-    with _STDERR_LOCK, tempfile.TemporaryFile() as sink:
-        sys.stderr.flush()
-        saved = os.dup(2)
-        os.dup2(sink.fileno(), 2)
-        try:
-            yield
-        finally:
-            sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
-            sink.seek(0)
-            for line in sink.read().decode(errors="replace").splitlines():
-                # glog lines start with their severity: I, W, E or F (after a colour code).
-                severity = line.lstrip("\x1b[0123456789;m")[:1]
-                log.log(logging.WARNING if severity in ("W", "E", "F") else logging.DEBUG,
-                        "colmap: %s", line)
 
 
 def triangulate(observations: np.ndarray, R: list[np.ndarray], t: list[np.ndarray],
@@ -126,7 +94,7 @@ def bundle_adjust(poses: Poses, work_dir: str | Path, refine_intrinsics: bool = 
     options.refine_principal_point = refine_intrinsics
     options.refine_extra_params = refine_intrinsics
     options.print_summary = False
-    with native_stderr_to_log():
+    with native_stderr_to_log(log, prefix="colmap: "):
         pycolmap.bundle_adjustment(rec, options)
     return _from_reconstruction(rec, poses, time.perf_counter() - start)
 
