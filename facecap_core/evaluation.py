@@ -235,6 +235,9 @@ class _Surface:
         ans = self._scene.compute_closest_points(o3d.core.Tensor(
             np.ascontiguousarray(points - self.origin, dtype=np.float32)))
         prim = ans["primitive_ids"].numpy().astype(np.int64)
+        if (prim >= len(self.faces)).any():  # open3d's "no triangle found"
+            raise InputError("no triangle of a mesh is within reach of the points it is "
+                             "compared with (degenerate triangles?); repair the mesh")
         uv = ans["primitive_uvs"].numpy().astype(float)
         tri = self.vertices[self.faces[prim]]  # (N, 3 corners, 3)
         q = ((1.0 - uv[:, :1] - uv[:, 1:]) * tri[:, 0] + uv[:, :1] * tri[:, 1]
@@ -290,6 +293,10 @@ def _align(mesh_vertices: np.ndarray, scan: _Surface, scan_landmarks: np.ndarray
         # The total transform from the (initially placed) mesh to its matches, not an
         # increment on the last estimate, so that rounding does not accumulate.
         s_n, R_n, t_n = umeyama(base[idx[keep]], q[keep], with_scale)
+        if not s_n > 0:  # the matches collapse to a point or a line: no scale fits them
+            raise InputError("the mesh cannot be aligned to the scan: its vertices in the face "
+                             "region match the scan in a single point or line (a collapsed or "
+                             "damaged mesh?); repair the mesh")
         after = s_n * base[idx[keep]] @ R_n.T + t_n
         change = math.sqrt(np.mean(np.sum((after - moved[idx[keep]]) ** 2, axis=1))) / radius
         energy = float(np.mean(d[keep] ** 2))

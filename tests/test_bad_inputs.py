@@ -417,9 +417,9 @@ CORPUS = {
         lambda m, t, k: ["evaluate-dataset", _dataset_with_a_subject_named(t, "anna", m["orbit"]),
                          "--out", _damaged_evaluation_history(k["out"])],
         ["20260101T000000000000Z.json is not an evaluation facecap wrote", "move it out"]),
-    "config: min_frames 1e30": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                                 _config(t, "keyframes: {min_frames: 1.0e+30}\n")],
-                                ["keyframes.min_frames"]),
+    "config: min_frames 10^30": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                                  _config(t, f"keyframes: {{min_frames: {10**30}}}\n")],
+                                 ["keyframes.min_frames", "less than or equal to 100000"]),
     "config: 40 stiffness levels": (
         lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                          _config(t, f"fitting: {{stiffness: {[1.0] * 40}, landmark_weight: "

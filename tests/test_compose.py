@@ -241,6 +241,65 @@ def test_compose_file_holds_no_literal_secret():
     assert "env_file" not in raw_text  # no container receives the whole .env
 
 
+def _refuse_placeholders_entry() -> list[str]:
+    """The containers' entry as the shell gets it (Compose turns ``$$`` into ``$``)."""
+    raw = yaml.safe_load(COMPOSE_FILE.read_text())
+    return [part.replace("$$", "$") for part in raw["x-refuse-placeholders"]]
+
+
+def test_every_container_starts_through_the_placeholder_check(resolved):
+    entry = resolved["services"]["worker"]["entrypoint"]
+    assert entry[:2] == ["/bin/sh", "-c"] and "change-me" in entry[2]
+    for name, service in resolved["services"].items():
+        assert service.get("entrypoint") == entry, f"{name} starts without the check"
+        assert service.get("command"), f"{name} has no command for the check to run"
+
+
+def test_a_placeholder_secret_stops_a_container_and_a_real_one_starts_it():
+    """The entry itself, run by sh with a service's command: any variable still holding a
+    value of .env.example stops it with one line naming the variables, not their values."""
+    entry = _refuse_placeholders_entry()
+    example = read_env_file(ENV_EXAMPLE)
+    base = {"PATH": os.environ.get("PATH", "/usr/bin:/bin")}
+    placeholders = {key: example[key] for key in SECRETS}
+    stopped = subprocess.run([*entry, "echo", "started"], env={**base, **placeholders},
+                             capture_output=True, text=True, timeout=30)
+    assert stopped.returncode == 1 and stopped.stdout == ""
+    [line] = stopped.stderr.strip().splitlines()
+    assert line.startswith("refusing to start:") and "put real secrets into .env" in line
+    for key, value in placeholders.items():
+        assert key in line and value not in line
+    url = {"PREFECT_API_DATABASE_CONNECTION_URL":
+           f"postgresql+asyncpg://prefect:{example['POSTGRES_PASSWORD']}@postgres:5432/prefect"}
+    inside_url = subprocess.run([*entry, "echo", "started"], env={**base, **url},
+                                capture_output=True, text=True, timeout=30)
+    assert inside_url.returncode == 1 and "PREFECT_API_DATABASE_CONNECTION_URL" in inside_url.stderr
+    started = subprocess.run([*entry, "echo", "started", "with  two spaces"],
+                             env={**base, **{key: TEST_ENV[key] for key in SECRETS}},
+                             capture_output=True, text=True, timeout=30)
+    assert started.returncode == 0 and started.stdout == "started with  two spaces\n"
+
+
+def test_the_workers_s3_account_may_use_only_the_artifacts_bucket(resolved):
+    """minio-init gives the workers' account a policy over FACECAP_S3_BUCKET alone (no
+    admin, no other bucket); the workers never get MinIO's root account."""
+    import json
+
+    script = resolved["services"]["minio-init"]["command"][-1]
+    policy = json.loads(re.search(r"<<POLICY\n(.*?)\n\s*POLICY", script, re.S).group(1)
+                        .replace("$$FACECAP_S3_BUCKET", "facecap-test-bucket"))
+    resources = {r for statement in policy["Statement"] for r in statement["Resource"]}
+    assert resources == {"arn:aws:s3:::facecap-test-bucket", "arn:aws:s3:::facecap-test-bucket/*"}
+    actions = {a for statement in policy["Statement"] for a in statement["Action"]}
+    assert all(a.startswith("s3:") and "*" not in a for a in actions)
+    assert not {"s3:DeleteBucket", "s3:PutBucketPolicy", "s3:CreateBucket"} & actions
+    assert "--user \"$$AWS_ACCESS_KEY_ID\"" in script
+    worker = service_env(resolved, "worker")
+    assert TEST_ENV["MINIO_ROOT_PASSWORD"] not in worker.values()
+    assert worker["FACECAP_INPUT_ROOTS"] == "/data/datasets"
+    assert worker["FACECAP_OUTPUT_ROOT"] == "/data/output"
+
+
 def test_env_file_never_reaches_git_or_the_image():
     def ignored(patterns: list[str]) -> bool:
         matched = False
@@ -500,6 +559,7 @@ def test_prefect_yaml_deploys_and_a_worker_runs_the_nightly_evaluation(live_serv
                              PREFECT_API_AUTH_STRING=AUTH, FACECAP_PROJECT_DIR=str(ROOT),
                              FACECAP_HOME=str(tmp_path / "facecap-home"),
                              FACECAP_STORE=str(tmp_path / "store"),
+                             FACECAP_INPUT_ROOTS=str(dataset), FACECAP_OUTPUT_ROOT=str(output),
                              PREFECT_WORKER_QUERY_SECONDS="1")
     worker_log = open(tmp_path / "worker.log", "w")
     worker = subprocess.Popen(
