@@ -253,6 +253,11 @@ def distances(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np
 # --------------------------------------------------------------------------- alignment
 
 
+MAX_LOG_SCALE = 20.0
+"""Largest |log scale| an extrapolated ICP transform may have (a factor of 5e8): beyond it
+the extrapolation, not the data, is speaking."""
+
+
 def _params(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(log s, rotation vector, t): a flat vector in which transforms can be extrapolated."""
     return np.concatenate([[math.log(s)], Rotation.from_matrix(R).as_rotvec(), t])
@@ -321,6 +326,10 @@ def _align(mesh_vertices: np.ndarray, scan: _Surface, scan_landmarks: np.ndarray
                 dF = np.diff(np.array(f_hist), axis=0).T
                 theta = np.linalg.lstsq(dF, f_hist[-1], rcond=None)[0]
                 x = g - dG @ theta
+                if not (np.all(np.isfinite(x)) and abs(x[0]) < MAX_LOG_SCALE):
+                    # Nearly parallel steps (a degenerate mesh) extrapolate to nonsense:
+                    # take the plain ICP step instead.
+                    x, accelerated = g, False
             else:
                 x = g
             g_new, e_new, change = step(x)

@@ -376,8 +376,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     sv = sub.add_parser("serve", help="serve the dataset, capture and nightly-evaluation "
                                       "deployments")
-    sv.add_argument("--root", required=True, help="dataset folder of the nightly evaluation")
-    sv.add_argument("--out", required=True, help="results folder of the nightly evaluation")
+    sv.add_argument("--root", required=True, help="dataset folder of the nightly evaluation; "
+                    "served runs read inputs only under it (unless FACECAP_INPUT_ROOTS is set)")
+    sv.add_argument("--out", required=True, help="results folder of the nightly evaluation; "
+                    "served runs write only under it (unless FACECAP_OUTPUT_ROOT is set)")
     sv.add_argument("--cron", default="0 2 * * *", help="nightly schedule (cron)")
     sv.add_argument("--timezone", default="UTC", help="time zone of the schedule (IANA name)")
     sv.add_argument("--limit", type=int, default=1, help="flow runs at once")

@@ -253,3 +253,20 @@ def test_no_input_ends_in_a_traceback(world, tmp_path_factory, capfd, monkeypatc
     run()
     s3fs.S3FileSystem.clear_instance_cache()
     print(f"fuzzed inputs: {sum(OUTCOMES.values())}: {dict(sorted(OUTCOMES.items()))}")
+
+
+def test_a_mesh_with_most_vertices_zeroed_is_scored(world, tmp_path, capfd, monkeypatch):
+    """Found by the fuzz test: the scan's own binary PLY with 1,491 bytes of its vertex block
+    zeroed (123 vertices at the origin, a few cut in half). ICP's extrapolated steps ran away
+    (a scale of e^1000) and overflowed; now such a step falls back to the plain one and the
+    mesh is scored."""
+    monkeypatch.setenv("FACECAP_HOME", str(world["home"]))
+    data = bytearray(world["scan"].read_bytes())
+    vertices = data.index(b"end_header\n") + len(b"end_header\n")
+    data[vertices + 92:vertices + 1583] = bytes(1491)
+    (tmp_path / "zeroed.ply").write_bytes(bytes(data))
+    code = main(["evaluate", str(tmp_path / "zeroed.ply"), "--scan", str(world["scan"]),
+                 "--scan-landmarks", str(world["scan_landmarks"]), "--json"])
+    out, err = capfd.readouterr()
+    assert code == 0, err
+    assert json.loads(out)["similarity"]["accuracy"]["median"] < 0.01
