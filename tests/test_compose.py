@@ -553,6 +553,10 @@ def test_prefect_yaml_deploys_and_a_worker_runs_the_nightly_evaluation(live_serv
     run = client.post(f"/deployments/{nightly['id']}/create_flow_run",
                       json={"parameters": {"root": str(dataset), "out": str(output)}})
     assert run.status_code == 201, run.text
+    # A run that names a dataset outside the worker's input roots fails at its start.
+    escape = client.post(f"/deployments/{nightly['id']}/create_flow_run",
+                         json={"parameters": {"root": str(ROOT), "out": str(output)}})
+    assert escape.status_code == 201, escape.text
     worker_dir = tmp_path / "elsewhere"
     worker_dir.mkdir()
     worker_env = prefect_env(tmp_path / "worker-home", PREFECT_API_URL=live_server,
@@ -570,11 +574,13 @@ def test_prefect_yaml_deploys_and_a_worker_runs_the_nightly_evaluation(live_serv
     )
     try:
         deadline = time.monotonic() + 180
+        final = ("COMPLETED", "FAILED", "CRASHED", "CANCELLED")
         while True:
             state = client.get(f"/flow_runs/{run.json()['id']}").json()["state"]
-            if state["type"] in ("COMPLETED", "FAILED", "CRASHED", "CANCELLED"):
+            refused = client.get(f"/flow_runs/{escape.json()['id']}").json()["state"]
+            if state["type"] in final and refused["type"] in final:
                 break
-            assert time.monotonic() < deadline, f"flow run still {state['type']}"
+            assert time.monotonic() < deadline, f"flow runs still {state['type']}, {refused['type']}"
             time.sleep(1)
     finally:
         stop(worker)  # before the server stops, or the worker hangs
@@ -582,5 +588,7 @@ def test_prefect_yaml_deploys_and_a_worker_runs_the_nightly_evaluation(live_serv
     assert state["type"] == "COMPLETED", (
         f"{state['type']}: {state.get('message')}\n{(tmp_path / 'worker.log').read_text()[-3000:]}"
     )
+    assert refused["type"] == "FAILED"
+    assert "outside the folders this service reads from" in refused["message"], refused
     (evaluation,) = (output / "evaluations").glob("*.json")
     assert '"subject_a/take1"' in evaluation.read_text()  # listed as skipped: it has no scan
