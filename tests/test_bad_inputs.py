@@ -84,9 +84,9 @@ def write_audio_only(path: Path) -> Path:
     return path
 
 
-def write_empty_video_track(path: Path) -> Path:
-    """A Matroska file whose video track holds no frame (its audio does)."""
-    with av.open(str(path), "w", format="matroska") as container:
+def write_empty_video_track(path: Path, format: str = "matroska", options=None) -> Path:
+    """A file whose video track holds no frame (its audio does)."""
+    with av.open(str(path), "w", format=format, options=options or {}) as container:
         video = container.add_stream("libx264", rate=30)
         video.width, video.height, video.pix_fmt = W, H, "yuv420p"
         audio = container.add_stream("aac", rate=44100)
@@ -163,6 +163,9 @@ def media(tmp_path_factory) -> dict[str, Path]:
     m["8k"] = write_video(d / "8k.mp4", [texture, texture], codec="mpeg4")
     m["rot45"] = write_video(d / "rot45.mp4", orbit, rotation=45)
     m["empty_track"] = write_empty_video_track(d / "empty track.mkv")
+    # A fragmented MP4 keeps the empty track in its header (a plain MP4 drops it).
+    m["empty_track_mp4"] = write_empty_video_track(
+        d / "empty track.mp4", "mp4", {"movflags": "frag_keyframe+empty_moov"})
     preview = [cv2.resize(orbit[0], (W // 2, H // 2))]  # a one-frame preview first
     m["two_streams"] = write_streams(d / "two streams.mp4", [preview, orbit])
     m["resolution_change"] = write_resolution_change(
@@ -395,6 +398,9 @@ CORPUS = {
     "video: a video track with no frames": (lambda m, t, k: ["reconstruct", m["empty_track"]],
                                             ["has a video track with no frames",
                                              "give the capture's video file"]),
+    "video: an MP4 whose video track has no frames": (
+        lambda m, t, k: ["reconstruct", m["empty_track_mp4"]],
+        ["empty track.mp4 has a video track with no frames", "give the capture's video file"]),
     "store: a file": (lambda m, t, k: ["reconstruct", m["orbit"], "--store", _a_file(t)],
                       ["is not a folder", "is a file", "--store"]),
     "store: a folder inside a file": (lambda m, t, k: ["reconstruct", m["orbit"], "--store",
