@@ -2,9 +2,9 @@
 
 Generated inputs, each handed to ``facecap`` in this process as a user would:
 
-* video files: containers (MP4, MOV, Matroska) with random codecs, sizes, frame counts and
-  display rotations, and random damage to a valid recording (cut short, bytes flipped, bytes
-  spliced in, a region zeroed);
+* video files: containers (MP4, MOV, Matroska) of one to three streams, video (random codecs,
+  sizes, frame counts, rates and display rotations) or audio, and random damage to a valid
+  recording (cut short, bytes flipped, bytes spliced in, a region zeroed);
 * pipeline configs: YAML trees over the real section and field names with values of every
   type (huge, negative, NaN, nested, strings, lists), and raw bytes;
 * artifact store URLs: unknown and chained protocols, HTTP and FTP URLs, paths through a
@@ -39,7 +39,7 @@ from flows.cli import main
 from tests.media import write_video
 from tests.test_bad_inputs import orbit_frames, snapshot
 
-EXAMPLES = 3500
+EXAMPLES = 3200
 """Generated inputs per run: about a minute of the 2-core machine."""
 
 
@@ -77,31 +77,45 @@ def world(tmp_path_factory):
 
 
 @st.composite
-def containers(draw) -> bytes:
-    """A generated video file: container, codec, size, frames and rotation drawn."""
+def containers(draw) -> tuple[str, bytes]:
+    """A generated video file: container, then one to three streams (video with a drawn
+    codec, size, frame count, rate and rotation, or audio) in a drawn order."""
     fmt, suffix = draw(st.sampled_from([("mp4", ".mp4"), ("mov", ".mov"),
                                         ("matroska", ".mkv")]))
-    codec = draw(st.sampled_from(["libx264", "mpeg4", "mjpeg"]))
-    width = draw(st.integers(8, 320)) // 2 * 2
-    height = draw(st.integers(8, 240)) // 2 * 2
-    frames = draw(st.integers(0, 6))
-    rotation = draw(st.sampled_from([0, 0, 90, 180, 270, 45, -30]))
+    kinds = draw(st.lists(st.sampled_from(["video", "video", "audio"]), min_size=1, max_size=3))
+    rng = np.random.default_rng(draw(st.integers(0, 2**16)))
     buffer = io.BytesIO()
     with av.open(buffer, "w", format=fmt) as container:
-        stream = container.add_stream(codec, rate=draw(st.sampled_from([1, 24, 30, 240])))
-        stream.width, stream.height = width, height
-        stream.pix_fmt = "yuvj420p" if codec == "mjpeg" else "yuv420p"
-        if rotation and fmt != "matroska":
-            stream.set_display_rotation(rotation)
-        rng = np.random.default_rng(draw(st.integers(0, 2**16)))
-        for i in range(frames):
-            image = rng.integers(0, 255, (height, width, 3), np.uint8)
-            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
-            frame.pts = i
-            for packet in stream.encode(frame):
+        streams = []
+        for kind in kinds:  # every stream before the first packet
+            if kind == "audio":
+                streams.append((container.add_stream("aac", rate=44100), draw(st.integers(0, 8))))
+                continue
+            codec = draw(st.sampled_from(["libx264", "mpeg4", "mjpeg"]))
+            stream = container.add_stream(codec, rate=draw(st.sampled_from([1, 24, 30, 240])))
+            stream.width = draw(st.integers(8, 320)) // 2 * 2
+            stream.height = draw(st.integers(8, 240)) // 2 * 2
+            stream.pix_fmt = "yuvj420p" if codec == "mjpeg" else "yuv420p"
+            rotation = draw(st.sampled_from([0, 0, 90, 180, 270, 45, -30]))
+            if rotation and fmt != "matroska":
+                stream.set_display_rotation(rotation)
+            streams.append((stream, draw(st.integers(0, 6))))
+        for stream, count in streams:
+            for i in range(count):
+                if stream.type == "audio":
+                    frame = av.AudioFrame.from_ndarray(
+                        rng.uniform(-1, 1, (1, 1024)).astype(np.float32), format="fltp",
+                        layout="mono")
+                    frame.sample_rate, frame.pts = 44100, i * 1024
+                else:
+                    frame = av.VideoFrame.from_ndarray(
+                        rng.integers(0, 255, (stream.height, stream.width, 3), np.uint8),
+                        format="rgb24")
+                    frame.pts = i
+                for packet in stream.encode(frame):
+                    container.mux(packet)
+            for packet in stream.encode():
                 container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
     return suffix, buffer.getvalue()
 
 
