@@ -92,7 +92,7 @@ def store_unreachable(url: str, exc: BaseException) -> FacecapError:
         return InputError(f"the store {url} refuses access ({reason}); check the credentials "
                           "and the bucket's policy")
     return FacecapError(f"the store {url} cannot be reached ({type(exc).__name__}: {reason}); "
-                        "check its endpoint (FSSPEC_S3_ENDPOINT_URL) and that it is up, then "
+                        "check its endpoint (AWS_ENDPOINT_URL_S3) and that it is up, then "
                         "retry")
 
 
@@ -112,6 +112,8 @@ def key_lock(store: ArtifactStore, key: str):
     finds the artifact committed and computes nothing."""
     folder = _lock_dir(store)
     try:
+        if folder.exists() and not folder.is_dir():  # mkdir would say EEXIST, which may pass
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
         folder.mkdir(parents=True, exist_ok=True)
         handle = open(folder / f"{key}.lock", "w")
     except OSError as exc:  # a read-only store: the lasting errno keeps it from retries
