@@ -1,8 +1,8 @@
 """Assets from the package registry: the default face template and a sample real head scan.
 
 Both come from the source distribution of ``menpo3d==0.8.6`` (BSD-3-Clause, Imperial
-College London), fetched with pip from whatever package index pip is configured to use, checked
-against a pinned sha256 and unpacked under ``$FACECAP_HOME/assets`` (default
+College London), fetched from the package indexes pip is configured to use (the file alone:
+nothing in it is run), checked against a pinned sha256 and unpacked under ``$FACECAP_HOME/assets`` (default
 ``~/.cache/facecap/assets``). Nothing else is ever downloaded.
 
 * ``template.ply`` + ``template.ljson``: a 53,349-vertex face-and-ears template in the Basel
@@ -27,7 +27,6 @@ from pathlib import Path
 
 from facecap_core.errors import FacecapError
 
-MENPO3D_REQUIREMENT = "menpo3d==0.8.6"
 MENPO3D_SDIST = "menpo3d-0.8.6.tar.gz"
 MENPO3D_SHA256 = "96ad2c8b55b74e026cdc190cf6b1564ad7c8e6c53976cf897d6a1bf4940f084a"
 MENPO3D_FILES = (
@@ -50,24 +49,101 @@ def facecap_home() -> Path:
     return Path(os.environ.get("FACECAP_HOME") or Path.home() / ".cache" / "facecap").expanduser()
 
 
+MENPO3D_PROJECT = "menpo3d"
+PYPI_SIMPLE = "https://pypi.org/simple"
+DOWNLOAD_TIMEOUT_S = 60
+MAX_SDIST_BYTES = 64 * 2**20
+"""The sdist is 3.8 MB: an index that sends more than this is not sending it."""
+
+
 def _download_sdist(dest: Path) -> Path:
-    """Fetch the menpo3d sdist with pip (the configured index, no dependencies)."""
+    """The menpo3d sdist, verified: a copy placed in ``$FACECAP_HOME/downloads``, else the
+    file itself from pip's configured package indexes (PEP 503 simple pages), checked
+    against the pinned sha256 as it arrives. Nothing in it is run: ``pip download`` would
+    prepare the sdist's metadata first, which runs its ``setup.py`` before any check."""
     cached = facecap_home() / "downloads" / MENPO3D_SDIST
     if cached.is_file():
         return cached
-    # pip prepares the sdist's metadata, which imports numpy/setuptools from this interpreter;
-    # both are installed with facecap, so no isolated build environment is needed.
-    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:",
-           "--no-build-isolation", "--disable-pip-version-check", "-q", "-d", str(dest),
-           MENPO3D_REQUIREMENT]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    sdist = dest / MENPO3D_SDIST
-    if proc.returncode != 0 or not sdist.is_file():
-        detail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
-        raise FacecapError(
-            f"could not fetch {MENPO3D_REQUIREMENT} from the package index (pip: {detail}); "
-            f"check pip's index settings, or put {MENPO3D_SDIST} into {cached.parent}")
-    return sdist
+    settings = _pip_settings()
+    indexes = [settings["index-url"] or PYPI_SIMPLE, *(settings["extra-index-url"] or "").split()]
+    sdist, tried = dest / MENPO3D_SDIST, []
+    for index in indexes:
+        try:
+            links = _sdist_links(index, settings["cert"])
+            tried += [] if links else [f"{index}: no {MENPO3D_SDIST}"]
+            for url in links:
+                if _fetch_verified(url, sdist, settings["cert"]):
+                    return sdist
+                tried.append(f"{url}: sha256 differs")
+        except (OSError, ValueError) as exc:  # unreachable, no such project, a bad page
+            tried.append(f"{index}: {' '.join(str(exc).split())[:120]}")
+    raise FacecapError(
+        f"could not fetch {MENPO3D_SDIST} from the package indexes ({'; '.join(tried)}); "
+        f"check pip's index settings, or put {MENPO3D_SDIST} into {cached.parent}")
+
+
+def _pip_settings() -> dict[str, str | None]:
+    """pip's ``index-url``, ``extra-index-url`` and ``cert``, as pip would read them: its
+    environment variables first, then its configuration files."""
+    settings = {name: os.environ.get(f"PIP_{name.upper().replace('-', '_')}")
+                for name in ("index-url", "extra-index-url", "cert")}
+    if not all(settings.values()):
+        proc = subprocess.run([sys.executable, "-m", "pip", "config", "list"],
+                              capture_output=True, text=True)
+        for line in proc.stdout.splitlines():
+            name, _, value = line.partition("=")
+            option = name.rpartition(".")[2]
+            if option in settings and not settings[option]:
+                settings[option] = value.strip().strip("'\"")
+    return settings
+
+
+def _sdist_links(index: str, cert: str | None) -> list[str]:
+    """The URLs of the sdist on an index's page of the project (its links to any other file
+    are ignored)."""
+    from html.parser import HTMLParser
+    from urllib.parse import urldefrag, urljoin
+
+    page = f"{index.rstrip('/')}/{MENPO3D_PROJECT}/"
+    with _open_url(page, cert) as response:
+        text = response.read(4 * 2**20).decode("utf-8", "replace")
+    links: list[str] = []
+
+    class Anchors(HTMLParser):
+        def handle_starttag(self, tag, attrs):
+            href = dict(attrs).get("href") if tag == "a" else None
+            if href and urldefrag(href)[0].rsplit("/", 1)[-1] == MENPO3D_SDIST:
+                links.append(urljoin(page, href))
+
+    Anchors().feed(text)
+    return links
+
+
+def _open_url(url: str, cert: str | None):
+    import ssl
+    import urllib.request
+
+    if url.startswith("file:"):  # a local index: a folder per project with its index.html
+        path = Path(urllib.request.url2pathname(url.removeprefix("file://")))
+        return open(path / "index.html" if path.is_dir() else path, "rb")
+    context = ssl.create_default_context(cafile=cert) if cert else None
+    request = urllib.request.Request(url, headers={"Accept": "text/html"})
+    return urllib.request.urlopen(request, timeout=DOWNLOAD_TIMEOUT_S, context=context)
+
+
+def _fetch_verified(url: str, target: Path, cert: str | None) -> bool:
+    """Download ``url`` to ``target`` hashing it as it arrives; keep it only if its sha256
+    is the pinned one (an index serving more than ``MAX_SDIST_BYTES`` is cut off)."""
+    digest, size = hashlib.sha256(), 0
+    with _open_url(url, cert) as response, open(target, "wb") as out:
+        while (chunk := response.read(2**20)) and size <= MAX_SDIST_BYTES:
+            digest.update(chunk)
+            out.write(chunk)
+            size += len(chunk)
+    if size > MAX_SDIST_BYTES or digest.hexdigest() != MENPO3D_SHA256:
+        target.unlink()
+        return False
+    return True
 
 
 def file_digest(path: Path) -> str:

@@ -14,6 +14,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from facecap_core.errors import InputError
 
+MAX_LEVELS = 32
+"""Most levels of a stiffness schedule: each level is a sparse solve of the whole template,
+and a schedule longer than this is a mistake, not a setting (the default has 6)."""
+MAX_CONFIG_BYTES = 256 * 1024
+"""Largest config file read: every setting with a comment fits in a few kilobytes."""
+MAX_FRAMES = 100_000
+"""Most frames any setting may ask a capture to have (about 7 minutes at 240 fps)."""
+
 
 class StrictModel(BaseModel):
     """Base: unknown keys are errors, values are validated on assignment too, and NaN or
@@ -136,7 +144,7 @@ class SynthConfig(StrictModel):
     it), both at ``crf`` with the medium preset."""
     crf: int = Field(16, ge=0, le=51)
     """Constant rate factor of the output video (lower = better quality)."""
-    seed: int = Field(0, ge=0)
+    seed: int = Field(0, ge=0, le=2**32 - 1)
     """Seed of every random draw (camera, path, lighting, textures, noise)."""
 
     @model_validator(mode="after")
@@ -180,6 +188,11 @@ def load_yaml(model: type[M], path: str | Path, overrides: dict | None = None) -
     path = Path(path)
     if not path.is_file():
         raise InputError(f"config file not found: {path}; check the path")
+    size = path.stat().st_size
+    if size > MAX_CONFIG_BYTES:
+        raise InputError(f"config file {path} is {size} bytes, too large to be a config (at "
+                         f"most {MAX_CONFIG_BYTES}); give the settings that differ from the "
+                         "defaults")
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
@@ -238,11 +251,11 @@ class KeyframeConfig(StrictModel):
     """Horizontal field of view assumed while measuring angles (the true focal comes later)."""
     sharpness_window: int = Field(6, ge=1, le=240)
     """The sharpest of this many recent frames becomes the keyframe."""
-    min_shared_tracks: int = Field(30, ge=8)
+    min_shared_tracks: int = Field(30, ge=8, le=10000)
     """A keyframe is forced when fewer tracks than this link back to the last one."""
-    min_frames: int = Field(15, ge=2)
+    min_frames: int = Field(15, ge=2, le=MAX_FRAMES)
     """Videos with fewer frames are refused."""
-    min_keyframes: int = Field(5, ge=2)
+    min_keyframes: int = Field(5, ge=2, le=1000)
     """Fewer keyframes than this means the camera did not move enough."""
 
 
@@ -265,7 +278,7 @@ class PBAConfig(StrictModel):
     """Coarse-to-fine levels (each half the size of the previous)."""
     iterations: int = Field(8, ge=1, le=200)
     """Levenberg–Marquardt iterations per pyramid level."""
-    depth_only_iterations: int = Field(2, ge=0)
+    depth_only_iterations: int = Field(2, ge=0, le=200)
     """The first iterations of each level move only the inverse depths."""
     huber: float = Field(9.0, gt=0)
     """Huber threshold of the photometric residual (grey levels)."""
@@ -329,10 +342,11 @@ class FittingConfig(StrictModel):
     cloud, 3D landmarks, ear points and keyframe silhouettes (Agrawal et al. 2020, "Mesh
     fitting"). Distances in mm, weights relative to one cloud target."""
 
-    stiffness: list[float] = [50.0, 20.0, 10.0, 5.0, 2.0, 1.0]
+    stiffness: list[float] = Field([50.0, 20.0, 10.0, 5.0, 2.0, 1.0], max_length=MAX_LEVELS)
     """Stiffness alpha per level, from global (large) to local (small) deformation; the
     template is centred and scaled to unit RMS radius, so the values do not depend on units."""
-    landmark_weight: list[float] = [50.0, 20.0, 10.0, 5.0, 2.0, 1.0]
+    landmark_weight: list[float] = Field([50.0, 20.0, 10.0, 5.0, 2.0, 1.0],
+                                         max_length=MAX_LEVELS)
     """Weight of each landmark target per level (same length as ``stiffness``); falls with
     the stiffness so that landmarks place the mesh first and the cloud refines it."""
     iterations_per_level: int = Field(3, ge=1, le=100)
@@ -364,12 +378,12 @@ class FittingConfig(StrictModel):
     level (geometric in between): wide while the template is far, tight at the end."""
     normal_distance_mm: float = Field(1.5, gt=0)
     """Largest distance of an accepted cloud point from the vertex-normal line."""
-    min_points: int = Field(3, ge=1)
+    min_points: int = Field(3, ge=1, le=1000)
     """Fewest accepted points for a cloud target; vertices with fewer fall back to stiffness."""
     normal_agreement_deg: float = Field(60.0, gt=0, le=180)
     """When the cloud has normals, accept only points whose normal is within this angle of
     the vertex normal (180: no check)."""
-    recompute_every: int = Field(1, ge=1)
+    recompute_every: int = Field(1, ge=1, le=100)
     """Recompute the cloud targets every this many steps (the paper: every few)."""
 
     ear_weight: float = Field(1.0, ge=0)
@@ -377,9 +391,9 @@ class FittingConfig(StrictModel):
 
     edge_weight: float = Field(1.0, ge=0)
     """Weight of one silhouette target (per keyframe that sees the vertex on its contour)."""
-    edge_recompute_every: int = Field(2, ge=1)
+    edge_recompute_every: int = Field(2, ge=1, le=100)
     """Recompute silhouette vertices and their edge targets every this many steps."""
-    edge_first_level: int = Field(1, ge=0)
+    edge_first_level: int = Field(1, ge=0, le=MAX_LEVELS)
     """First level (0-based) that uses edges: before it the mesh is too far for a few-pixel
     match."""
     edge_max_px: float = Field(3.0, gt=0)
@@ -391,7 +405,7 @@ class FittingConfig(StrictModel):
     """Gaussian blur (px) before Canny."""
     canny_thresholds: tuple[int, int] = (30, 90)
     """Canny hysteresis thresholds on the grey image."""
-    edge_boundary_rings: int = Field(4, ge=0)
+    edge_boundary_rings: int = Field(4, ge=0, le=100)
     """Template vertices this many edges or fewer from the template's open border never give
     silhouettes (the border is not a real contour)."""
 
@@ -469,7 +483,7 @@ class DepthMapConfig(StrictModel):
     """Bilateral weight's spatial spread in px; default: the window radius."""
     num_best_views: int = Field(8, ge=1, le=64)
     """A hypothesis' cost is the mean of its best this-many per-view costs (occlusion)."""
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=2**32 - 1)
     """Seed of the random hypotheses (results are reproducible per keyframe)."""
 
     max_cost: float = Field(0.5, gt=0, le=2)
@@ -488,7 +502,7 @@ class FusionConfig(StrictModel):
     """... and the round trip through its depth lands within this many pixels."""
     max_normal_deg: float = Field(30.0, gt=0, le=180)
     """... and its normal is within this angle."""
-    min_consistent_views: int = Field(2, ge=1)
+    min_consistent_views: int = Field(2, ge=1, le=64)
     """Source views that must agree with a reference pixel to make a point."""
 
 
@@ -668,7 +682,8 @@ class CoarseConfig(StrictModel):
     """Width of the Gaussian displacement kernel of ``rbf`` (large: stiff, global bends)."""
     rbf_smoothing: float = Field(0.3, ge=0)
     """Regularisation of ``rbf`` (0: the landmarks are met exactly; larger: stiffer)."""
-    nicp_stiffness: list[float] = Field(default_factory=lambda: [10.0, 5.0, 2.0], min_length=1)
+    nicp_stiffness: list[float] = Field(default_factory=lambda: [10.0, 5.0, 2.0], min_length=1,
+                                        max_length=MAX_LEVELS)
     """Stiffness levels of ``nicp`` (high: the coarse mesh stays smooth); each level's
     landmark weight equals its stiffness, as in the fitting stage's schedule."""
 
@@ -686,7 +701,7 @@ class EarTrainingConfig(StrictModel):
     (0 = straight back, 90 = up, -90 = down), swept clockwise over the back of the ear."""
     identities: int = Field(80, ge=1, le=5000)
     """ICT identities rendered."""
-    first_identity_seed: int = Field(100, ge=2)
+    first_identity_seed: int = Field(100, ge=2, le=2**32 - 1)
     """Seed of the first identity (seeds 0 and 1 are held out for evaluation)."""
     identity_sigma: float = Field(1.0, ge=0, le=3)
     """Spread of the identity coefficients, in model standard deviations."""
@@ -739,7 +754,7 @@ class EarTrainingConfig(StrictModel):
     """Random splits tried per tree node."""
     threads: int = Field(2, ge=1, le=256)
     """Threads for dlib's training."""
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=2**32 - 1)
     """Seed of every random draw (views, rooms, lights, noise, the predictor's trainer)."""
 
     @model_validator(mode="after")
@@ -772,6 +787,37 @@ class PipelineConfig(StrictModel):
     """View selection, depth maps, fusion."""
     fitting: FittingConfig = Field(default_factory=FittingConfig)
     """Non-rigid template fitting and texture."""
+
+
+class InputLimits(StrictModel):
+    """The largest capture a run accepts, checked before any compute (``flows.capture.
+    preflight``). Whoever runs facecap sets them, in the environment as
+    ``FACECAP_<FIELD>`` (``FACECAP_MAX_DURATION_S=300``): they are not part of a run's config,
+    so that a run of a shared service cannot raise its own limits. The defaults admit any
+    phone capture (a 10-minute 4K video at 60 fps is 36,000 frames and about 4 GB)."""
+
+    max_file_mb: float = Field(8192.0, gt=0)
+    """Largest video file (a photo folder: all its photos), in MiB: checked before the file
+    is opened, and the store holds a copy of it."""
+    max_duration_s: float = Field(600.0, gt=0)
+    """Longest video, in seconds (an ear-to-ear sweep takes 10 to 30)."""
+    max_frames: int = Field(36_000, ge=2, le=10 * MAX_FRAMES)
+    """Most frames of a video, or photos in a folder: the keyframe stage decodes every one."""
+    max_side_px: int = Field(8192, ge=120, le=65536)
+    """Longest image side in pixels (8K); the keyframes are kept at full resolution."""
+
+
+def input_limits() -> InputLimits:
+    """The limits set in the environment (``FACECAP_MAX_...``), else the defaults."""
+    import os
+
+    values = {name: os.environ[f"FACECAP_{name.upper()}"] for name in InputLimits.model_fields
+              if os.environ.get(f"FACECAP_{name.upper()}")}
+    try:
+        return InputLimits.model_validate(values, strict=False)
+    except ValidationError as exc:
+        raise InputError(f"invalid input limits in the environment (FACECAP_MAX_...): "
+                         f"{validation_message(exc)}; correct them") from None
 
 
 def load_pipeline_config(path: str | Path | None = None, overrides: dict | None = None

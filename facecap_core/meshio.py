@@ -35,6 +35,11 @@ _LJSON_SLOTS = {
 }
 
 
+MAX_COORDINATE = 1e7
+"""Largest vertex coordinate of a mesh read: 10 m in mm, 10 m in µm; beyond it single
+precision, in which the closest-point queries work, loses the surface."""
+
+
 def load_mesh(path: str | Path, what: str = "mesh", keep_vertex_order: bool = True
               ) -> trimesh.Trimesh:
     """Load a triangle mesh without merging vertices.
@@ -61,8 +66,17 @@ def load_mesh(path: str | Path, what: str = "mesh", keep_vertex_order: bool = Tr
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise InputError(f"{what} file {path} holds no triangles (a point cloud or empty file?); "
                          "give a triangle mesh")
+    vertices = np.asarray(loaded.vertices)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise InputError(f"{what} file {path} has vertices with {vertices.shape[-1]} coordinates, "
+                         "not 3 (x y z); give a 3D triangle mesh")
     if not np.all(np.isfinite(loaded.vertices)):
         raise InputError(f"{what} file {path} has non-finite vertex coordinates; repair the mesh")
+    largest = float(np.abs(loaded.vertices).max())
+    if largest > MAX_COORDINATE:
+        raise InputError(f"{what} file {path} has a vertex coordinate of {largest:.3g}, beyond "
+                         f"±{MAX_COORDINATE:.0e} (a head in mm or µm stays well inside); repair "
+                         "the mesh")
     faces = np.asarray(loaded.faces)
     if faces.min() < 0 or faces.max() >= len(loaded.vertices):
         raise InputError(f"{what} file {path} has triangles that name vertex "

@@ -57,6 +57,17 @@ def _open(path: Path):
     return container
 
 
+def _video_stream(container):
+    """The capture's stream: of the video streams that are not a cover image or thumbnails,
+    the one with the most frames (then pixels), as a phone may store a preview stream
+    first."""
+    streams = list(container.streams.video)
+    stills = ("attached_pic", "still_image", "timed_thumbnails")
+    moving = [s for s in streams
+              if not any(s.disposition & getattr(type(s.disposition), d, 0) for d in stills)]
+    return max(moving or streams, key=lambda s: (s.frames or 0, s.width * s.height))
+
+
 def is_photo_folder(path: str | Path) -> bool:
     """Whether a capture path is a folder of photos (else it is a video file)."""
     return Path(path).is_dir()
@@ -69,8 +80,14 @@ def _decoding_errors() -> tuple[type[BaseException], ...]:
     return (av.error.FFmpegError, EOFError)
 
 
-def _display_rotation(frame) -> int:
-    return int(round(getattr(frame, "rotation", 0) or 0)) % 360
+def _display_rotation(frame, path: Path) -> int:
+    """The frame's counter-clockwise display rotation: a quarter turn, or refused (a
+    frame shown at 45° cannot be turned upright without cropping it)."""
+    rotation = int(round(getattr(frame, "rotation", 0) or 0)) % 360
+    if rotation % 90:
+        raise InputError(f"{path} is to be shown turned by {rotation}° (its display matrix); "
+                         "only quarter turns are supported: export it upright")
+    return rotation
 
 
 def probe(path: str | Path) -> VideoInfo:
@@ -84,15 +101,16 @@ def probe(path: str | Path) -> VideoInfo:
                          "photos")
     container = _open(path)
     try:
-        stream = container.streams.video[0]
+        stream = _video_stream(container)
         try:
             first = next(container.decode(stream))
         except StopIteration:
-            raise InputError(f"{path} holds no decodable frames") from None
+            raise InputError(f"{path} has a video track with no frames in it; give the "
+                             "capture's video file") from None
         except _decoding_errors() as exc:
             raise InputError(f"{path}: the first frame cannot be decoded ({type(exc).__name__});"
                              " the file is damaged or truncated") from None
-        rotation = _display_rotation(first)
+        rotation = _display_rotation(first, path)
         w, h = first.width, first.height
         if rotation in (90, 270):
             w, h = h, w
@@ -115,7 +133,7 @@ def stored_frame_count(path: str | Path) -> int:
         return len(list_photos(path))
     container = _open(path)
     try:
-        return sum(1 for packet in container.demux(container.streams.video[0]) if packet.size)
+        return sum(1 for packet in container.demux(_video_stream(container)) if packet.size)
     except _decoding_errors() as exc:
         raise InputError(f"{path}: reading stopped ({type(exc).__name__}); the file is damaged "
                          "or truncated") from None
@@ -146,19 +164,27 @@ def iter_frames(path: str | Path, width: int | None = None, grey: bool = False,
         return
     container = _open(path)
     try:
-        stream = container.streams.video[0]
+        stream = _video_stream(container)
         stream.thread_type = "AUTO"
         last = wanted[-1] if wanted else None
-        pos = 0
+        pos, shape = 0, None
         for index, frame in enumerate(container.decode(stream)):
             if last is not None and index > last:
                 break
+            # Every stage assumes one image size (tracks, cameras, depth maps): a stream
+            # that changes it midway (spliced recordings) is refused, not half-processed.
+            if shape is None:
+                shape = (frame.width, frame.height)
+            elif (frame.width, frame.height) != shape:
+                raise InputError(f"{path} changes resolution at frame {index} ({shape[0]}x"
+                                 f"{shape[1]} to {frame.width}x{frame.height}); re-export it "
+                                 "at one resolution")
             if wanted is not None:
                 if index != wanted[pos]:
                     continue
                 pos += 1
             image = _resize(_upright(frame.to_ndarray(format="gray" if grey else "rgb24"),
-                                     _display_rotation(frame)), width)
+                                     _display_rotation(frame, path)), width)
             t = float(frame.time) if frame.time is not None else index / float(stream.average_rate or 30)
             yield Frame(index, t, image)
             if wanted is not None and pos == len(wanted):

@@ -29,6 +29,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from facecap_core.config import PipelineConfig, load_pipeline_config
 from facecap_core.errors import InputError
+from flows.service import guard
 from tasks.graph import (
     BY_NAME,
     EXPORTED,
@@ -40,7 +41,7 @@ from tasks.graph import (
     producer,
     stages_until,
 )
-from tasks.runner import default_store_url, open_store
+from tasks.runner import open_store
 from tasks.stages import call_ingest, call_stage
 
 Step = Literal[STEPS]
@@ -191,8 +192,9 @@ def reconstruct_capture(video: str, out: str, config: str | None = None,
     """
     logger = get_run_logger()
     start = time.perf_counter()
+    store = guard(out, store, video=video, config=config, scan=scan,
+                  scan_landmarks=scan_landmarks)  # a served run: only what it may touch
     cfg = with_ipd(preflight(video, config, scan, scan_landmarks, out), ipd_mm)
-    store = store or default_store_url()
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     subject, capture = capture_name(video)
@@ -239,24 +241,34 @@ def _publish(report: dict, out: Path, label: str) -> None:
 
 MIN_VIDEO_SIDE_PX = 120
 """Shortest video side accepted: below it a face is too few pixels to find landmarks on."""
-MAX_VIDEO_SIDE_PX = 8192
-"""Longest video side accepted (8K); the stages work on downscaled frames, but the keyframe
-images are kept at full resolution."""
 
 
 def preflight(video: str | Path, config: str | Path | None = None, scan: str | None = None,
               scan_landmarks: str | None = None, out: str | Path | None = None
               ) -> PipelineConfig:
-    """Checks that need no stage: the files exist, the video decodes and is long and large
-    enough, the config is valid, the output folder is writable. Run before anything is
-    started so bad input fails in a second with one line."""
+    """Checks that need no stage: the files exist, the video decodes, is long and large
+    enough and within the limits (:class:`~facecap_core.config.InputLimits`), the config is
+    valid, the output folder is writable. Run before anything is started so bad input fails
+    in a second with one line."""
+    from facecap_core.config import input_limits
     from facecap_core.video import probe, stored_frame_count
 
+    limits = input_limits()
     photos = Path(video).is_dir()
     if not photos and not Path(video).is_file():
         raise InputError(f"capture not found: {video}; give a video file or a folder of photos")
+    check_file_size(video, limits.max_file_mb)
     info = probe(video)  # a photo folder: too few photos or mixed sizes fail here
+    if info.duration_s > limits.max_duration_s:
+        raise InputError(f"{video} lasts {info.duration_s:.0f} s, longer than the limit of "
+                         f"{limits.max_duration_s:g} s; cut it to the sweep around the head")
+    if info.frame_count > limits.max_frames:  # the header's count: before reading them all
+        raise InputError(f"{video} has {info.frame_count} frames, more than the limit of "
+                         f"{limits.max_frames}; cut it to the sweep around the head")
     stored = stored_frame_count(video)
+    if stored > limits.max_frames:
+        raise InputError(f"{video} has {stored} frames, more than the limit of "
+                         f"{limits.max_frames}; cut it to the sweep around the head")
     if not photos and stored <= 1:
         raise InputError(f"{video} is a single image ({info.codec}), not a video; give the "
                          "capture's video file, or a folder of photos")
@@ -268,9 +280,10 @@ def preflight(video: str | Path, config: str | Path | None = None, scan: str | N
     if min(info.width, info.height) < MIN_VIDEO_SIDE_PX:
         raise InputError(f"{video} is {size} pixels, too small to find a face in; record at "
                          f"least {MIN_VIDEO_SIDE_PX} pixels on the short side (720p or more)")
-    if max(info.width, info.height) > MAX_VIDEO_SIDE_PX:
-        raise InputError(f"{video} is {size} pixels, larger than 8K ({MAX_VIDEO_SIDE_PX}); "
-                         "record at 8K or less (4K is plenty)")
+    if max(info.width, info.height) > limits.max_side_px:
+        raise InputError(f"{video} is {size} pixels, larger than the limit of "
+                         f"{limits.max_side_px} on the long side; record at 8K or less (4K is "
+                         "plenty)")
     if not photos and stored < cfg.keyframes.min_frames:
         raise InputError(f"{video} has {stored} frames; an ear-to-ear capture needs "
                          f"at least {cfg.keyframes.min_frames} (record a slow sweep of several "
@@ -292,6 +305,21 @@ def preflight(video: str | Path, config: str | Path | None = None, scan: str | N
                 raise InputError(f"the {what} {path} would be overwritten by a result of the same "
                                  f"name in the output folder {out}; give another --out")
     return cfg
+
+
+def check_file_size(capture: str | Path, max_mb: float) -> None:
+    """A video file, or a photo folder's photos together, at most ``max_mb`` MiB: checked
+    before anything opens them."""
+    path = Path(capture)
+    if path.is_dir():
+        from facecap_core.photos import list_photos
+
+        size = sum(p.stat().st_size for p in list_photos(path))
+    else:
+        size = path.stat().st_size
+    if size > max_mb * 2**20:
+        raise InputError(f"{capture} is {size / 2**20:.1f} MiB, more than the limit of "
+                         f"{max_mb:g} MiB; cut it to the sweep around the head")
 
 
 def with_ipd(cfg: PipelineConfig, ipd_mm: float | None) -> PipelineConfig:

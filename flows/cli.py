@@ -179,11 +179,20 @@ def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
             print(f"{what}: {out / name}")
 
 
+def _check_store(args) -> None:
+    """The store opens and answers before any flow starts (a bad URL, a file where its
+    folder should be, missing credentials, a server that is down)."""
+    from tasks.runner import check_store, default_store_url
+
+    check_store(args.store or default_store_url())
+
+
 def _cmd_reconstruct(args) -> int:
     from flows.capture import preflight, with_ipd
 
     with_ipd(preflight(args.video, args.config, args.scan, args.scan_landmarks, args.out),
              args.ipd_mm)
+    _check_store(args)
     _prefect_env()
     from flows.capture import reconstruct_capture
 
@@ -197,9 +206,11 @@ def _cmd_reconstruct(args) -> int:
 def _cmd_dataset(args) -> int:
     from facecap_core.dataset import scan_dataset
     from flows.capture import check_output_folder
+    from flows.dataset import check_dataset_output
 
-    scan_dataset(args.root)  # a bad dataset folder fails here, before any flow starts
+    check_dataset_output(scan_dataset(args.root), Path(args.out))  # before any flow starts
     check_output_folder(Path(args.out))
+    _check_store(args)
     _prefect_env()
     from flows.dataset import reconstruct_dataset
 
@@ -213,6 +224,12 @@ def _cmd_dataset(args) -> int:
 
 
 def _cmd_evaluate_dataset(args) -> int:
+    from facecap_core.dataset import scan_dataset
+    from flows.evaluate import check_history
+
+    scan_dataset(args.root)
+    check_history(Path(args.out))
+    _check_store(args)
     _prefect_env()
     from flows.evaluate import _table, evaluate_dataset, scale_error_pct
 
@@ -229,6 +246,14 @@ def _cmd_evaluate_dataset(args) -> int:
 
 
 def _cmd_serve(args) -> int:
+    import os
+
+    from flows.service import INPUT_ROOTS_ENV, OUTPUT_ROOT_ENV
+
+    # Served runs (processes of their own) read only under ROOT and write only under OUT
+    # unless the environment sets other folders.
+    os.environ.setdefault(INPUT_ROOTS_ENV, str(Path(args.root).resolve()))
+    os.environ.setdefault(OUTPUT_ROOT_ENV, str(Path(args.out).resolve()))
     _prefect_env("INFO")  # a server's console is its log
     from deploy.serve import serve
 
@@ -352,8 +377,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     sv = sub.add_parser("serve", help="serve the dataset, capture and nightly-evaluation "
                                       "deployments")
-    sv.add_argument("--root", required=True, help="dataset folder of the nightly evaluation")
-    sv.add_argument("--out", required=True, help="results folder of the nightly evaluation")
+    sv.add_argument("--root", required=True, help="dataset folder of the nightly evaluation; "
+                    "served runs read inputs only under it (unless FACECAP_INPUT_ROOTS is set)")
+    sv.add_argument("--out", required=True, help="results folder of the nightly evaluation; "
+                    "served runs write only under it (unless FACECAP_OUTPUT_ROOT is set)")
     sv.add_argument("--cron", default="0 2 * * *", help="nightly schedule (cron)")
     sv.add_argument("--timezone", default="UTC", help="time zone of the schedule (IANA name)")
     sv.add_argument("--limit", type=int, default=1, help="flow runs at once")
@@ -392,6 +419,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     global _VERBOSE
     _VERBOSE = args.verbose
+    from flows.service import LOCAL_COMMAND
+
+    local = LOCAL_COMMAND.set(True)  # one's own machine: any path, any store
     try:
         return args.func(args)
     except FacecapError as exc:
@@ -400,12 +430,26 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("facecap: interrupted", file=sys.stderr)
         return 130
+    except _network_errors() as exc:  # the store went away mid-run, after the task's retries
+        from tasks.runner import default_store_url, store_unreachable
+
+        store = getattr(args, "store", None) or default_store_url()
+        print(f"facecap: error: {store_unreachable(store, exc)}", file=sys.stderr)
+        return 2
     except Exception as exc:  # noqa: BLE001 - anything else is a bug: say so, keep the trace
         log = _write_crash_log(exc, argv)
         print(f"facecap: internal error (a bug in facecap, not a problem with your input): "
               f"{type(exc).__name__}: {' '.join(str(exc).split())[:200]}; the traceback is in "
               f"{log}; please report it with that file", file=sys.stderr)
         return 1
+    finally:
+        LOCAL_COMMAND.reset(local)
+
+
+def _network_errors() -> tuple[type[BaseException], ...]:
+    from tasks.runner import network_errors
+
+    return (ConnectionError, TimeoutError, *network_errors())
 
 
 def _write_crash_log(exc: BaseException, argv: list[str] | None) -> Path:

@@ -14,15 +14,31 @@ from pathlib import Path
 
 from prefect import flow, get_run_logger
 
-from facecap_core.dataset import mesh_consistency, scan_dataset
-from facecap_core.errors import FacecapError
+from facecap_core.dataset import CaptureEntry, mesh_consistency, scan_dataset
+from facecap_core.errors import FacecapError, InputError
 from flows.capture import as_user_sees_it, reconstruct_capture
+from flows.service import guard
 
 
 def _run_name() -> str:
     from prefect.runtime import flow_run
 
     return f"dataset {Path(flow_run.parameters.get('root', 'dataset')).name}"
+
+
+SUMMARY_NAMES = ("dataset.json", "consistency.json", "evaluations")
+"""What the dataset and evaluation flows write at the top of OUT, beside the subjects'
+folders."""
+
+
+def check_dataset_output(entries: list[CaptureEntry], out: Path) -> None:
+    """No subject's results folder may take the name of a summary the flows write into OUT:
+    the summary would fail after every capture had run, or overwrite a subject's results."""
+    for entry in entries:
+        if entry.subject in SUMMARY_NAMES:
+            raise InputError(f"the subject folder {entry.video.parent} is named like the "
+                             f"summary {out / entry.subject} the dataset run writes; rename "
+                             "the subject folder")
 
 
 def consistency_report(out: Path, done: dict[tuple[str, str], Path]) -> list[dict]:
@@ -51,8 +67,10 @@ def reconstruct_dataset(root: str, out: str, config: str | None = None,
     from prefect.artifacts import create_table_artifact
 
     logger = get_run_logger()
+    store = guard(out, store, dataset=root, config=config)  # a served run: only what it may touch
     entries = scan_dataset(root)
     out_root = Path(out)
+    check_dataset_output(entries, out_root)
     out_root.mkdir(parents=True, exist_ok=True)
     done, failed = {}, {}
     for entry in entries:

@@ -9,13 +9,15 @@ grows by more than ``tolerance_mm`` and ``tolerance_rel``.
 from __future__ import annotations
 
 import json
+import re
 from datetime import UTC, datetime
 from pathlib import Path
 
 from prefect import flow, get_run_logger
 
 from facecap_core.dataset import inside, scan_dataset
-from tasks.runner import default_store_url
+from facecap_core.errors import InputError
+from flows.service import guard
 from tasks.stages import call_ingest, call_stage
 
 
@@ -41,9 +43,31 @@ def regressions(current: dict, previous: dict, tolerance_mm: float,
     return flagged
 
 
+STAMP = re.compile(r"\d{8}T\d{6,12}Z")
+"""The name (UTC time) of an evaluation in ``OUT/evaluations``; other files there are not
+evaluations and are ignored."""
+
+
 def previous_evaluation(folder: Path, before: str) -> dict:
-    older = sorted(p for p in folder.glob("*.json") if p.stem < before)
-    return json.loads(older[-1].read_text())["captures"] if older else {}
+    """The captures' scores of the newest evaluation older than ``before`` ({} if none)."""
+    older = sorted(p for p in folder.glob("*.json") if STAMP.fullmatch(p.stem) and p.stem < before)
+    if not older:
+        return {}
+    try:
+        captures = json.loads(older[-1].read_text(encoding="utf-8"))["captures"]
+        for record in captures.values():
+            for side in ("accuracy", "completion"):
+                float(record[side]["median"])
+    except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise InputError(f"{older[-1]} is not an evaluation facecap wrote ({type(exc).__name__});"
+                         " move it out of the folder or delete it") from None
+    return captures
+
+
+def check_history(out: Path) -> dict:
+    """The baseline the next evaluation of ``out`` compares with, read before any scoring:
+    a damaged history fails at once."""
+    return previous_evaluation(out / "evaluations", "99999999T999999999999Z")
 
 
 @flow(name="evaluate-dataset", flow_run_name=_run_name, log_prints=True)
@@ -54,10 +78,12 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
     from prefect.events import emit_event
 
     logger = get_run_logger()
-    store = store or default_store_url()
+    store = guard(out, store, dataset=root)  # a served run: only what it may touch
     out_root = Path(out)
+    entries = scan_dataset(root)
+    previous = check_history(out_root)  # a damaged history fails before any scoring
     current, skipped = {}, []
-    for entry in scan_dataset(root):
+    for entry in entries:
         mesh = entry.out_dir(out_root) / "mesh.ply"
         name = f"{entry.subject}/{entry.capture}"
         if entry.scan is None or entry.scan_landmarks is None or not mesh.is_file():
@@ -76,7 +102,6 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
     history = out_root / "evaluations"
     history.mkdir(parents=True, exist_ok=True)
-    previous = previous_evaluation(history, stamp)
     flagged = regressions(current, previous, tolerance_mm, tolerance_rel)
     (history / f"{stamp}.json").write_text(json.dumps(
         {"time": stamp, "captures": current, "skipped": skipped, "regressions": flagged},

@@ -36,7 +36,36 @@ def default_store_url() -> str:
 
 
 def open_store(url: str) -> ArtifactStore:
+    """The store at ``url`` (an unsupported protocol, or a local store that is not a
+    folder, is refused in one line)."""
     return ArtifactStore(url)
+
+
+def check_store(url: str) -> ArtifactStore:
+    """Open the store and reach it once (a remote store: one request), so that a missing
+    credential or a server that is down is reported before any work starts."""
+    store = open_store(url)
+    try:
+        store.exists("input-" + "0" * 32)
+    except FacecapError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - every way of not reaching it, told in one line
+        raise store_unreachable(url, exc) from None
+    return store
+
+
+def store_unreachable(url: str, exc: BaseException) -> FacecapError:
+    """One line for a store that cannot be reached or refuses access."""
+    reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+    if type(exc).__name__ in ("NoCredentialsError", "PartialCredentialsError"):
+        return InputError(f"no credentials for the store {url} ({reason}); set "
+                          "AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY")
+    if isinstance(exc, PermissionError):
+        return InputError(f"the store {url} refuses access ({reason}); check the credentials "
+                          "and the bucket's policy")
+    return FacecapError(f"the store {url} cannot be reached ({type(exc).__name__}: {reason}); "
+                        "check its endpoint (AWS_ENDPOINT_URL_S3) and that it is up, then "
+                        "retry")
 
 
 def _lock_dir(store: ArtifactStore) -> Path:
@@ -54,8 +83,16 @@ def key_lock(store: ArtifactStore, key: str):
     """Exclusive lock on one artifact key: a second run on the same capture waits here, then
     finds the artifact committed and computes nothing."""
     folder = _lock_dir(store)
-    folder.mkdir(parents=True, exist_ok=True)
-    with open(folder / f"{key}.lock", "w") as handle:
+    try:
+        if folder.exists() and not folder.is_dir():  # mkdir would say EEXIST, which may pass
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
+        folder.mkdir(parents=True, exist_ok=True)
+        handle = open(folder / f"{key}.lock", "w")
+    except OSError as exc:  # a read-only store: the lasting errno keeps it from retries
+        raise StoreWriteError(f"cannot lock artifact {key} in store {store.url} "
+                              f"({exc.strerror or type(exc).__name__}); check that the "
+                              "location is writable, then retry") from exc
+    with handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
         try:
             yield
@@ -161,7 +198,7 @@ TRANSIENT = (StoreWriteError, CorruptArtifactError, ConnectionError, TimeoutErro
 """Faults worth retrying: the store or the network failed, not the input."""
 
 
-def _network_errors() -> tuple[type[BaseException], ...]:
+def network_errors() -> tuple[type[BaseException], ...]:
     # s3fs surfaces an unreachable endpoint as botocore's own exceptions, which are neither
     # OSError nor Python's ConnectionError.
     try:
@@ -172,8 +209,10 @@ def _network_errors() -> tuple[type[BaseException], ...]:
     return (BotoConnectionError, HTTPClientError)
 
 
-LASTING_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM})
-"""A full disk, a read-only or forbidden location: retrying seconds later cannot help."""
+LASTING_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
+                            errno.ENOTDIR, errno.EISDIR})
+"""A full disk, a read-only or forbidden location, a file where a folder must be (or the
+reverse): retrying seconds later cannot help."""
 
 
 def is_transient(exc: BaseException) -> bool:
@@ -182,7 +221,7 @@ def is_transient(exc: BaseException) -> bool:
     cause = exc.__cause__ if isinstance(exc, StoreWriteError) else exc
     if isinstance(cause, OSError) and cause.errno in LASTING_ERRNOS:
         return False
-    if isinstance(exc, TRANSIENT + _network_errors()):
+    if isinstance(exc, TRANSIENT + network_errors()):
         return True
     if isinstance(exc, FacecapError):
         return False

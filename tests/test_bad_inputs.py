@@ -84,6 +84,52 @@ def write_audio_only(path: Path) -> Path:
     return path
 
 
+def write_empty_video_track(path: Path, format: str = "matroska", options=None) -> Path:
+    """A file whose video track holds no frame (its audio does)."""
+    with av.open(str(path), "w", format=format, options=options or {}) as container:
+        video = container.add_stream("libx264", rate=30)
+        video.width, video.height, video.pix_fmt = W, H, "yuv420p"
+        audio = container.add_stream("aac", rate=44100)
+        for i in range(20):
+            frame = av.AudioFrame.from_ndarray(np.zeros((1, 1024), np.float32), format="fltp",
+                                               layout="mono")
+            frame.sample_rate, frame.pts = 44100, i * 1024
+            for packet in audio.encode(frame):
+                container.mux(packet)
+        for packet in audio.encode():
+            container.mux(packet)
+    return path
+
+
+def write_streams(path: Path, streams: list[list[np.ndarray]], format: str = "mp4") -> Path:
+    """One file holding each list of frames as a video stream of its own, in order."""
+    with av.open(str(path), "w", format=format) as container:
+        added = []
+        for frames in streams:  # every stream before the first packet
+            added.append(container.add_stream("libx264", rate=30))
+            added[-1].height, added[-1].width = frames[0].shape[:2]
+            added[-1].pix_fmt = "yuv420p"
+        for stream, frames in zip(added, streams):
+            for i, image in enumerate(frames):
+                frame = av.VideoFrame.from_ndarray(image, format="rgb24")
+                frame.pts = i
+                for packet in stream.encode(frame):
+                    container.mux(packet)
+            for packet in stream.encode():
+                container.mux(packet)
+    return path
+
+
+def write_resolution_change(path: Path, first: list[np.ndarray], then: list[np.ndarray]
+                            ) -> Path:
+    """One H.264 stream whose frames change size midway: two MPEG-TS recordings spliced
+    (as ``cat a.ts b.ts`` does), which decoders play through."""
+    parts = [write_streams(path.with_suffix(f".{i}.ts"), [frames], format="mpegts")
+             for i, frames in enumerate((first, then))]
+    path.write_bytes(b"".join(p.read_bytes() for p in parts))
+    return path
+
+
 VFR_TIMES = np.cumsum(np.r_[0.0, np.where(np.arange(39) % 3 == 0, 0.050, 0.021)])
 """Frame times of the variable-frame-rate video: gaps of 21 and 50 ms."""
 
@@ -115,6 +161,15 @@ def media(tmp_path_factory) -> dict[str, Path]:
     m["vfr"] = write_video(d / "vfr.mp4", orbit, times=VFR_TIMES)
     texture = cv2.resize(orbit[0], (7680, 4320), interpolation=cv2.INTER_NEAREST)
     m["8k"] = write_video(d / "8k.mp4", [texture, texture], codec="mpeg4")
+    m["rot45"] = write_video(d / "rot45.mp4", orbit, rotation=45)
+    m["empty_track"] = write_empty_video_track(d / "empty track.mkv")
+    # A fragmented MP4 keeps the empty track in its header (a plain MP4 drops it).
+    m["empty_track_mp4"] = write_empty_video_track(
+        d / "empty track.mp4", "mp4", {"movflags": "frag_keyframe+empty_moov"})
+    preview = [cv2.resize(orbit[0], (W // 2, H // 2))]  # a one-frame preview first
+    m["two_streams"] = write_streams(d / "two streams.mp4", [preview, orbit])
+    m["resolution_change"] = write_resolution_change(
+        d / "spliced.mp4", orbit[:20], orbit_frames(20, width=320, height=180))
     black = np.zeros((4752, 8448, 3), np.uint8)
     m["over_8k"] = write_video(d / "9k.mp4", [black, black], codec="mjpeg")
     return m
@@ -228,6 +283,28 @@ def _dataset_with_escaping_link(tmp: Path) -> Path:
     return root
 
 
+def _a_file(tmp: Path) -> Path:
+    (tmp / "store.tar").write_text("a file where the store's folder should be")
+    return tmp / "store.tar"
+
+
+def _dataset_with_a_subject_named(tmp: Path, subject: str, video: Path) -> Path:
+    _copy(video, tmp / "dataset" / subject / "take.mp4")
+    return tmp / "dataset"
+
+
+def _dataset_with_two_takes_of_one_name(tmp: Path, video: Path) -> Path:
+    _copy(video, tmp / "dataset" / "anna" / "take.mp4")
+    _copy(video, tmp / "dataset" / "anna" / "take.mov")
+    return tmp / "dataset"
+
+
+def _damaged_evaluation_history(out: Path) -> Path:
+    (out / "evaluations").mkdir(parents=True, exist_ok=True)
+    (out / "evaluations" / "20260101T000000000000Z.json").write_text('{"captures": [1, 2]}')
+    return out
+
+
 def _dataset_without_captures(tmp: Path) -> Path:
     (tmp / "dataset" / "subject a").mkdir(parents=True)
     (tmp / "dataset" / "subject a" / "notes.txt").write_text("no video here")
@@ -252,7 +329,8 @@ CORPUS = {
     "64x64 video": (lambda m, t, k: ["reconstruct", m["tiny"]],
                     ["64x64 pixels", "too small", "record at least 120"]),
     "larger than 8K (8448x4752)": (lambda m, t, k: ["reconstruct", m["over_8k"]],
-                                   ["8448x4752", "larger than 8k", "record at 8k or less"]),
+                                   ["8448x4752", "larger than the limit of 8192",
+                                    "record at 8k or less"]),
     "config: NaN": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                                      _config(t, "mvs: {depth: {sigma_color: .nan}}\n")],
                     ["mvs.depth.sigma_color", "finite number", "correct or remove"]),
@@ -314,6 +392,49 @@ CORPUS = {
                              ["no captures in", "<subject>/<capture>.mp4"]),
     "dataset folder missing": (lambda m, t, k: ["dataset", t / "nowhere", "--out", k["out"]],
                                ["dataset folder not found"]),
+    "video: turned by 45° in its metadata": (lambda m, t, k: ["reconstruct", m["rot45"]],
+                                             ["rot45.mp4 is to be shown turned by 45°",
+                                              "export it upright"]),
+    "video: a video track with no frames": (lambda m, t, k: ["reconstruct", m["empty_track"]],
+                                            ["has a video track with no frames",
+                                             "give the capture's video file"]),
+    "video: an MP4 whose video track has no frames": (
+        lambda m, t, k: ["reconstruct", m["empty_track_mp4"]],
+        ["empty track.mp4 has a video track with no frames", "give the capture's video file"]),
+    "store: a file": (lambda m, t, k: ["reconstruct", m["orbit"], "--store", _a_file(t)],
+                      ["is not a folder", "is a file", "--store"]),
+    "store: a folder inside a file": (lambda m, t, k: ["reconstruct", m["orbit"], "--store",
+                                                       _a_file(t) / "artifacts"],
+                                      ["artifacts is not a folder", "store.tar is a file"]),
+    "store: an unknown protocol": (lambda m, t, k: ["reconstruct", m["orbit"], "--store",
+                                                    "foo://bucket/x"],
+                                   ["protocol 'foo'", "give a folder or an s3://"]),
+    "store: an HTTP URL (a request to an internal API)": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--store", "http://127.0.0.1:8765/internal/api"],
+        ["protocol 'http'", "cannot hold artifacts"]),
+    "dataset: a subject named dataset.json": (
+        lambda m, t, k: ["dataset", _dataset_with_a_subject_named(t, "dataset.json", m["orbit"]),
+                         "--out", k["out"]], ["dataset.json is named like the summary",
+                                              "rename the subject folder"]),
+    "dataset: take.mp4 and take.mov of one subject": (
+        lambda m, t, k: ["dataset", _dataset_with_two_takes_of_one_name(t, m["orbit"]),
+                         "--out", k["out"]], ["take.mov", "are both capture 'take'", "rename one"]),
+    "evaluate-dataset: a damaged evaluation in OUT/evaluations": (
+        lambda m, t, k: ["evaluate-dataset", _dataset_with_a_subject_named(t, "anna", m["orbit"]),
+                         "--out", _damaged_evaluation_history(k["out"])],
+        ["20260101T000000000000Z.json is not an evaluation facecap wrote", "move it out"]),
+    "config: min_frames 10^30": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                                                  _config(t, f"keyframes: {{min_frames: {10**30}}}\n")],
+                                 ["keyframes.min_frames", "less than or equal to 100000"]),
+    "config: 40 stiffness levels": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                         _config(t, f"fitting: {{stiffness: {[1.0] * 40}, landmark_weight: "
+                                    f"{[1.0] * 40}}}\n")],
+        ["fitting.stiffness", "at most 32 items"]),
+    "config: 200,000 stiffness levels": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                         _config(t, f"fitting: {{stiffness: {[1] * 200_000}}}\n")],
+        ["too large to be a config", "settings that differ from the defaults"]),
 }
 
 
@@ -322,7 +443,7 @@ def _with_defaults(argv: list, kept: dict[str, Path]) -> list:
     argv = list(argv)
     if "--out" not in argv:
         argv += ["--out", kept["out"]]
-    if argv[0] == "reconstruct":
+    if argv[0] == "reconstruct" and "--store" not in argv:
         argv += ["--store", kept["store"]]
     return argv
 
@@ -370,6 +491,115 @@ def test_8k_is_accepted_and_streamed_at_processing_width(media, tmp_path):
     cfg = preflight(media["8k"], config, out=tmp_path / "out")
     frames = list(iter_frames(media["8k"], width=cfg.keyframes.track_width, grey=True))
     assert [f.image.shape for f in frames] == [(360, 640), (360, 640)]
+
+
+def test_a_resolution_change_midway_is_refused_by_the_keyframe_stage(media):
+    """Two recordings spliced into one stream: the size changes at frame 20. The preflight
+    does not decode every frame; the keyframe stage, which does, refuses it in one line
+    instead of failing inside OpenCV's tracker."""
+    from facecap_core.errors import InputError
+    from facecap_core.keyframes import select_keyframes
+
+    with pytest.raises(InputError) as refused:
+        select_keyframes(media["resolution_change"])
+    assert "spliced.mp4 changes resolution at frame 20 (224x128 to 320x180)" in str(refused.value)
+    assert "re-export it at one resolution" in str(refused.value)
+
+
+def test_the_capture_stream_is_chosen_over_a_preview_stream(media, tmp_path):
+    """A file whose first video stream is a one-frame preview: the capture is the stream
+    with the frames, in every reader (probe, frame count, decoding)."""
+    from facecap_core.video import iter_frames, probe, stored_frame_count
+    from flows.capture import preflight
+
+    preflight(media["two_streams"], out=tmp_path / "out")
+    info = probe(media["two_streams"])
+    assert (info.width, info.height, info.frame_count) == (W, H, 40)
+    assert stored_frame_count(media["two_streams"]) == 40
+    assert len(list(iter_frames(media["two_streams"], grey=True))) == 40
+
+
+def _without_aws_settings(monkeypatch, tmp_path) -> None:
+    import s3fs
+
+    for name in [n for n in os.environ if n.startswith(("AWS_", "FSSPEC_S3"))]:
+        monkeypatch.delenv(name)
+    monkeypatch.setenv("AWS_SHARED_CREDENTIALS_FILE", str(tmp_path / "no-credentials"))
+    monkeypatch.setenv("AWS_CONFIG_FILE", str(tmp_path / "no-config"))
+    monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")  # no instance-metadata lookups
+    monkeypatch.setenv("AWS_MAX_ATTEMPTS", "1")
+    s3fs.S3FileSystem.clear_instance_cache()
+
+
+def test_an_s3_store_without_credentials_or_endpoint(media, kept, tmp_path, capfd, monkeypatch):
+    """An S3 store with no credentials in the environment, then with credentials but its
+    endpoint down: one line each before any flow starts, nothing written."""
+    import socket
+
+    _without_aws_settings(monkeypatch, tmp_path)
+    before = snapshot(kept["store"], kept["out"])
+    argv = ["reconstruct", media["orbit"], "--out", kept["out"], "--store", "s3://facecap/x"]
+    code, _, err = facecap(capfd, *argv)
+    assert_one_line_error(code, err, ["no credentials for the store s3://facecap/x",
+                                      "set AWS_ACCESS_KEY_ID"])
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nothing listens there once the socket is closed
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "facecap-test")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "facecap-test-secret")
+    monkeypatch.setenv("AWS_ENDPOINT_URL_S3", f"http://127.0.0.1:{port}")
+    import s3fs
+
+    s3fs.S3FileSystem.clear_instance_cache()
+    code, _, err = facecap(capfd, *argv)
+    assert_one_line_error(code, err, ["the store s3://facecap/x cannot be reached",
+                                      "that it is up"])
+    s3fs.S3FileSystem.clear_instance_cache()
+    assert_kept(before, snapshot(kept["store"], kept["out"]))
+
+
+def test_files_that_are_not_evaluations_are_not_a_baseline(tmp_path):
+    """A junk ``OUT/evaluations/0.json`` (not named by a time) is no evaluation: the newest
+    real one is the baseline, as if the junk were not there."""
+    from flows.evaluate import check_history
+
+    history = tmp_path / "evaluations"
+    history.mkdir()
+    (history / "0.json").write_text("junk")
+    assert check_history(tmp_path) == {}
+    scores = {"anna/take": {"accuracy": {"median": 0.5}, "completion": {"median": 0.7}}}
+    (history / "20260101T000000000000Z.json").write_text(json.dumps({"captures": scores}))
+    (history / "notes.json").write_text("[]")
+    assert check_history(tmp_path) == scores
+
+
+def _run_without_dac_override(argv: list[str]) -> subprocess.CompletedProcess:
+    """``facecap ARGV`` in a process that file modes bind (root ignores them unless it
+    drops CAP_DAC_OVERRIDE)."""
+    prefix = []
+    if os.geteuid() == 0:
+        if not shutil.which("setpriv"):
+            pytest.skip("running as root without setpriv to drop CAP_DAC_OVERRIDE")
+        prefix = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"]
+    return subprocess.run([*prefix, sys.executable, "-m", "flows.cli", *map(str, argv)],
+                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+
+
+@pytest.mark.slow
+def test_a_read_only_store(media, kept, tmp_path):
+    """A store folder nobody may write: the first lock fails, is not retried (a lasting
+    errno) and ends the run with one line; the store is unchanged."""
+    os.chmod(kept["store"], 0o555)
+    try:
+        before = snapshot(kept["store"], kept["out"])
+        proc = _run_without_dac_override(["reconstruct", media["orbit"], "--out",
+                                          tmp_path / "out", "--store", kept["store"]])
+        assert_one_line_error(proc.returncode, proc.stderr,
+                              ["cannot lock artifact input-", "permission denied",
+                               "check that the location is writable"])
+        assert_kept(before, snapshot(kept["store"], kept["out"]))
+    finally:
+        os.chmod(kept["store"], 0o755)
 
 
 # --------------------------------------------------------------------------- in a flow
@@ -541,7 +771,7 @@ def test_credentials_come_only_from_the_environment():
         names = [p.lower() for p in inspect.signature(function).parameters]
         assert not [n for n in names if any(s in n for s in secretive)], function
     source = (ROOT / "tasks" / "store" / "base.py").read_text()
-    assert source.count("url_to_fs(") == 2  # both calls: nothing but the URL is passed
+    assert source.count("url_to_fs(") == 1  # one call: nothing but the URL is passed
     assert "url_to_fs(_expand(url))" in source
 
 

@@ -68,6 +68,15 @@ BAD = {
     "heat map of an unknown image type": (["evaluate", "{s}/scan.ply", "--scan", "{s}/scan.ply",
                                            "--scan-landmarks", "{s}/scan_landmarks.json",
                                            "--heatmap", "{d}/h.jpgx"], ".png"),
+    "a vertex 1e30 mm away": (["evaluate", "{d}/huge.ply", "--scan", "{s}/scan.ply",
+                                "--scan-landmarks", "{s}/scan_landmarks.json"],
+                               "coordinate of 1e+30, beyond"),
+    "a mesh with 2-D vertices": (["evaluate", "{d}/flat.obj", "--scan", "{s}/scan.ply",
+                                  "--scan-landmarks", "{s}/scan_landmarks.json"],
+                                 "vertices with 2 coordinates, not 3"),
+    "a mesh whose every match on the scan is one point": (
+        ["evaluate", "{d}/point.obj", "--scan", "{s}/scan.ply", "--scan-landmarks",
+         "{s}/scan_landmarks.json"], "cannot be aligned to the scan"),
     "68 identical scan landmarks": (["evaluate", "{s}/scan.ply", "--scan", "{s}/scan.ply",
                                      "--scan-landmarks", "{d}/same.json"], "landmarks"),
     "synth: negative seed": (["synth", "--out", "{d}/o", "--seed", "-1"], "seed"),
@@ -98,6 +107,24 @@ def test_bad_input_is_one_clear_line(case, scan, tmp_path):
     (tmp_path / "five.json").write_text(json.dumps(np.zeros((5, 3)).tolist()))
     (tmp_path / "typo.yaml").write_text("colour: red\n")
     (tmp_path / "same.json").write_text(json.dumps([[1.0, 2.0, 3.0]] * 68))
+    (tmp_path / "flat.obj").write_text("v 0 0\nv 1 0\nv 0 1\nf 1 2 3\n")
+    # Four vertices 3 mm out from the scan's nose tip, 1 µm apart: each one's closest scan
+    # point is the tip itself.
+    head = trimesh.load(scan / "scan.ply", process=False)
+    nose = json.loads((scan / "scan_landmarks.json").read_text())["landmarks"][30]
+    tip = int(np.argmin(np.linalg.norm(head.vertices - nose, axis=1)))
+    normal = head.vertex_normals[tip]
+    side = np.cross(normal, [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side)
+    up = np.cross(normal, side)
+    corners = [head.vertices[tip] + 3 * normal + 1e-3 * (a * side + b * up)
+               for a, b in ((0, 0), (1, 0), (0, 1), (1, 1))]
+    (tmp_path / "point.obj").write_text("".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in corners)
+                                        + "f 1 2 3\nf 2 4 3\n")
+    (tmp_path / "huge.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+        "end_header\n0 0 0\n1e30 0 0\n0 1 0\n3 0 1 2\n")
     for name, index in (("far.ply", 7), ("negative.ply", -2)):
         (tmp_path / name).write_text(
             "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"

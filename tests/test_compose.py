@@ -241,6 +241,65 @@ def test_compose_file_holds_no_literal_secret():
     assert "env_file" not in raw_text  # no container receives the whole .env
 
 
+def _refuse_placeholders_entry() -> list[str]:
+    """The containers' entry as the shell gets it (Compose turns ``$$`` into ``$``)."""
+    raw = yaml.safe_load(COMPOSE_FILE.read_text())
+    return [part.replace("$$", "$") for part in raw["x-refuse-placeholders"]]
+
+
+def test_every_container_starts_through_the_placeholder_check(resolved):
+    entry = resolved["services"]["worker"]["entrypoint"]
+    assert entry[:2] == ["/bin/sh", "-c"] and "change-me" in entry[2]
+    for name, service in resolved["services"].items():
+        assert service.get("entrypoint") == entry, f"{name} starts without the check"
+        assert service.get("command"), f"{name} has no command for the check to run"
+
+
+def test_a_placeholder_secret_stops_a_container_and_a_real_one_starts_it():
+    """The entry itself, run by sh with a service's command: any variable still holding a
+    value of .env.example stops it with one line naming the variables, not their values."""
+    entry = _refuse_placeholders_entry()
+    example = read_env_file(ENV_EXAMPLE)
+    base = {"PATH": os.environ.get("PATH", "/usr/bin:/bin")}
+    placeholders = {key: example[key] for key in SECRETS}
+    stopped = subprocess.run([*entry, "echo", "started"], env={**base, **placeholders},
+                             capture_output=True, text=True, timeout=30)
+    assert stopped.returncode == 1 and stopped.stdout == ""
+    [line] = stopped.stderr.strip().splitlines()
+    assert line.startswith("refusing to start:") and "put real secrets into .env" in line
+    for key, value in placeholders.items():
+        assert key in line and value not in line
+    url = {"PREFECT_API_DATABASE_CONNECTION_URL":
+           f"postgresql+asyncpg://prefect:{example['POSTGRES_PASSWORD']}@postgres:5432/prefect"}
+    inside_url = subprocess.run([*entry, "echo", "started"], env={**base, **url},
+                                capture_output=True, text=True, timeout=30)
+    assert inside_url.returncode == 1 and "PREFECT_API_DATABASE_CONNECTION_URL" in inside_url.stderr
+    started = subprocess.run([*entry, "echo", "started", "with  two spaces"],
+                             env={**base, **{key: TEST_ENV[key] for key in SECRETS}},
+                             capture_output=True, text=True, timeout=30)
+    assert started.returncode == 0 and started.stdout == "started with  two spaces\n"
+
+
+def test_the_workers_s3_account_may_use_only_the_artifacts_bucket(resolved):
+    """minio-init gives the workers' account a policy over FACECAP_S3_BUCKET alone (no
+    admin, no other bucket); the workers never get MinIO's root account."""
+    import json
+
+    script = resolved["services"]["minio-init"]["command"][-1]
+    policy = json.loads(re.search(r"<<POLICY\n(.*?)\n\s*POLICY", script, re.S).group(1)
+                        .replace("$$FACECAP_S3_BUCKET", "facecap-test-bucket"))
+    resources = {r for statement in policy["Statement"] for r in statement["Resource"]}
+    assert resources == {"arn:aws:s3:::facecap-test-bucket", "arn:aws:s3:::facecap-test-bucket/*"}
+    actions = {a for statement in policy["Statement"] for a in statement["Action"]}
+    assert all(a.startswith("s3:") and "*" not in a for a in actions)
+    assert not {"s3:DeleteBucket", "s3:PutBucketPolicy", "s3:CreateBucket"} & actions
+    assert "--user \"$$AWS_ACCESS_KEY_ID\"" in script
+    worker = service_env(resolved, "worker")
+    assert TEST_ENV["MINIO_ROOT_PASSWORD"] not in worker.values()
+    assert worker["FACECAP_INPUT_ROOTS"] == "/data/datasets"
+    assert worker["FACECAP_OUTPUT_ROOT"] == "/data/output"
+
+
 def test_env_file_never_reaches_git_or_the_image():
     def ignored(patterns: list[str]) -> bool:
         matched = False
@@ -494,12 +553,17 @@ def test_prefect_yaml_deploys_and_a_worker_runs_the_nightly_evaluation(live_serv
     run = client.post(f"/deployments/{nightly['id']}/create_flow_run",
                       json={"parameters": {"root": str(dataset), "out": str(output)}})
     assert run.status_code == 201, run.text
+    # A run that names a dataset outside the worker's input roots fails at its start.
+    escape = client.post(f"/deployments/{nightly['id']}/create_flow_run",
+                         json={"parameters": {"root": str(ROOT), "out": str(output)}})
+    assert escape.status_code == 201, escape.text
     worker_dir = tmp_path / "elsewhere"
     worker_dir.mkdir()
     worker_env = prefect_env(tmp_path / "worker-home", PREFECT_API_URL=live_server,
                              PREFECT_API_AUTH_STRING=AUTH, FACECAP_PROJECT_DIR=str(ROOT),
                              FACECAP_HOME=str(tmp_path / "facecap-home"),
                              FACECAP_STORE=str(tmp_path / "store"),
+                             FACECAP_INPUT_ROOTS=str(dataset), FACECAP_OUTPUT_ROOT=str(output),
                              PREFECT_WORKER_QUERY_SECONDS="1")
     worker_log = open(tmp_path / "worker.log", "w")
     worker = subprocess.Popen(
@@ -510,11 +574,13 @@ def test_prefect_yaml_deploys_and_a_worker_runs_the_nightly_evaluation(live_serv
     )
     try:
         deadline = time.monotonic() + 180
+        final = ("COMPLETED", "FAILED", "CRASHED", "CANCELLED")
         while True:
             state = client.get(f"/flow_runs/{run.json()['id']}").json()["state"]
-            if state["type"] in ("COMPLETED", "FAILED", "CRASHED", "CANCELLED"):
+            refused = client.get(f"/flow_runs/{escape.json()['id']}").json()["state"]
+            if state["type"] in final and refused["type"] in final:
                 break
-            assert time.monotonic() < deadline, f"flow run still {state['type']}"
+            assert time.monotonic() < deadline, f"flow runs still {state['type']}, {refused['type']}"
             time.sleep(1)
     finally:
         stop(worker)  # before the server stops, or the worker hangs
@@ -522,5 +588,7 @@ def test_prefect_yaml_deploys_and_a_worker_runs_the_nightly_evaluation(live_serv
     assert state["type"] == "COMPLETED", (
         f"{state['type']}: {state.get('message')}\n{(tmp_path / 'worker.log').read_text()[-3000:]}"
     )
+    assert refused["type"] == "FAILED"
+    assert "outside the folders this service reads from" in refused["message"], refused
     (evaluation,) = (output / "evaluations").glob("*.json")
     assert '"subject_a/take1"' in evaluation.read_text()  # listed as skipped: it has no scan

@@ -345,10 +345,15 @@ def test_read_only_store_raises_store_write_error(tmp_path):
 
 
 def test_unwritable_location_raises_store_write_error(tmp_path):
-    # A regular file where the store folder should be fails even for root.
+    # A regular file where the store folder should be is refused when the store is opened;
+    # one where its scratch folder should be fails the put, even for root.
     blocker = tmp_path / "not-a-folder"
     blocker.write_bytes(b"")
-    store = ArtifactStore(blocker)
+    with pytest.raises(InputError, match="is not a folder"):
+        ArtifactStore(blocker)
+    (tmp_path / "store").mkdir()
+    (tmp_path / "store" / ".tmp").write_bytes(b"")
+    store = ArtifactStore(tmp_path / "store")
     with pytest.raises(StoreWriteError) as caught:
         put_mesh(store, {"mesh.ply": b"ply"})
     assert isinstance(caught.value, FacecapError)

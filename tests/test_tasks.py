@@ -3,6 +3,7 @@ stores, and which faults are retried."""
 
 from __future__ import annotations
 
+import errno
 import threading
 import time
 from dataclasses import replace
@@ -111,9 +112,26 @@ def test_inputs_reach_the_stage_as_folders(tmp_path):
     (TimeoutError("slow"), True),
     (OSError("EIO"), True),
     (ValueError("bug"), False),
+    # A file where the store's folder should be, or the reverse: it stays so.
+    (NotADirectoryError(errno.ENOTDIR, "Not a directory"), False),
+    (IsADirectoryError(errno.EISDIR, "Is a directory"), False),
 ])
 def test_only_transient_faults_are_retried(exc, retried):
     assert is_transient(exc) is retried
+
+
+def test_a_store_folder_that_is_a_file_fails_its_first_task_at_once(tmp_path):
+    """The store's lock folder is a file: the task fails with one line, not retried (a
+    lasting errno), instead of ~20 s of retries ending in a traceback."""
+    from tasks.runner import key_lock
+
+    (tmp_path / "store").mkdir()
+    (tmp_path / "store" / ".locks").write_text("a file where the lock folder should be")
+    with pytest.raises(StoreWriteError) as refused:
+        with key_lock(ArtifactStore(str(tmp_path / "store")), "input-" + "0" * 32):
+            pass
+    assert "cannot lock artifact input-" in str(refused.value)
+    assert "Not a directory" in str(refused.value) and not is_transient(refused.value)
 
 
 def test_results_are_exported_only_as_they_were_committed(tmp_path):

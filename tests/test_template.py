@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,6 +27,71 @@ def test_assets_are_verified_and_cached(monkeypatch, tmp_path):
     with pytest.raises(FacecapError, match="sha256"):
         assets.menpo3d_data()
     assert not (tmp_path / "assets" / "menpo3d-0.8.6").exists()
+
+
+def _index_with_sdist(tmp_path, setup_py: str) -> tuple[Path, bytes]:
+    """A PEP 503 package index in a folder (a page per project) whose menpo3d page links to
+    a menpo3d-0.8.6.tar.gz holding ``setup_py``."""
+    import io
+    import tarfile
+
+    data = io.BytesIO()
+    with tarfile.open(fileobj=data, mode="w:gz") as tar:
+        for name, text in (("setup.py", setup_py),
+                           ("PKG-INFO", "Metadata-Version: 2.1\nName: menpo3d\nVersion: 0.8.6\n")):
+            info = tarfile.TarInfo(f"menpo3d-0.8.6/{name}")
+            info.size = len(text.encode())
+            tar.addfile(info, io.BytesIO(text.encode()))
+    index = tmp_path / "index"
+    (index / "menpo3d").mkdir(parents=True)
+    (index / "files").mkdir()
+    (index / "files" / assets.MENPO3D_SDIST).write_bytes(data.getvalue())
+    (index / "menpo3d" / "index.html").write_text(
+        f'<html><body><a href="../files/{assets.MENPO3D_SDIST}">{assets.MENPO3D_SDIST}</a>'
+        '<a href="../files/menpo3d-0.8.5.tar.gz">menpo3d-0.8.5.tar.gz</a></body></html>')
+    return index, data.getvalue()
+
+
+def test_an_sdist_from_the_index_is_checked_before_anything_in_it_runs(monkeypatch, tmp_path):
+    """An index serves a different menpo3d-0.8.6.tar.gz whose setup.py would leave a mark:
+    it is refused by its sha256 and nothing in it has run (pip download would have run
+    setup.py to prepare its metadata first)."""
+    mark = tmp_path / "setup.py ran"
+    index, _ = _index_with_sdist(tmp_path, f"open({str(mark)!r}, 'w').write('ran')\n"
+                                           "from setuptools import setup\nsetup()\n")
+    monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("PIP_INDEX_URL", index.as_uri())
+    monkeypatch.setenv("PIP_EXTRA_INDEX_URL", index.as_uri())
+    with pytest.raises(FacecapError) as refused:
+        assets.menpo3d_data()
+    assert "sha256" in str(refused.value) and "\n" not in str(refused.value)
+    assert not mark.exists(), "code from the unverified sdist ran"
+    assert not (tmp_path / "home" / "assets" / "menpo3d-0.8.6").exists()
+
+
+def test_the_sdist_is_fetched_from_pips_index_over_http(monkeypatch, tmp_path):
+    """pip's configured index (here served over HTTP) gives the file itself, checked against
+    the pinned sha256 (pinned here to the test's own sdist)."""
+    import hashlib
+    import http.server
+    import threading
+    from functools import partial
+
+    index, data = _index_with_sdist(tmp_path, "raise SystemExit('never run')\n")
+    handler = partial(http.server.SimpleHTTPRequestHandler, directory=str(index))
+    handler.log_message = lambda *args: None
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
+        monkeypatch.setenv("PIP_INDEX_URL", f"http://127.0.0.1:{server.server_address[1]}/")
+        monkeypatch.setenv("PIP_EXTRA_INDEX_URL", f"http://127.0.0.1:{server.server_address[1]}/")
+        monkeypatch.setattr(assets, "MENPO3D_SHA256", hashlib.sha256(data).hexdigest())
+        (tmp_path / "dest").mkdir()
+        sdist = assets._download_sdist(tmp_path / "dest")
+        assert sdist.read_bytes() == data
+    finally:
+        server.shutdown()
 
 
 def test_default_template_is_metric_with_68_landmarks(default_template):

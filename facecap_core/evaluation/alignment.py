@@ -110,6 +110,9 @@ class Surface:
         ans = self._scene.compute_closest_points(o3d.core.Tensor(
             np.ascontiguousarray(points - self.origin, dtype=np.float32)))
         prim = ans["primitive_ids"].numpy().astype(np.int64)
+        if (prim >= len(self.faces)).any():  # open3d's "no triangle found"
+            raise InputError("no triangle of a mesh is within reach of the points it is "
+                             "compared with (degenerate triangles?); repair the mesh")
         uv = ans["primitive_uvs"].numpy().astype(float)
         tri = self.vertices[self.faces[prim]]  # (N, 3 corners, 3)
         q = ((1.0 - uv[:, :1] - uv[:, 1:]) * tri[:, 0] + uv[:, :1] * tri[:, 1]
@@ -120,6 +123,11 @@ class Surface:
 def distances(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Exact distance (N,) from each point to the nearest point of the triangle mesh surface."""
     return Surface(vertices, faces).closest(points)[1]
+
+
+MAX_LOG_SCALE = 20.0
+"""Largest |log scale| an extrapolated ICP transform may have (a factor of 5e8): beyond it
+the extrapolation, not the data, is speaking."""
 
 
 def _params(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -162,6 +170,10 @@ def align_to_surface(mesh_vertices: np.ndarray, scan: Surface, scan_landmarks: n
         # The total transform from the (initially placed) mesh to its matches, not an
         # increment on the last estimate, so that rounding does not accumulate.
         s_n, R_n, t_n = umeyama(base[idx[keep]], q[keep], with_scale)
+        if not s_n > 0:  # the matches collapse to a point or a line: no scale fits them
+            raise InputError("the mesh cannot be aligned to the scan: its vertices in the face "
+                             "region match the scan in a single point or line (a collapsed or "
+                             "damaged mesh?); repair the mesh")
         after = s_n * base[idx[keep]] @ R_n.T + t_n
         change = math.sqrt(np.mean(np.sum((after - moved[idx[keep]]) ** 2, axis=1))) / radius
         energy = float(np.mean(d[keep] ** 2))
@@ -186,6 +198,10 @@ def align_to_surface(mesh_vertices: np.ndarray, scan: Surface, scan_landmarks: n
                 dF = np.diff(np.array(f_hist), axis=0).T
                 theta = np.linalg.lstsq(dF, f_hist[-1], rcond=None)[0]
                 x = g - dG @ theta
+                if not (np.all(np.isfinite(x)) and abs(x[0]) < MAX_LOG_SCALE):
+                    # Nearly parallel steps (a degenerate mesh) extrapolate to nonsense:
+                    # take the plain ICP step instead.
+                    x, accelerated = g, False
             else:
                 x = g
             g_new, e_new, change = step(x)

@@ -28,7 +28,9 @@ touches a committed artifact.
 Backends
     * A local folder, the default: a plain path (``/data/store``, ``relative/dir``) or a
       ``file://`` URL.
-    * Any fsspec URL: ``s3://bucket/prefix`` for S3 or MinIO, ``memory://name`` in tests.
+    * ``s3://bucket/prefix`` for S3 or MinIO, ``memory://name`` in tests. Other protocols
+      (HTTP, FTP, ...) are refused: they cannot commit a manifest create-only, and a store URL
+      must never make a worker send requests to whatever host it names.
 
 Credentials are never passed to this module. For S3 and MinIO they come from the
 environment only: s3fs reads ``AWS_ACCESS_KEY_ID`` and ``AWS_SECRET_ACCESS_KEY``, and

@@ -38,6 +38,32 @@ from tasks.store.keys import (
 
 MakeManifest = Callable[[dict[str, FileEntry]], Manifest]
 
+SCHEMES = frozenset({"file", "s3", "memory"})
+"""Where artifacts can live: a local folder (a path or ``file://``), S3 or MinIO (``s3://``),
+and ``memory://`` for tests. Other fsspec protocols are refused: HTTP, FTP and the like cannot
+commit a manifest create-only, and a store URL must never make a worker send requests to
+whatever host it names."""
+
+
+def scheme(url: str | os.PathLike[str]) -> str:
+    """The URL's protocol: ``file`` for a plain path."""
+    text = os.fspath(url)
+    return text.split("://", 1)[0].lower() if "://" in text else "file"
+
+
+def _filesystem(url: str | os.PathLike[str]) -> tuple[fsspec.AbstractFileSystem, str]:
+    """The fsspec filesystem and root of a store URL; anything else is bad input."""
+    if scheme(url) not in SCHEMES:
+        raise InputError(f"the store {os.fspath(url)} uses the protocol {scheme(url)!r}, which "
+                         "cannot hold artifacts; give a folder or an s3://bucket/prefix URL "
+                         "(--store or FACECAP_STORE)")
+    try:
+        return url_to_fs(_expand(url))
+    except (ImportError, ValueError) as exc:  # a malformed URL or a missing backend
+        raise InputError(f"the store {os.fspath(url)} cannot be opened "
+                         f"({' '.join(str(exc).split())}); give a folder or an "
+                         "s3://bucket/prefix URL") from None
+
 
 class ArtifactStore:
     is_local = False
@@ -58,7 +84,7 @@ class ArtifactStore:
             from tasks.store.local import LocalStore
             from tasks.store.remote import RemoteStore
 
-            fs, _ = url_to_fs(_expand(url))
+            fs, _ = _filesystem(url)
             cls = LocalStore if isinstance(fs, LocalFileSystem) else RemoteStore
         return super().__new__(cls)
 
@@ -67,7 +93,7 @@ class ArtifactStore:
 
         Nothing is created until the first put.
         """
-        fs, root = url_to_fs(_expand(url))
+        fs, root = _filesystem(url)
         self._fs: fsspec.AbstractFileSystem = fs
         self._root: str = root.rstrip("/") or "/"
 

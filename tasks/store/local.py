@@ -8,6 +8,7 @@ import uuid
 from collections.abc import Mapping
 from pathlib import Path
 
+from facecap_core.errors import InputError
 from tasks.store.base import ArtifactStore, MakeManifest
 from tasks.store.files import (
     MANIFEST_NAME,
@@ -30,6 +31,14 @@ class LocalStore(ArtifactStore):
     """Artifacts in a local folder (a path or a ``file://`` URL)."""
 
     is_local = True
+
+    def __init__(self, url) -> None:
+        super().__init__(url)
+        existing = next((p for p in (Path(self._root), *Path(self._root).parents)
+                         if p.exists()), None)
+        if existing is not None and not existing.is_dir():
+            raise InputError(f"the store {url} is not a folder ({existing} is a file); give "
+                             "the path of a folder (--store or FACECAP_STORE)")
 
     def get(self, key: str, verify: bool = True) -> Path:
         """The artifact folder itself: treat it as read-only."""

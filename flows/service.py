@@ -1,0 +1,123 @@
+"""What a run of the shared service may touch.
+
+Whoever starts a run of a served flow (the Prefect UI or API) names its paths and its store
+as parameters. On a worker those must not reach beyond what the deployment allows: else a
+run could read any file the worker can (``video: /etc/shadow``, a config, a scan), write its
+results wherever the worker may write, or make the worker send requests to any host (a
+``store`` URL). The worker's environment fixes the limits:
+
+``FACECAP_INPUT_ROOTS``
+    The folders inputs may come from (videos, photo folders, scans, landmarks, configs,
+    dataset folders), separated by ``:``.
+``FACECAP_OUTPUT_ROOT``
+    The folder results go to (``out`` of every flow).
+``FACECAP_STORE``
+    The artifact store; a run may repeat it as ``store`` but not name another.
+
+Paths are resolved (``..`` and symbolic links followed) before they are compared, so a link
+inside a root that points out of it is refused too. The limits apply to a run that comes
+from a deployment, and to any flow run in a process whose environment sets
+``FACECAP_INPUT_ROOTS`` or ``FACECAP_OUTPUT_ROOT`` (a worker); a deployment run without
+them reads and writes nothing. The ``facecap`` command on one's own machine is not
+limited: it marks its own flow runs as local (:data:`LOCAL_COMMAND`).
+"""
+
+from __future__ import annotations
+
+import os
+from contextvars import ContextVar
+from dataclasses import dataclass
+from pathlib import Path
+
+from facecap_core.errors import InputError
+
+LOCAL_COMMAND: ContextVar[bool] = ContextVar("facecap_local_command", default=False)
+"""Set by the ``facecap`` command for the flows it runs in its own process: a user on their
+own machine may name any path and store."""
+
+INPUT_ROOTS_ENV = "FACECAP_INPUT_ROOTS"
+OUTPUT_ROOT_ENV = "FACECAP_OUTPUT_ROOT"
+
+
+def _from_deployment() -> bool:
+    from prefect.context import FlowRunContext
+
+    context = FlowRunContext.get()
+    return bool(context and context.flow_run and context.flow_run.deployment_id)
+
+
+@dataclass(frozen=True)
+class ServicePolicy:
+    """The roots and the store a served run is held to."""
+
+    input_roots: tuple[Path, ...]
+    output_root: Path | None
+    store: str
+
+    @classmethod
+    def from_env(cls) -> ServicePolicy:
+        from tasks.runner import default_store_url
+
+        roots = tuple(Path(p).expanduser().resolve()
+                      for p in os.environ.get(INPUT_ROOTS_ENV, "").split(os.pathsep) if p)
+        output = os.environ.get(OUTPUT_ROOT_ENV)
+        return cls(roots, Path(output).expanduser().resolve() if output else None,
+                   default_store_url())
+
+    def input(self, path: str | os.PathLike | None, what: str) -> None:
+        """Refuse an input outside every input root."""
+        if path is None:
+            return
+        if not any(_contains(root, path) for root in self.input_roots):
+            allowed = ", ".join(map(str, self.input_roots)) or f"none ({INPUT_ROOTS_ENV} is unset)"
+            raise InputError(f"the {what} {path} is outside the folders this service reads "
+                             f"from ({allowed}); put it inside one of them")
+
+    def output(self, path: str | os.PathLike, what: str = "output folder") -> None:
+        """Refuse an output folder outside the output root."""
+        if self.output_root is None or not _contains(self.output_root, path):
+            allowed = self.output_root or f"none ({OUTPUT_ROOT_ENV} is unset)"
+            raise InputError(f"the {what} {path} is outside the folder this service writes "
+                             f"to ({allowed}); give a folder inside it")
+
+    def check_store(self, store: str | None) -> str:
+        """The deployment's store: a run may name it again, but no other (another URL,
+        another scheme, another bucket)."""
+        if store is not None and store != self.store:
+            raise InputError(f"this service keeps its artifacts in its own store; leave "
+                             f"'store' empty instead of {store!r}")
+        return self.store
+
+
+def _contains(root: Path, path: str | os.PathLike) -> bool:
+    resolved = Path(path).expanduser().resolve()
+    return resolved == root or root in resolved.parents
+
+
+def service_policy() -> ServicePolicy | None:
+    """The limits of this flow run, or None when it is not a served run (the ``facecap``
+    command, or a process whose environment sets no limits, outside any deployment)."""
+    if LOCAL_COMMAND.get():
+        return None
+    configured = os.environ.get(INPUT_ROOTS_ENV) or os.environ.get(OUTPUT_ROOT_ENV)
+    if not configured and not _from_deployment():
+        return None
+    return ServicePolicy.from_env()
+
+
+def guard(out: str | os.PathLike, store: str | None,
+          **inputs: str | os.PathLike | None) -> str:
+    """Check a flow's parameters against the service's limits (when served); returns the
+    store to use. ``inputs`` are named by what they are (``video``, ``config``, ...)."""
+    from tasks.runner import default_store_url, open_store
+
+    policy = service_policy()
+    if policy is None:
+        store = store or default_store_url()
+    else:
+        for what, path in inputs.items():
+            policy.input(path, what.replace("_", " "))
+        policy.output(out)
+        store = policy.check_store(store)
+    open_store(store)  # an unsupported protocol or a file for a folder: refused here
+    return store
