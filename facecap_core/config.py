@@ -1,5 +1,9 @@
 """Typed configuration: one pydantic model per stage, YAML in and out.
 
+One module of ~800 lines on purpose: the pipeline's whole settings schema (what the docs
+and the YAML files show) in one place, which every stage module imports
+without importing another stage.
+
 Every tunable lives here with a docstring; unknown keys and out-of-range values are
 rejected with a message that names the field.
 """

@@ -331,13 +331,13 @@ def test_irises_unmeasured_say_why(monkeypatch):
     cams = CameraSet(INTR, [0, 1, 2], R, t, {"units": "arbitrary"})
     records = [{"yaw_deg": y} for y in (-10, 0, 10)]
     dets = [None, None, None]
-    doc = stage.triangulate_irises(dets, records, [], cams, np.eye(3),
-                                   LandmarkConfig(irises=False))
+    doc = iris.triangulate_irises(dets, records, [], cams, np.eye(3),
+                                  LandmarkConfig(irises=False))
     assert doc["iris_diameter"] is None and "off" in doc["reason"]
     if iris.available():
-        doc = stage.triangulate_irises(dets, records, [], cams, np.eye(3), LandmarkConfig())
+        doc = iris.triangulate_irises(dets, records, [], cams, np.eye(3), LandmarkConfig())
         assert doc["pupil_distance"] is None and "two or more" in doc["reason"]
     monkeypatch.setattr(iris, "available", lambda: False)
-    doc = stage.triangulate_irises(dets, records, [0, 1, 2], cams, np.eye(3), LandmarkConfig())
+    doc = iris.triangulate_irises(dets, records, [0, 1, 2], cams, np.eye(3), LandmarkConfig())
     assert doc["pupils"] == {"right": None, "left": None}
     assert doc["reason"] == "the mediapipe package is not installed"

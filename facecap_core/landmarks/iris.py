@@ -29,6 +29,9 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from facecap_core.camera import CameraSet, camera_center
+from facecap_core.config import LandmarkConfig
+from facecap_core.landmarks.triangulate import box_size, triangulate
 from facecap_core.native_logs import native_stderr_to_log
 
 __all__ = ["IrisFit", "available", "detect_irises", "eye_opening", "pupil_centre", "RIGHT_EYE",
@@ -178,3 +181,66 @@ def detect_irises(image: np.ndarray, points68: np.ndarray, box: tuple[float, ...
             continue
         found[side] = IrisFit(centre, diameter, opening)
     return found
+
+
+def triangulate_irises(dets: list, records: list[dict], gated: list[int],
+                       cams: CameraSet, head_R: np.ndarray, config: LandmarkConfig) -> dict:
+    """Pupil centres triangulated over the gated keyframes within ``iris_max_yaw_deg`` of
+    frontal, and the horizontal iris diameter in world units: each view's pixel diameter
+    times the pupil's depth over the focal length, undone of the foreshortening of an iris
+    that looks along the head's +z (cos of the view's yaw at that eye); the median over views
+    and eyes."""
+    doc = {"detector": DETECTOR if available() else None, "units": cams.units,
+           "views": [], "pupils": {"right": None, "left": None}, "pupil_distance": None,
+           "iris_diameter": None, "iris_diameter_spread_rel": None, "iris_diameter_views": [],
+           "reason": None}
+    if not config.irises:
+        doc["reason"] = "iris measurement is off (LandmarkConfig.irises)"
+        return doc
+    if not available():
+        doc["reason"] = "the mediapipe package is not installed"
+        return doc
+    views = [k for k in gated if abs(records[k]["yaw_deg"]) <= config.iris_max_yaw_deg
+             and dets[k].irises]
+    doc["views"] = [cams.frame_indices[k] for k in views]
+    if len(views) < 2:
+        doc["reason"] = (f"irises measured in {len(views)} frontal keyframe(s) (|yaw| <= "
+                         f"{config.iris_max_yaw_deg:g}°, eyes open); two or more are needed")
+        return doc
+    sides = ("right", "left")
+    uv = np.full((len(views), 2, 2), np.nan)
+    for v, k in enumerate(views):
+        for j, side in enumerate(sides):
+            if side in dets[k].irises:
+                uv[v, j] = dets[k].irises[side].centre
+    size = np.array([box_size(dets[k].box) for k in views])
+    tri = triangulate(uv, cams.R[views], cams.t[views], cams.intrinsics,
+                      config.outlier_threshold * size, config.huber * size, 2,
+                      config.min_parallax_deg)
+    focal = 0.5 * (cams.intrinsics.fx + cams.intrinsics.fy)
+    diameters = []
+    for j, side in enumerate(sides):
+        P = tri.points[j]
+        if not np.all(np.isfinite(P)):
+            continue
+        doc["pupils"][side] = [round(float(x), 6) for x in P]
+        for v, k in enumerate(views):
+            if not tri.inliers[v, j]:
+                continue
+            depth = float(cams.R[k][2] @ P + cams.t[k][2])
+            to_camera = head_R @ (camera_center(cams.R[k], cams.t[k]) - P)
+            cos_yaw = abs(to_camera[2]) / np.hypot(to_camera[0], to_camera[2])
+            d = dets[k].irises[side].diameter * depth / focal / cos_yaw
+            diameters.append(d)
+            doc["iris_diameter_views"].append([cams.frame_indices[k], side, round(d, 6)])
+    if all(p is not None for p in doc["pupils"].values()):
+        doc["pupil_distance"] = float(np.linalg.norm(tri.points[0] - tri.points[1]))
+    if len(diameters) >= 2:
+        d = np.array(diameters)
+        med = float(np.median(d))
+        doc["iris_diameter"] = med
+        doc["iris_diameter_spread_rel"] = round(float(1.4826 * np.median(np.abs(d - med)) / med),
+                                                5)
+    else:
+        doc["reason"] = "fewer than two iris measurements agree with the triangulated pupils"
+    return doc

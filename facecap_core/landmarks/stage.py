@@ -50,7 +50,7 @@ from facecap_core.landmarks.convention import (
     load_offsets,
     robust_head_frame,
 )
-from facecap_core.landmarks.triangulate import Triangulation, triangulate
+from facecap_core.landmarks.triangulate import Triangulation, box_size, triangulate
 from facecap_core.template import INNER_LANDMARKS
 
 LANDMARKS_2D = "landmarks2d.json"
@@ -115,11 +115,6 @@ def camera_yaw_pitch_deg(head_R: np.ndarray, head_origin: np.ndarray, R: np.ndar
     c = head_R @ (camera_center(R, t) - head_origin)
     return (float(np.degrees(np.arctan2(c[0], c[2]))),
             float(np.degrees(np.arctan2(c[1], np.hypot(c[0], c[2])))))
-
-
-def _box_size(box) -> float:
-    left, top, right, bottom = box
-    return float(np.sqrt(max(right - left, 1) * max(bottom - top, 1)))
 
 
 def _box_diagonal(box) -> float:
@@ -199,7 +194,7 @@ def _observations(dets: list[Detection | None], ids: np.ndarray, points: np.ndar
 def _triangulate_faces(dets, views, points, cams: CameraSet, config: LandmarkConfig,
                        min_views: int = 2) -> Triangulation:
     views = np.asarray(views, int)
-    size = np.array([_box_size(dets[v].box) for v in views])
+    size = np.array([box_size(dets[v].box) for v in views])
     return triangulate(_observations(dets, views, points), cams.R[views], cams.t[views],
                        cams.intrinsics, config.outlier_threshold * size, config.huber * size,
                        min_views, config.min_parallax_deg)
@@ -266,69 +261,6 @@ def triangulate_ears(found: dict[str, list], cams: CameraSet, vertex_ids: dict[s
             "points": points, "sides": sides, "views": views}
 
 
-def triangulate_irises(dets: list[Detection | None], records: list[dict], gated: list[int],
-                       cams: CameraSet, head_R: np.ndarray, config: LandmarkConfig) -> dict:
-    """Pupil centres triangulated over the gated keyframes within ``iris_max_yaw_deg`` of
-    frontal, and the horizontal iris diameter in world units: each view's pixel diameter
-    times the pupil's depth over the focal length, undone of the foreshortening of an iris
-    that looks along the head's +z (cos of the view's yaw at that eye); the median over views
-    and eyes."""
-    doc = {"detector": iris.DETECTOR if iris.available() else None, "units": cams.units,
-           "views": [], "pupils": {"right": None, "left": None}, "pupil_distance": None,
-           "iris_diameter": None, "iris_diameter_spread_rel": None, "iris_diameter_views": [],
-           "reason": None}
-    if not config.irises:
-        doc["reason"] = "iris measurement is off (LandmarkConfig.irises)"
-        return doc
-    if not iris.available():
-        doc["reason"] = "the mediapipe package is not installed"
-        return doc
-    views = [k for k in gated if abs(records[k]["yaw_deg"]) <= config.iris_max_yaw_deg
-             and dets[k].irises]
-    doc["views"] = [cams.frame_indices[k] for k in views]
-    if len(views) < 2:
-        doc["reason"] = (f"irises measured in {len(views)} frontal keyframe(s) (|yaw| <= "
-                         f"{config.iris_max_yaw_deg:g}°, eyes open); two or more are needed")
-        return doc
-    sides = ("right", "left")
-    uv = np.full((len(views), 2, 2), np.nan)
-    for v, k in enumerate(views):
-        for j, side in enumerate(sides):
-            if side in dets[k].irises:
-                uv[v, j] = dets[k].irises[side].centre
-    size = np.array([_box_size(dets[k].box) for k in views])
-    tri = triangulate(uv, cams.R[views], cams.t[views], cams.intrinsics,
-                      config.outlier_threshold * size, config.huber * size, 2,
-                      config.min_parallax_deg)
-    focal = 0.5 * (cams.intrinsics.fx + cams.intrinsics.fy)
-    diameters = []
-    for j, side in enumerate(sides):
-        P = tri.points[j]
-        if not np.all(np.isfinite(P)):
-            continue
-        doc["pupils"][side] = [round(float(x), 6) for x in P]
-        for v, k in enumerate(views):
-            if not tri.inliers[v, j]:
-                continue
-            depth = float(cams.R[k][2] @ P + cams.t[k][2])
-            to_camera = head_R @ (camera_center(cams.R[k], cams.t[k]) - P)
-            cos_yaw = abs(to_camera[2]) / np.hypot(to_camera[0], to_camera[2])
-            d = dets[k].irises[side].diameter * depth / focal / cos_yaw
-            diameters.append(d)
-            doc["iris_diameter_views"].append([cams.frame_indices[k], side, round(d, 6)])
-    if all(p is not None for p in doc["pupils"].values()):
-        doc["pupil_distance"] = float(np.linalg.norm(tri.points[0] - tri.points[1]))
-    if len(diameters) >= 2:
-        d = np.array(diameters)
-        med = float(np.median(d))
-        doc["iris_diameter"] = med
-        doc["iris_diameter_spread_rel"] = round(float(1.4826 * np.median(np.abs(d - med)) / med),
-                                                5)
-    else:
-        doc["reason"] = "fewer than two iris measurements agree with the triangulated pupils"
-    return doc
-
-
 def yaw_coverage(records: list[dict]) -> dict:
     """The yaw range around the head that the registered keyframes span (+: the subject's
     left), and each keyframe's yaw."""
@@ -379,7 +311,7 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
                        box=[round(b, 2) for b in det.box],
                        points=np.round(det.points, 3).tolist(),
                        reprojection_px=round(med, 3),
-                       reprojection_rel=round(med / _box_size(det.box), 5))
+                       reprojection_rel=round(med / box_size(det.box), 5))
         records.append(rec)
 
     coverage = yaw_coverage(records)
@@ -414,7 +346,7 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
     uncertain = inner[~(spread <= config.max_point_spread)]
     landmarks[uncertain] = np.nan
 
-    iris_doc = triangulate_irises(dets, records, gated, cams, head_R, config)
+    iris_doc = iris.triangulate_irises(dets, records, gated, cams, head_R, config)
     for k, det in enumerate(dets):
         if det is not None and det.irises is not None:
             records[k]["irises"] = {side: f.as_dict() for side, f in det.irises.items()}

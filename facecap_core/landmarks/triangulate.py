@@ -26,6 +26,13 @@ import numpy as np
 from facecap_core.camera import Intrinsics, camera_center, project, undistort
 
 
+def box_size(box) -> float:
+    """Size of a face box (the square root of its area): what reprojection errors and
+    thresholds are measured against."""
+    left, top, right, bottom = box
+    return float(np.sqrt(max(right - left, 1) * max(bottom - top, 1)))
+
+
 @dataclass
 class Triangulation:
     """Result of :func:`triangulate` for P points observed in V views."""
