@@ -70,17 +70,21 @@ def orbit_frames(n: int, yaw_deg=(-40.0, 40.0), width: int = W, height: int = H,
     return frames
 
 
+def _mux_silence(container, stream) -> None:
+    """Half a second of silence into an AAC stream."""
+    for i in range(20):
+        frame = av.AudioFrame.from_ndarray(np.zeros((1, 1024), np.float32), format="fltp",
+                                           layout="mono")
+        frame.sample_rate, frame.pts = 44100, i * 1024
+        for packet in stream.encode(frame):
+            container.mux(packet)
+    for packet in stream.encode():
+        container.mux(packet)
+
+
 def write_audio_only(path: Path) -> Path:
     with av.open(str(path), "w", format="mp4") as container:
-        stream = container.add_stream("aac", rate=44100)
-        for i in range(20):
-            frame = av.AudioFrame.from_ndarray(np.zeros((1, 1024), np.float32), format="fltp",
-                                               layout="mono")
-            frame.sample_rate, frame.pts = 44100, i * 1024
-            for packet in stream.encode(frame):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+        _mux_silence(container, container.add_stream("aac", rate=44100))
     return path
 
 
@@ -89,15 +93,7 @@ def write_empty_video_track(path: Path, format: str = "matroska", options=None) 
     with av.open(str(path), "w", format=format, options=options or {}) as container:
         video = container.add_stream("libx264", rate=30)
         video.width, video.height, video.pix_fmt = W, H, "yuv420p"
-        audio = container.add_stream("aac", rate=44100)
-        for i in range(20):
-            frame = av.AudioFrame.from_ndarray(np.zeros((1, 1024), np.float32), format="fltp",
-                                               layout="mono")
-            frame.sample_rate, frame.pts = 44100, i * 1024
-            for packet in audio.encode(frame):
-                container.mux(packet)
-        for packet in audio.encode():
-            container.mux(packet)
+        _mux_silence(container, container.add_stream("aac", rate=44100))
     return path
 
 
