@@ -137,3 +137,22 @@ def test_a_stage_without_its_input_is_skipped_and_fan_out_items_are_gathered():
     keys.update({"frames": "f", "coarse": "c", "depth_00003": "d3", "depth_00009": "d9"})
     assert _inputs(BY_NAME["fusion"], keys) == {"frames": "f", "coarse": "c",
                                                 "depth_00003": "d3", "depth_00009": "d9"}
+
+
+def test_dependencies_point_one_way():
+    """flows → tasks → facecap_core: the science never imports the orchestration (nor
+    Prefect), and the tasks never import the flows; imports inside functions count too."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    forbidden = {"facecap_core": ("tasks", "flows", "prefect"), "tasks": ("flows",)}
+    found = []
+    for package, banned in forbidden.items():
+        for path in (root / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                         else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+                found += [f"{path.relative_to(root)}: {n}" for n in names
+                          if n.split(".")[0] in banned]
+    assert found == []
