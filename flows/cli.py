@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from facecap_core.errors import FacecapError
+from facecap_core.errors import FacecapError, InputError
 
 
 def _cmd_assets(args) -> int:
@@ -245,6 +245,41 @@ def _cmd_evaluate_dataset(args) -> int:
     return 1 if result["regressions"] else 0
 
 
+def _print_removal(removal, dry_run: bool) -> None:
+    verb = "would remove" if dry_run else "removed"
+    print(f"{verb} {len(removal.artifacts)} artifacts, {len(removal.folders)} results "
+          f"folders and {removal.history_entries} evaluation-history entries")
+    for folder in removal.folders:
+        print(f"  {folder}")
+
+
+def _cmd_forget(args) -> int:
+    from tasks.lifecycle import forget
+    from tasks.runner import check_store, default_store_url
+
+    store = check_store(args.store or default_store_url())
+    removal = forget(store, args.subject, Path(args.root) if args.root else None,
+                     Path(args.out) if args.out else None, dry_run=args.dry_run)
+    _print_removal(removal, args.dry_run)
+    return 0
+
+
+def _cmd_store_prune(args) -> int:
+    from datetime import UTC, datetime, timedelta
+
+    from tasks.lifecycle import prune
+    from tasks.runner import check_store, default_store_url
+
+    if not 0 <= args.older_than_days < 1e6:
+        raise InputError(f"--older-than-days {args.older_than_days:g} is not an age; give the "
+                         "number of days, 0 or more")
+    store = check_store(args.store or default_store_url())
+    before = datetime.now(UTC) - timedelta(days=args.older_than_days)
+    removal = prune(store, before, dry_run=args.dry_run)
+    _print_removal(removal, args.dry_run)
+    return 0
+
+
 def _cmd_serve(args) -> int:
     import os
 
@@ -385,6 +420,26 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--timezone", default="UTC", help="time zone of the schedule (IANA name)")
     sv.add_argument("--limit", type=int, default=1, help="flow runs at once")
     sv.set_defaults(func=_cmd_serve)
+
+    fg = sub.add_parser("forget", help="remove everything derived from one subject's captures: "
+                                       "the store's artifacts, the results folder and the "
+                                       "subject's evaluation history")
+    fg.add_argument("subject", help="the subject's folder name in the dataset")
+    fg.add_argument("--root", help="dataset folder (its ROOT/<subject>/ captures and scan)")
+    fg.add_argument("--out", help="results folder (OUT/<subject>/ and OUT/evaluations/)")
+    fg.add_argument("--store", help="artifact store (see reconstruct)")
+    fg.add_argument("--dry-run", action="store_true", help="list, remove nothing")
+    fg.set_defaults(func=_cmd_forget)
+
+    st = sub.add_parser("store", help="look after the artifact store")
+    st_sub = st.add_subparsers(dest="store_command", required=True)
+    pr = st_sub.add_parser("prune", help="remove artifacts older than a number of days, and "
+                                         "every artifact made from them")
+    pr.add_argument("--older-than-days", type=float, required=True,
+                    help="age (days since the artifact was committed)")
+    pr.add_argument("--store", help="artifact store (see reconstruct)")
+    pr.add_argument("--dry-run", action="store_true", help="list, remove nothing")
+    pr.set_defaults(func=_cmd_store_prune)
 
     te = sub.add_parser("train-ears", help="render the ear training set and train the ear "
                                            "detector and predictor")

@@ -1,0 +1,115 @@
+"""Biometric data has a lifecycle: a subject forgotten, old artifacts pruned; nothing of
+another subject is touched."""
+
+from __future__ import annotations
+
+import json
+import time
+from datetime import datetime
+from pathlib import Path
+
+import pytest
+
+from facecap_core.errors import InputError
+from flows.cli import main
+from tasks.graph import BY_NAME
+from tasks.lifecycle import derived, forget, prune
+from tasks.runner import ingest
+from tasks.store import ArtifactStore
+
+
+def chain(store_url: str, video: Path) -> dict[str, str]:
+    """A capture's input artifact and two stage artifacts made from it, one from the other."""
+    store = ArtifactStore(store_url)
+    keys = {"video": ingest(store_url, video, "video.mp4")}
+    for stage, made_from in (("keyframes", {"video": keys["video"]}),
+                             ("poses", {"video": keys["video"], "keyframes": None})):
+        made_from = {k: v or keys["keyframes"] for k, v in made_from.items()}
+        keys[stage] = BY_NAME[stage].key(made_from, {})
+        store.put(keys[stage], {"out.json": stage.encode()}, stage=stage, inputs=made_from,
+                  config={}, version="1")
+    return keys
+
+
+@pytest.fixture
+def world(tmp_path):
+    """Two subjects in a dataset folder, their artifacts, results and evaluation history."""
+    root, out, store_url = tmp_path / "data", tmp_path / "out", str(tmp_path / "store")
+    keys = {}
+    for subject in ("alice", "bob"):
+        (root / subject).mkdir(parents=True)
+        video = root / subject / "take1.mp4"
+        video.write_bytes(f"the face of {subject}".encode())
+        (root / subject / "scan.ply").write_bytes(f"the scan of {subject}".encode())
+        keys[subject] = chain(store_url, video)
+        (out / subject / "take1").mkdir(parents=True)
+        (out / subject / "take1" / "report.json").write_text(json.dumps(
+            {"stages": {s: {"key": keys[subject][s]} for s in ("keyframes", "poses")}}))
+    (out / "evaluations").mkdir()
+    (out / "evaluations" / "20261101T020000000000Z.json").write_text(json.dumps(
+        {"captures": {"alice/take1": {}, "bob/take1": {}},
+         "regressions": [{"capture": "alice/take1"}]}))
+    return {"root": root, "out": out, "store": store_url, "keys": keys}
+
+
+def test_derived_follows_the_inputs_down(world):
+    store = ArtifactStore(world["store"])
+    alice = world["keys"]["alice"]
+    assert derived(store, {alice["video"]}) == set(alice.values())
+    assert derived(store, {alice["poses"]}) == {alice["poses"]}
+
+
+def test_forget_removes_the_subject_and_nothing_else(world):
+    store = ArtifactStore(world["store"])
+    before = set(store.keys())
+    dry = forget(store, "alice", world["root"], world["out"], dry_run=True)
+    assert set(store.keys()) == before and (world["out"] / "alice").is_dir()
+    removal = forget(store, "alice", world["root"], world["out"])
+    assert removal.artifacts == dry.artifacts == sorted(world["keys"]["alice"].values())
+    assert set(store.keys()) == set(world["keys"]["bob"].values())
+    assert not (world["out"] / "alice").exists() and (world["out"] / "bob").is_dir()
+    history = json.loads((world["out"] / "evaluations" / "20261101T020000000000Z.json")
+                         .read_text())
+    assert history == {"captures": {"bob/take1": {}}, "regressions": []}
+    assert removal.history_entries == 1
+
+
+def test_forget_refuses_names_that_are_not_subjects(world, tmp_path):
+    store = ArtifactStore(world["store"])
+    for name in ("", "..", "alice/take1", "../out"):
+        with pytest.raises(InputError, match="not a subject name"):
+            forget(store, name, world["root"], world["out"])
+    with pytest.raises(InputError, match="nothing of subject 'carol'"):
+        forget(store, "carol", world["root"], world["out"])
+    (world["out"] / "mallory").symlink_to(tmp_path / "data" / "bob")
+    with pytest.raises(InputError, match="outside the results folder"):
+        forget(store, "mallory", None, world["out"])
+    assert (tmp_path / "data" / "bob" / "take1.mp4").is_file()
+
+
+def test_prune_removes_what_is_older_and_what_was_made_from_it(world, tmp_path):
+    store = ArtifactStore(world["store"])
+    time.sleep(0.01)
+    cut = datetime.fromisoformat(store.manifest(world["keys"]["bob"]["poses"]).created)
+    time.sleep(0.01)
+    video = tmp_path / "new.mp4"
+    video.write_bytes(b"a later capture")
+    late = chain(world["store"], video)
+    # Committed before the cut: all of alice's and bob's video and keyframes; bob's poses,
+    # committed at the cut, go too, being made from his keyframes. The later capture stays.
+    removal = prune(store, cut)
+    assert set(store.keys()) == set(late.values())
+    assert set(removal.artifacts) == {*world["keys"]["alice"].values(),
+                                      *world["keys"]["bob"].values()}
+
+
+def test_the_commands_say_what_they_removed(world, capsys):
+    code = main(["forget", "bob", "--root", str(world["root"]), "--out", str(world["out"]),
+                 "--store", world["store"]])
+    assert code == 0
+    assert "removed 3 artifacts, 1 results folders" in capsys.readouterr().out
+    code = main(["store", "prune", "--older-than-days", "0", "--store", world["store"],
+                 "--dry-run"])
+    assert code == 0 and "would remove 3 artifacts" in capsys.readouterr().out
+    assert main(["store", "prune", "--older-than-days", "-1", "--store", world["store"]]) == 2
+    assert "is not an age" in capsys.readouterr().err
