@@ -323,13 +323,15 @@ def _write(path: Path, doc: dict) -> Path:
 def figures(folder: str | Path) -> dict:
     """Headline figures of a coarse artifact: the metric scale, its cues and uncertainty,
     and the angular coverage of the landmarks."""
-    folder = Path(folder)
-    cameras = json.loads((folder / CAMERAS_JSON).read_text())
-    scale = json.loads((folder / COARSE_JSON).read_text())["scale"]
-    fig = {"metric_scale": cameras.get("metric_scale"),
-           "scale": {k: scale.get(k) for k in ("metric_scale", "sigma_pct", "used", "cues",
-                                               "dropped", "how")}}
-    coverage = json.loads((folder / LANDMARKS_3D).read_text()).get("coverage")
-    if coverage:
-        fig["coverage"] = coverage
+    folder, fig = Path(folder), {}
+    if (folder / CAMERAS_JSON).is_file():
+        fig["metric_scale"] = json.loads((folder / CAMERAS_JSON).read_text()).get("metric_scale")
+    if (folder / COARSE_JSON).is_file():
+        scale = json.loads((folder / COARSE_JSON).read_text())["scale"]
+        fig["scale"] = {k: scale.get(k) for k in ("metric_scale", "sigma_pct", "used", "cues",
+                                                   "dropped", "how")}
+    if (folder / LANDMARKS_3D).is_file():
+        coverage = json.loads((folder / LANDMARKS_3D).read_text()).get("coverage")
+        if coverage:
+            fig["coverage"] = coverage
     return fig

@@ -60,4 +60,5 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
 
 def figures(folder: str | Path) -> dict:
     """The scores of an evaluation artifact, per protocol."""
-    return {"evaluation": json.loads((Path(folder) / EVALUATION_JSON).read_text())}
+    path = Path(folder) / EVALUATION_JSON
+    return {"evaluation": json.loads(path.read_text())} if path.is_file() else {}

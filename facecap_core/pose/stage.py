@@ -187,7 +187,11 @@ def main(video: str | Path, keyframes_json: str | Path, out_dir: str | Path,
 
 
 def figures(folder: str | Path) -> dict:
-    """Headline figures of a pose artifact for the run report and the UI."""
-    doc = json.loads((Path(folder) / CAMERAS_JSON).read_text())
+    """Headline figures of a pose artifact for the run report and the UI (none where its
+    files are missing: an artifact seeded by a test or a tool)."""
+    path = Path(folder) / CAMERAS_JSON
+    if not path.is_file():
+        return {}
+    doc = json.loads(path.read_text())
     return {"keyframes": len(doc["keyframes"]), "focal_px": round(doc["intrinsics"]["fx"], 2),
             "dropped_keyframes": doc.get("dropped", [])}
