@@ -7,73 +7,11 @@ that escapes is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-from facecap_core.errors import FacecapError, InputError
-
-
-def _cmd_assets(args) -> int:
-    from facecap_core import assets
-
-    folder = assets.menpo3d_data()
-    print(assets.PROVENANCE.format(sha=assets.MENPO3D_SHA256))
-    print(f"cached in {folder}")
-    for name in assets.MENPO3D_FILES:
-        print(f"  {folder / name}")
-    return 0
-
-
-def _synth_config(args):
-    from facecap_core.config import SynthConfig, build, load_yaml
-
-    overrides = {k: v for k, v in {
-        "subject": args.subject, "subject_landmarks": args.subject_landmarks,
-        "ict_model": args.ict_model, "width": args.width, "height": args.height,
-        "fps": args.fps, "duration_s": args.seconds, "seed": args.seed,
-    }.items() if v is not None}
-    if args.config:
-        return load_yaml(SynthConfig, args.config, overrides)
-    return build(SynthConfig, overrides, source="synth options")
-
-
-def _cmd_synth(args) -> int:
-    from facecap_core.synthetic import synthesize
-
-    config = _synth_config(args)
-    capture = synthesize(config, args.out, progress=not args.quiet)
-    print(f"wrote {capture.video} ({capture.frames} frames, {capture.seconds:.1f} s, "
-          f"{capture.seconds / capture.frames:.2f} s/frame) and ground truth in "
-          f"{capture.folder / 'gt'}")
-    return 0
-
-
-def _cmd_evaluate(args) -> int:
-    from facecap_core import evaluation as ev
-    from facecap_core.meshio import load_mesh
-
-    protocols = ev.PROTOCOLS if args.protocol == "both" else (args.protocol,)
-    scores = ev.evaluate(args.mesh, args.scan, args.scan_landmarks, args.mesh_landmarks,
-                         protocols=protocols)
-    if args.heatmap:
-        mesh = load_mesh(args.mesh)
-        for name, sc in scores.items():
-            out = Path(args.heatmap)
-            out = out.with_name(f"{out.stem}_{name}{out.suffix or '.png'}")
-            ev.error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces,
-                             sc.accuracy_per_vertex, out)
-            print(f"heat map: {out}", file=sys.stderr)
-    if args.json:
-        records = {p: ev.score_json(s) for p, s in scores.items()}
-        print(json.dumps(records[protocols[0]] if len(protocols) == 1 else records))
-        return 0
-    rows = [(f"{Path(args.mesh).name} ({p})", [ev.score_json(s)]) for p, s in scores.items()]
-    print(ev.paper_table(rows))
-    for p, s in scores.items():
-        print(f"{p}: scale {s.scale:.4f}, accuracy under 1 mm {s.accuracy.under_1mm:.1%}, "
-              f"completion under 1 mm {s.completion.under_1mm:.1%}")
-    return 0
+from facecap_core.errors import FacecapError
+from flows import tools
 
 
 def _prefect_defaults() -> None:
@@ -245,41 +183,6 @@ def _cmd_evaluate_dataset(args) -> int:
     return 1 if result["regressions"] else 0
 
 
-def _print_removal(removal, dry_run: bool) -> None:
-    verb = "would remove" if dry_run else "removed"
-    print(f"{verb} {len(removal.artifacts)} artifacts, {len(removal.folders)} results "
-          f"folders and {removal.history_entries} evaluation-history entries")
-    for folder in removal.folders:
-        print(f"  {folder}")
-
-
-def _cmd_forget(args) -> int:
-    from tasks.lifecycle import forget
-    from tasks.runner import check_store, default_store_url
-
-    store = check_store(args.store or default_store_url())
-    removal = forget(store, args.subject, Path(args.root) if args.root else None,
-                     Path(args.out) if args.out else None, dry_run=args.dry_run)
-    _print_removal(removal, args.dry_run)
-    return 0
-
-
-def _cmd_store_prune(args) -> int:
-    from datetime import UTC, datetime, timedelta
-
-    from tasks.lifecycle import prune
-    from tasks.runner import check_store, default_store_url
-
-    if not 0 <= args.older_than_days < 1e6:
-        raise InputError(f"--older-than-days {args.older_than_days:g} is not an age; give the "
-                         "number of days, 0 or more")
-    store = check_store(args.store or default_store_url())
-    before = datetime.now(UTC) - timedelta(days=args.older_than_days)
-    removal = prune(store, before, dry_run=args.dry_run)
-    _print_removal(removal, args.dry_run)
-    return 0
-
-
 def _cmd_serve(args) -> int:
     import os
 
@@ -295,14 +198,6 @@ def _cmd_serve(args) -> int:
     print(f"serving reconstruct-dataset, reconstruct-capture and nightly-evaluation "
           f"({args.cron}, {args.timezone}); Ctrl-C stops")
     serve(args.root, args.out, args.cron, args.timezone, args.limit)
-    return 0
-
-
-def _cmd_train_ears(args) -> int:
-    from facecap_core.ear_training import train
-
-    path = train(args.out, progress=True)
-    print(f"ear model written to {path}")
     return 0
 
 
@@ -351,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     a = sub.add_parser("assets", help="fetch, verify and list the template and sample scan")
-    a.set_defaults(func=_cmd_assets)
+    a.set_defaults(func=tools.assets)
 
     s = sub.add_parser("synth", help="render a synthetic capture with exact ground truth")
     s.add_argument("--out", required=True, help="output folder (video.mp4 + gt/)")
@@ -365,7 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seconds", type=float, help="sweep duration")
     s.add_argument("--seed", type=int)
     s.add_argument("--quiet", action="store_true", help="no progress bar")
-    s.set_defaults(func=_cmd_synth)
+    s.set_defaults(func=tools.synth)
 
     e = sub.add_parser("evaluate", help="score a mesh against a scan (accuracy/completion, mm)")
     e.add_argument("mesh", help="reconstructed mesh (PLY/OBJ, mm)")
@@ -375,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--protocol", choices=["similarity", "metric", "both"], default="both")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.add_argument("--heatmap", help="write accuracy heat maps to this PNG path")
-    e.set_defaults(func=_cmd_evaluate)
+    e.set_defaults(func=tools.evaluate)
 
     r = sub.add_parser("reconstruct", help="reconstruct one capture: video or photos in, "
                                            "metric mesh out")
@@ -429,7 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
     fg.add_argument("--out", help="results folder (OUT/<subject>/ and OUT/evaluations/)")
     fg.add_argument("--store", help="artifact store (see reconstruct)")
     fg.add_argument("--dry-run", action="store_true", help="list, remove nothing")
-    fg.set_defaults(func=_cmd_forget)
+    fg.set_defaults(func=tools.forget)
 
     st = sub.add_parser("store", help="look after the artifact store")
     st_sub = st.add_subparsers(dest="store_command", required=True)
@@ -439,12 +334,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="age (days since the artifact was committed)")
     pr.add_argument("--store", help="artifact store (see reconstruct)")
     pr.add_argument("--dry-run", action="store_true", help="list, remove nothing")
-    pr.set_defaults(func=_cmd_store_prune)
+    pr.set_defaults(func=tools.store_prune)
 
     te = sub.add_parser("train-ears", help="render the ear training set and train the ear "
                                            "detector and predictor")
     te.add_argument("--out", required=True, help="folder for the model files")
-    te.set_defaults(func=_cmd_train_ears)
+    te.set_defaults(func=tools.train_ears)
 
     d = sub.add_parser("demo", help="synthesize a capture, reconstruct it, print its accuracy")
     d.add_argument("--out", default="out/demo", help="output folder (capture/ and result/)")

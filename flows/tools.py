@@ -1,0 +1,115 @@
+"""The ``facecap`` commands that run no flow: assets, synthetic captures, scoring one mesh,
+training the ear model, and removing a subject's data or old artifacts."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from facecap_core.errors import InputError
+
+
+def assets(args) -> int:
+    from facecap_core import assets
+
+    folder = assets.menpo3d_data()
+    print(assets.PROVENANCE.format(sha=assets.MENPO3D_SHA256))
+    print(f"cached in {folder}")
+    for name in assets.MENPO3D_FILES:
+        print(f"  {folder / name}")
+    return 0
+
+
+def synth_config(args):
+    from facecap_core.config import SynthConfig, build, load_yaml
+
+    overrides = {k: v for k, v in {
+        "subject": args.subject, "subject_landmarks": args.subject_landmarks,
+        "ict_model": args.ict_model, "width": args.width, "height": args.height,
+        "fps": args.fps, "duration_s": args.seconds, "seed": args.seed,
+    }.items() if v is not None}
+    if args.config:
+        return load_yaml(SynthConfig, args.config, overrides)
+    return build(SynthConfig, overrides, source="synth options")
+
+
+def synth(args) -> int:
+    from facecap_core.synthetic import synthesize
+
+    config = synth_config(args)
+    capture = synthesize(config, args.out, progress=not args.quiet)
+    print(f"wrote {capture.video} ({capture.frames} frames, {capture.seconds:.1f} s, "
+          f"{capture.seconds / capture.frames:.2f} s/frame) and ground truth in "
+          f"{capture.folder / 'gt'}")
+    return 0
+
+
+def evaluate(args) -> int:
+    from facecap_core import evaluation as ev
+    from facecap_core.meshio import load_mesh
+
+    protocols = ev.PROTOCOLS if args.protocol == "both" else (args.protocol,)
+    scores = ev.evaluate(args.mesh, args.scan, args.scan_landmarks, args.mesh_landmarks,
+                         protocols=protocols)
+    if args.heatmap:
+        mesh = load_mesh(args.mesh)
+        for name, sc in scores.items():
+            out = Path(args.heatmap)
+            out = out.with_name(f"{out.stem}_{name}{out.suffix or '.png'}")
+            ev.error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces,
+                             sc.accuracy_per_vertex, out)
+            print(f"heat map: {out}", file=sys.stderr)
+    if args.json:
+        records = {p: ev.score_json(s) for p, s in scores.items()}
+        print(json.dumps(records[protocols[0]] if len(protocols) == 1 else records))
+        return 0
+    rows = [(f"{Path(args.mesh).name} ({p})", [ev.score_json(s)]) for p, s in scores.items()]
+    print(ev.paper_table(rows))
+    for p, s in scores.items():
+        print(f"{p}: scale {s.scale:.4f}, accuracy under 1 mm {s.accuracy.under_1mm:.1%}, "
+              f"completion under 1 mm {s.completion.under_1mm:.1%}")
+    return 0
+
+
+def print_removal(removal, dry_run: bool) -> None:
+    verb = "would remove" if dry_run else "removed"
+    print(f"{verb} {len(removal.artifacts)} artifacts, {len(removal.folders)} results "
+          f"folders and {removal.history_entries} evaluation-history entries")
+    for folder in removal.folders:
+        print(f"  {folder}")
+
+
+def forget(args) -> int:
+    from tasks import lifecycle
+    from tasks.runner import check_store, default_store_url
+
+    store = check_store(args.store or default_store_url())
+    removal = lifecycle.forget(store, args.subject, Path(args.root) if args.root else None,
+                     Path(args.out) if args.out else None, dry_run=args.dry_run)
+    print_removal(removal, args.dry_run)
+    return 0
+
+
+def store_prune(args) -> int:
+    from datetime import UTC, datetime, timedelta
+
+    from tasks import lifecycle
+    from tasks.runner import check_store, default_store_url
+
+    if not 0 <= args.older_than_days < 1e6:
+        raise InputError(f"--older-than-days {args.older_than_days:g} is not an age; give the "
+                         "number of days, 0 or more")
+    store = check_store(args.store or default_store_url())
+    before = datetime.now(UTC) - timedelta(days=args.older_than_days)
+    removal = lifecycle.prune(store, before, dry_run=args.dry_run)
+    print_removal(removal, args.dry_run)
+    return 0
+
+
+def train_ears(args) -> int:
+    from facecap_core.ear_training import train
+
+    path = train(args.out, progress=True)
+    print(f"ear model written to {path}")
+    return 0
