@@ -26,6 +26,15 @@ def _slug(text: str) -> str:
     return slug
 
 
+def markdown_text(text: object) -> str:
+    """Text shown as itself in the UI's markdown: a capture or folder name cannot add a link,
+    an image, HTML or formatting to the page (names come from whoever fills the dataset)."""
+    import html
+    import re
+
+    return re.sub(r"([\\`*_{}\[\]()#+\-.!|>~])", r"\\\1", html.escape(str(text), quote=True))
+
+
 def png_data_uri(path: Path, max_width: int = 960) -> str:
     """A PNG as a data URI, downscaled to ``max_width`` so the artifact stays small."""
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -73,9 +82,9 @@ def stage_rows(report: dict) -> list[dict]:
 
 
 def capture_markdown(report: dict, out: Path, images: list[tuple[str, Path]]) -> str:
-    lines = [f"# {report['subject']} / {report['capture']}", "",
+    lines = [f"# {markdown_text(report['subject'])} / {markdown_text(report['capture'])}", "",
              f"{report['computed']} artifacts computed, {report['cached']} reused, "
-             f"{report['wall_seconds']} s. Results in `{out}`.", ""]
+             f"{report['wall_seconds']} s. Results in {markdown_text(out)}.", ""]
     fig = report.get("figures", {})
     for name in ("keyframes", "focal_px", "metric_scale", "fit_seconds"):
         if name in fig:
@@ -84,7 +93,8 @@ def capture_markdown(report: dict, out: Path, images: list[tuple[str, Path]]) ->
     if scale.get("sigma_pct") is not None:
         lines.append(f"- scale uncertainty: ±{scale['sigma_pct']} % (1σ) from "
                      f"{' + '.join(scale['used'])}"
-                     + "".join(f"; {d['name']} dropped ({d['reason']})" for d in scale["dropped"]))
+                     + "".join(f"; {d['name']} dropped ({markdown_text(d['reason'])})"
+                               for d in scale["dropped"]))
     for protocol, sc in fig.get("evaluation", {}).items():
         a, c = sc["accuracy"], sc["completion"]
         lines.append(f"- {protocol}: accuracy mean {a['mean']:.3f} / median {a['median']:.3f} mm,"
