@@ -86,8 +86,16 @@ def forget(args) -> int:
 
     store = check_store(args.store or default_store_url())
     removal = lifecycle.forget(store, args.subject, Path(args.root) if args.root else None,
-                     Path(args.out) if args.out else None, dry_run=args.dry_run)
+                               Path(args.out) if args.out else None, dry_run=args.dry_run)
     print_removal(removal, args.dry_run)
+    if not args.dry_run and removal.captures:
+        from flows.cli import _prefect_env
+        from flows.ui import forget_artifacts
+
+        _prefect_env()
+        # The UI's stage tables and preview pages (the preview shows the face).
+        print(f"removed {forget_artifacts(removal.captures)} UI artifacts of "
+              f"{', '.join(removal.captures)}")
     return 0
 
 

@@ -106,12 +106,44 @@ def capture_markdown(report: dict, out: Path, images: list[tuple[str, Path]]) ->
     return "\n".join(lines)
 
 
+def artifact_keys(label: str) -> list[str]:
+    """The keys of the UI artifacts a capture run publishes (every version shares them)."""
+    key = _slug(label)
+    return [f"stages-{key}", f"capture-{key}"]
+
+
+def forget_artifacts(labels: list[str]) -> int:
+    """Delete every version of the UI artifacts of these captures (``subject/capture``) from
+    the Prefect server the runs reported to; returns how many went."""
+    import asyncio
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    keys = [k for label in labels for k in artifact_keys(label)]
+    if not keys:
+        return 0
+
+    async def delete() -> int:
+        deleted = 0
+        async with get_client() as client:
+            while found := await client.read_artifacts(
+                    artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=keys)), limit=200):
+                for artifact in found:
+                    await client.delete_artifact(artifact.id)
+                deleted += len(found)
+        return deleted
+
+    return asyncio.run(delete())
+
+
 def publish_capture(report: dict, out: Path, label: str) -> None:
     from prefect.artifacts import create_markdown_artifact, create_table_artifact
     from prefect.events import emit_event
 
     key = _slug(label)
-    create_table_artifact(stage_rows(report), key=f"stages-{key}",
+    stages_key, capture_key = artifact_keys(label)
+    create_table_artifact(stage_rows(report), key=stages_key,
                           description=f"stages of {label}: computed or reused, seconds")
     images = []
     if (out / "mesh.ply").is_file():
@@ -119,7 +151,7 @@ def publish_capture(report: dict, out: Path, label: str) -> None:
         images.append(("Accuracy (metric)" if scored else "Mesh", mesh_preview(out)))
     if (out / "heatmap_similarity.png").is_file():
         images.append(("Accuracy (similarity)", out / "heatmap_similarity.png"))
-    create_markdown_artifact(capture_markdown(report, out, images), key=f"capture-{key}",
+    create_markdown_artifact(capture_markdown(report, out, images), key=capture_key,
                              description=f"{label}: results and previews")
     emit_event(event="facecap.capture.completed",
                resource={"prefect.resource.id": f"facecap.capture.{key}",

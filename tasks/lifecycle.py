@@ -27,6 +27,8 @@ class Removal:
     artifacts: list[str] = field(default_factory=list)
     folders: list[Path] = field(default_factory=list)
     history_entries: int = 0
+    captures: list[str] = field(default_factory=list)
+    """``subject/capture`` of each capture forgotten (their UI pages go too)."""
 
 
 def derived(store: ArtifactStore, keys: set[str]) -> set[str]:
@@ -59,6 +61,18 @@ def _subject_inputs(root: Path, subject: str) -> set[str]:
         return set()
     return {input_key(path) for path in sorted(folder.iterdir())
             if not path.name.startswith(".") and (path.is_file() or path.is_dir())}
+
+
+def _capture_labels(subject: str, root: Path | None, results: Path | None) -> list[str]:
+    """``subject/capture`` of the subject's captures in the dataset and the results folder."""
+    names = set()
+    if root is not None and (Path(root) / subject).is_dir():
+        names |= {p.stem if p.is_file() else p.name for p in (Path(root) / subject).iterdir()
+                  if not p.name.startswith(".") and not p.name.startswith(("scan.",
+                                                                            "scan_landmarks."))}
+    if results is not None and results.is_dir():
+        names |= {p.name for p in results.iterdir() if p.is_dir()}
+    return sorted(f"{subject}/{name}" for name in names)
 
 
 def _reported_keys(folder: Path) -> set[str]:
@@ -117,6 +131,7 @@ def forget(store: ArtifactStore, subject: str, root: Path | None, out: Path | No
                          "dataset folder or the results folder); check the name, --root and "
                          "--out")
     removal.artifacts = sorted(derived(store, seeds))
+    removal.captures = _capture_labels(subject, root, results)
     if out is not None:
         removal.history_entries = _forget_history(Path(out), subject, dry_run)
     if not dry_run:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from flows.ui import capture_markdown
 
 
@@ -17,3 +19,30 @@ def test_capture_and_folder_names_cannot_add_links_images_or_html():
     assert "**bold**" not in page
     # The names are all there, as text.
     assert "click" in page and "evil" in page and "onerror=alert" in page
+
+
+@pytest.mark.slow
+def test_a_forgotten_subjects_ui_pages_are_deleted_and_no_one_elses():
+    import asyncio
+
+    from prefect import flow
+    from prefect.artifacts import create_markdown_artifact
+    from prefect.client.orchestration import get_client
+    from prefect.testing.utilities import prefect_test_harness
+
+    from flows.ui import artifact_keys, forget_artifacts
+
+    async def keys_on_server() -> list[str]:
+        async with get_client() as client:
+            return sorted(a.key for a in await client.read_artifacts())
+
+    @flow
+    def publish(labels: list[str]) -> None:
+        for label in labels:
+            for key in artifact_keys(label):
+                create_markdown_artifact("a face", key=key)
+
+    with prefect_test_harness(server_startup_timeout=120):
+        publish(["alice/take1", "alice/take1", "alice/take 2", "bob/take1"])
+        assert forget_artifacts(["alice/take1", "alice/take 2"]) == 6
+        assert asyncio.run(keys_on_server()) == sorted(artifact_keys("bob/take1"))
