@@ -1,5 +1,8 @@
 """The bad-input corpus, through the ``facecap`` command line.
 
+One module on purpose (~800 lines): the corpus is one table of inputs and the words their
+refusal must contain, read and extended in one place (docs/robustness.md mirrors it).
+
 Every input below is generated on the fly (tiny videos of a cheap 3D scene: coloured dots on a
 head-sized blob in front of a wall, filmed by an orbiting camera) and given to ``facecap`` as a
 user would. A refused input must end with exit code 2 and exactly one stderr line

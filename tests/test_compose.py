@@ -1,5 +1,8 @@
 """The service stack: docker-compose.yml, the worker image and deploy/prefect.yaml.
 
+One module on purpose (~600 lines): the stack is one configuration, checked against itself
+(every variable a container reads is one the stack sets) in one place.
+
 No Docker engine runs here: Debian's ``docker-compose`` (1.29) validates and resolves the
 compose file offline, and deploy/prefect.yaml is registered on a live local Prefect server,
 where a process worker runs the nightly deployment the way the stack's workers do.

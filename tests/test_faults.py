@@ -1,5 +1,8 @@
 """Faults: a worker killed in any stage, a corrupt artifact, a store that goes away.
 
+One module on purpose (~500 lines): the kill chain, the worker processes and the Prefect
+server they report to are set up once and shared by every fault.
+
 Every stage runs for real, in worker processes that report to one Prefect test server: the
 first stages (ingest, keyframes, poses) through the capture flow on a small video of a dot
 scene, the landmarks and coarse mesh on the small face capture of ``tests/test_flows.py`` with

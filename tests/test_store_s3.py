@@ -1,5 +1,8 @@
 """The artifact store on S3, as the compose stack runs it on MinIO.
 
+One module on purpose (~500 lines): every test shares one in-process S3 server and its
+environment, set up once.
+
 A real S3 server runs in this process (moto's ThreadedMotoServer, over HTTP on 127.0.0.1);
 the store finds it only through the environment, as the workers do: credentials in
 AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY and the endpoint in AWS_ENDPOINT_URL_S3 (botocore,
