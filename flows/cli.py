@@ -328,10 +328,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     st = sub.add_parser("store", help="look after the artifact store")
     st_sub = st.add_subparsers(dest="store_command", required=True)
-    pr = st_sub.add_parser("prune", help="remove artifacts older than a number of days, and "
-                                         "every artifact made from them")
-    pr.add_argument("--older-than-days", type=float, required=True,
-                    help="age (days since the artifact was committed)")
+    pr = st_sub.add_parser("prune", help="remove artifacts older than a number of days and "
+                                         "every artifact made from them, or those no result "
+                                         "names (--unreferenced)")
+    pr.add_argument("--older-than-days", type=float,
+                    help="age (days since the artifact was committed); with --unreferenced, "
+                         "the age below which an unreferenced artifact is kept (default 1: "
+                         "a run in progress writes its report when it ends)")
+    pr.add_argument("--unreferenced", action="store_true",
+                    help="remove the artifacts that no run report under the --out folders "
+                         "names, nor made anything a report names")
+    pr.add_argument("--out", action="append",
+                    help="results folder whose reports keep their artifacts (repeatable)")
     pr.add_argument("--store", help="artifact store (see reconstruct)")
     pr.add_argument("--dry-run", action="store_true", help="list, remove nothing")
     pr.set_defaults(func=tools.store_prune)

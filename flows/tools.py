@@ -105,12 +105,22 @@ def store_prune(args) -> int:
     from tasks import lifecycle
     from tasks.runner import check_store, default_store_url
 
-    if not 0 <= args.older_than_days < 1e6:
-        raise InputError(f"--older-than-days {args.older_than_days:g} is not an age; give the "
-                         "number of days, 0 or more")
+    if args.unreferenced and not args.out:
+        raise InputError("--unreferenced needs the results folders whose reports keep their "
+                         "artifacts; give them with --out")
+    if args.older_than_days is None and not args.unreferenced:
+        raise InputError("say what to prune: --older-than-days N, or --unreferenced --out OUT")
+    days = args.older_than_days if args.older_than_days is not None else 1.0
+    if not 0 <= days < 1e6:
+        raise InputError(f"--older-than-days {days:g} is not an age; give the number of days, "
+                         "0 or more")
     store = check_store(args.store or default_store_url())
-    before = datetime.now(UTC) - timedelta(days=args.older_than_days)
-    removal = lifecycle.prune(store, before, dry_run=args.dry_run)
+    before = datetime.now(UTC) - timedelta(days=days)
+    if args.unreferenced:
+        removal = lifecycle.prune_unreferenced(store, [Path(o) for o in args.out], before,
+                                               dry_run=args.dry_run)
+    else:
+        removal = lifecycle.prune(store, before, dry_run=args.dry_run)
     print_removal(removal, args.dry_run)
     return 0
 

@@ -1,5 +1,5 @@
-"""The lifecycle of what the service keeps about a face: artifacts pruned by age, and
-everything derived from one subject's captures forgotten.
+"""The lifecycle of what the service keeps about a face: artifacts pruned by age or because
+no result names them, and everything derived from one subject's captures forgotten.
 
 Artifacts are content-addressed and name the keys they were made from (their manifest's
 ``inputs``), so "derived from" is a walk down those links: a subject's videos, photos and
@@ -48,6 +48,41 @@ def prune(store: ArtifactStore, before: datetime, dry_run: bool = False) -> Remo
     old = {key for key in store.keys()
            if datetime.fromisoformat(store.manifest(key).created) < before}
     removal = Removal(artifacts=sorted(derived(store, old)))
+    if not dry_run:
+        for key in removal.artifacts:
+            store.delete(key)
+    return removal
+
+
+def referenced(store: ArtifactStore, results: list[Path]) -> set[str]:
+    """The artifacts that the run reports under the ``results`` folders name, and every
+    artifact they were made from (what a rerun of those captures would reuse)."""
+    named = set()
+    for folder in results:
+        named |= _reported_keys(Path(folder))
+    inputs = {key: set(store.manifest(key).inputs.values()) for key in store.keys()}
+    found, frontier = set(), named & set(inputs)
+    while frontier:  # up the inputs: what each kept artifact was made from
+        found |= frontier
+        frontier = {k for key in frontier for k in inputs[key] if k in inputs} - found
+    return found
+
+
+def prune_unreferenced(store: ArtifactStore, results: list[Path], before: datetime,
+                       dry_run: bool = False) -> Removal:
+    """Remove the artifacts committed before ``before`` that no run report under the
+    ``results`` folders names, directly or as what a named artifact was made from.
+
+    ``before`` spares the artifacts of runs still in progress: they are named by a report
+    only when their run ends."""
+    for folder in results:
+        if not Path(folder).is_dir():
+            raise InputError(f"results folder not found: {folder}; give the --out folders "
+                             "whose results keep their artifacts")
+    keep = referenced(store, results)
+    removal = Removal(artifacts=sorted(
+        key for key in set(store.keys()) - keep
+        if datetime.fromisoformat(store.manifest(key).created) < before))
     if not dry_run:
         for key in removal.artifacts:
             store.delete(key)

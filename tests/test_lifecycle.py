@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import time
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
@@ -13,7 +13,7 @@ import pytest
 from facecap_core.errors import InputError
 from flows.cli import main
 from tasks.graph import BY_NAME
-from tasks.lifecycle import derived, forget, prune
+from tasks.lifecycle import derived, forget, prune, prune_unreferenced
 from tasks.runner import ingest
 from tasks.store import ArtifactStore
 
@@ -103,7 +103,30 @@ def test_prune_removes_what_is_older_and_what_was_made_from_it(world, tmp_path):
                                       *world["keys"]["bob"].values()}
 
 
-def test_the_commands_say_what_they_removed(world, capsys):
+def test_prune_unreferenced_keeps_what_a_result_names_and_what_it_was_made_from(world,
+                                                                              tmp_path):
+    store = ArtifactStore(world["store"])
+    video = tmp_path / "abandoned.mp4"
+    video.write_bytes(b"a capture whose run never wrote a report")
+    orphan = chain(world["store"], video)
+    time.sleep(0.01)
+    now = datetime.now(UTC)
+    alice, bob = world["keys"]["alice"], world["keys"]["bob"]
+    # Reports name keyframes and poses; the video they were made from is kept with them.
+    removal = prune_unreferenced(store, [world["out"]], now, dry_run=True)
+    assert set(removal.artifacts) == set(orphan.values())
+    # Younger than the cut: a run still in progress, spared.
+    cut = datetime.fromisoformat(store.manifest(orphan["video"]).created)
+    assert prune_unreferenced(store, [world["out"]], cut).artifacts == []
+    # Only alice's results keep artifacts: bob's go with the orphan.
+    removal = prune_unreferenced(store, [world["out"] / "alice"], now)
+    assert set(removal.artifacts) == {*orphan.values(), *bob.values()}
+    assert set(store.keys()) == set(alice.values())
+    with pytest.raises(InputError, match="results folder not found"):
+        prune_unreferenced(store, [tmp_path / "nowhere"], now)
+
+
+def test_the_commands_say_what_they_removed(world, capsys, tmp_path):
     code = main(["forget", "bob", "--root", str(world["root"]), "--out", str(world["out"]),
                  "--store", world["store"]])
     assert code == 0
@@ -113,3 +136,14 @@ def test_the_commands_say_what_they_removed(world, capsys):
     assert code == 0 and "would remove 3 artifacts" in capsys.readouterr().out
     assert main(["store", "prune", "--older-than-days", "-1", "--store", world["store"]]) == 2
     assert "is not an age" in capsys.readouterr().err
+    assert main(["store", "prune", "--unreferenced", "--store", world["store"]]) == 2
+    assert "give them with --out" in capsys.readouterr().err
+    # bob is forgotten; results elsewhere name none of alice's artifacts.
+    (tmp_path / "elsewhere").mkdir()
+    code = main(["store", "prune", "--unreferenced", "--older-than-days", "0", "--out",
+                 str(world["out"]), "--out", str(tmp_path / "elsewhere"), "--store",
+                 world["store"]])
+    assert code == 0 and "removed 0 artifacts" in capsys.readouterr().out
+    code = main(["store", "prune", "--unreferenced", "--older-than-days", "0", "--out",
+                 str(tmp_path / "elsewhere"), "--store", world["store"]])
+    assert code == 0 and "removed 3 artifacts" in capsys.readouterr().out
