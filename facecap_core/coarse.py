@@ -14,12 +14,13 @@ by a **size prior** (see docs/landmarks.md, "Metric scale"):
 The error of such a prior is the spread of face sizes around the mean (≈ 5 % for the
 landmark configuration over ICT identities). A measured cue narrows it: the subject's
 interpupillary distance (``ipd_mm``) against the distance between the triangulated eye
-centres (≈ 2 %), or better between the triangulated pupils (≈ 1 %). With no measured cue, the
-irises still give one: an adult's horizontal visible iris diameter is 11.7 ± 0.5 mm (≈ 4 %,
-tighter than the face's size), measured at the triangulated pupils' depth (≈ 5 % with the
-measurement). The cues are combined by their stated spreads (an inverse-variance mean of
-log scales); one that disagrees with the others beyond ``cue_agreement_sigmas`` is dropped and
-reported. The ear-to-ear width is a cue only when ``ear_width_cue`` is on (not calibrated).
+centres (≈ 2 %), or better between the triangulated pupils (≈ 0.6 %). With no measured cue,
+the irises still give one: an adult's horizontal visible iris diameter is 11.7 ± 0.5 mm (≈ 4 %,
+tighter than the face's size), measured at the triangulated pupils' depth (≈ 6.5 % with the
+measurement); the spreads are ``CoarseConfig``'s ``*_spread`` fields. The cues are
+combined by their stated spreads (an inverse-variance mean of log scales); one that
+disagrees with the others beyond ``cue_agreement_sigmas`` is dropped and reported. The
+ear-to-ear width is a cue only when ``ear_width_cue`` is on (not calibrated).
 ``scale_method: fixed`` takes a known scale as it is.
 
 The **coarse mesh**: the template, placed by the robust similarity (in mm), then bent by a

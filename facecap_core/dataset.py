@@ -40,6 +40,11 @@ class CaptureEntry:
         return inside(Path(out_root), Path(out_root) / self.subject / self.capture)
 
 
+SUMMARY_NAMES = ("dataset.json", "consistency.json", "evaluations")
+"""What the dataset and evaluation flows write at the top of OUT, beside the subjects'
+folders."""
+
+
 def inside(root: Path, path: Path, what: str = "dataset folder") -> Path:
     """``path`` resolved, refusing anything that leaves ``root`` (the ``what``)."""
     root_r = root.resolve()

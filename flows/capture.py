@@ -265,6 +265,11 @@ def preflight(video: str | Path, config: str | Path | None = None, scan: str | N
     if info.frame_count > limits.max_frames:  # the header's count: before reading them all
         raise InputError(f"{video} has {info.frame_count} frames, more than the limit of "
                          f"{limits.max_frames}; cut it to the sweep around the head")
+    size = f"{info.width}x{info.height}"
+    if max(info.width, info.height) > limits.max_side_px:  # the header's size, too
+        raise InputError(f"{video} is {size} pixels, larger than the limit of "
+                         f"{limits.max_side_px} on the long side; record at 8K or less (4K is "
+                         "plenty)")
     stored = stored_frame_count(video)
     if stored > limits.max_frames:
         raise InputError(f"{video} has {stored} frames, more than the limit of "
@@ -276,14 +281,9 @@ def preflight(video: str | Path, config: str | Path | None = None, scan: str | N
         raise InputError(f"{video} is truncated: it holds {stored} of its {info.frame_count} "
                          "frames; copy the whole file again")
     cfg = load_pipeline_config(config)
-    size = f"{info.width}x{info.height}"
     if min(info.width, info.height) < MIN_VIDEO_SIDE_PX:
         raise InputError(f"{video} is {size} pixels, too small to find a face in; record at "
                          f"least {MIN_VIDEO_SIDE_PX} pixels on the short side (720p or more)")
-    if max(info.width, info.height) > limits.max_side_px:
-        raise InputError(f"{video} is {size} pixels, larger than the limit of "
-                         f"{limits.max_side_px} on the long side; record at 8K or less (4K is "
-                         "plenty)")
     if not photos and stored < cfg.keyframes.min_frames:
         raise InputError(f"{video} has {stored} frames; an ear-to-ear capture needs "
                          f"at least {cfg.keyframes.min_frames} (record a slow sweep of several "

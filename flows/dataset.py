@@ -14,7 +14,7 @@ from pathlib import Path
 
 from prefect import flow, get_run_logger
 
-from facecap_core.dataset import CaptureEntry, mesh_consistency, scan_dataset
+from facecap_core.dataset import SUMMARY_NAMES, CaptureEntry, mesh_consistency, scan_dataset
 from facecap_core.errors import FacecapError, InputError
 from flows.capture import as_user_sees_it, reconstruct_capture
 from flows.service import guard
@@ -24,11 +24,6 @@ def _run_name() -> str:
     from prefect.runtime import flow_run
 
     return f"dataset {Path(flow_run.parameters.get('root', 'dataset')).name}"
-
-
-SUMMARY_NAMES = ("dataset.json", "consistency.json", "evaluations")
-"""What the dataset and evaluation flows write at the top of OUT, beside the subjects'
-folders."""
 
 
 def check_dataset_output(entries: list[CaptureEntry], out: Path) -> None:

@@ -117,6 +117,11 @@ def guard(out: str | os.PathLike, store: str | None,
     else:
         for what, path in inputs.items():
             policy.input(path, what.replace("_", " "))
+            if what == "video" and path is not None and Path(path).is_dir():
+                from facecap_core.photos import list_photos
+
+                for photo in list_photos(path):  # a photo folder: a linked photo is read too
+                    policy.input(photo, "photo")
         policy.output(out)
         store = policy.check_store(store)
     open_store(store)  # an unsupported protocol or a file for a folder: refused here

@@ -85,18 +85,34 @@ def forget(args) -> int:
     from tasks.runner import check_store, default_store_url
 
     store = check_store(args.store or default_store_url())
-    removal = lifecycle.forget(store, args.subject, Path(args.root) if args.root else None,
-                               Path(args.out) if args.out else None, dry_run=args.dry_run)
+    root, out = (Path(args.root) if args.root else None), (Path(args.out) if args.out else None)
+    planned = lifecycle.plan_forget(store, args.subject, root, out)
+    if not args.dry_run and planned.captures:
+        # The UI pages first (the preview shows the face): a server that cannot be reached
+        # then leaves everything in place for another try.
+        print(f"removed {_forget_ui(planned.captures)} UI artifacts of "
+              f"{', '.join(planned.captures)}")
+    removal = lifecycle.forget(store, args.subject, root, out, dry_run=args.dry_run)
     print_removal(removal, args.dry_run)
-    if not args.dry_run and removal.captures:
-        from flows.cli import _prefect_env
-        from flows.ui import forget_artifacts
-
-        _prefect_env()
-        # The UI's stage tables and preview pages (the preview shows the face).
-        print(f"removed {forget_artifacts(removal.captures)} UI artifacts of "
-              f"{', '.join(removal.captures)}")
     return 0
+
+
+def _forget_ui(captures: list[str]) -> int:
+    import httpx
+
+    from flows.cli import _prefect_env
+    from flows.ui import forget_artifacts
+
+    _prefect_env()
+    try:
+        return forget_artifacts(captures)
+    except (httpx.HTTPError, OSError) as exc:
+        from prefect.settings import PREFECT_API_URL
+
+        raise InputError(f"the Prefect server {PREFECT_API_URL.value() or '(local)'} cannot "
+                         f"be reached ({type(exc).__name__}) to remove the UI pages of "
+                         f"{', '.join(captures)}; start it or set PREFECT_API_URL, then run "
+                         "facecap forget again (nothing was removed)") from None
 
 
 def store_prune(args) -> int:
@@ -111,9 +127,9 @@ def store_prune(args) -> int:
     if args.older_than_days is None and not args.unreferenced:
         raise InputError("say what to prune: --older-than-days N, or --unreferenced --out OUT")
     days = args.older_than_days if args.older_than_days is not None else 1.0
-    if not 0 <= days < 1e6:
+    if not 0 <= days <= 36500:
         raise InputError(f"--older-than-days {days:g} is not an age; give the number of days, "
-                         "0 or more")
+                         "0 to 36500")
     store = check_store(args.store or default_store_url())
     before = datetime.now(UTC) - timedelta(days=days)
     if args.unreferenced:

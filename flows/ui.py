@@ -12,18 +12,16 @@ import numpy as np
 
 
 def _slug(text: str) -> str:
-    # Artifact keys: lowercase ASCII letters, digits and dashes only. Accents are dropped
-    # ("Zoë" -> "zoe"); a name that loses characters gets a hash of itself, so that two
-    # captures whose names differ only there keep apart.
+    # Artifact keys: lowercase ASCII letters, digits and dashes only, which many names share
+    # ("ann/lee-1" and "ann-lee/1", "Bob" and "bob", "Zoë" and "Zoe"): a hash of the exact
+    # name keeps every capture's pages apart (and facecap forget from deleting another's).
     import hashlib
     import unicodedata
 
     plain = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode()
     out = "".join(c if c.isalnum() else "-" for c in plain.lower())
-    slug = "-".join(p for p in out.split("-") if p)[:80] or "capture"
-    if not text.isascii():
-        slug = f"{slug[:71]}-{hashlib.sha256(text.encode()).hexdigest()[:8]}"
-    return slug
+    slug = "-".join(p for p in out.split("-") if p)[:71] or "capture"
+    return f"{slug}-{hashlib.sha256(text.encode()).hexdigest()[:8]}"
 
 
 def markdown_text(text: object) -> str:
@@ -32,7 +30,7 @@ def markdown_text(text: object) -> str:
     import html
     import re
 
-    return re.sub(r"([\\`*_{}\[\]()#+\-.!|>~])", r"\\\1", html.escape(str(text), quote=True))
+    return re.sub(r"([\\`*_{}\[\]()#+\-.!|>~])", r"\\\1", html.escape(str(text), quote=False))
 
 
 def png_data_uri(path: Path, max_width: int = 960) -> str:

@@ -195,11 +195,20 @@ def _figures(module: str) -> Callable[[Path], dict]:
     return figures
 
 
-def _ear_model_digest() -> str:
-    # The ear model can be retrained, or replaced through $FACECAP_EAR_MODELS.
+def _landmark_models() -> str:
+    """The models the landmark stage ran besides dlib's, as part of its version: the ear model
+    (retrained, or replaced through $FACECAP_EAR_MODELS) and the iris model (mediapipe is
+    installed apart from the other dependencies: a worker without it measures no irises, and
+    a shared store must not hand its artifacts to workers that have it)."""
+    from importlib.metadata import PackageNotFoundError, version
+
     from facecap_core.landmarks.ears import model_digest
 
-    return model_digest()
+    try:
+        iris = f"mediapipe-{version('mediapipe')}"
+    except PackageNotFoundError:
+        iris = "no-iris"
+    return f"ears-{model_digest()}-{iris}"
 
 
 # -- the table -------------------------------------------------------------------------------
@@ -214,7 +223,7 @@ STAGES: tuple[Stage, ...] = (
           (FRAMES_JSON, "frame_{index:06d}.png")),
     Stage("landmarks", "landmarks", "3", ("video", "poses"), "landmarks", compute_landmarks,
           (LANDMARKS_2D, LANDMARKS_3D, EARS_3D),
-          version_suffix=lambda: f"ears-{_ear_model_digest()}"),
+          version_suffix=_landmark_models),
     Stage("coarse", "coarse", "4", ("landmarks", "poses"), "coarse", compute_coarse,
           (CAMERAS_JSON, LANDMARKS_3D, EARS_3D, COARSE_PLY, COARSE_JSON),
           exported=(CAMERAS_JSON, LANDMARKS_3D, EARS_3D, COARSE_PLY, COARSE_JSON),
@@ -262,24 +271,10 @@ def stages_until(until: str) -> list[Stage]:
     return [stage for stage in STAGES if STEPS.index(stage.step) <= last]
 
 
-def downstream(name: str) -> set[str]:
-    """The stage ``name`` and every stage that reads its output, directly or not."""
-    found = {name}
-    for stage in STAGES:  # in run order: a reader comes after what it reads
-        if any(producer(i) in found for i in stage.inputs + stage.optional):
-            found.add(stage.name)
-    return found
-
-
 def stage_key(name: str, inputs: dict[str, str], config: dict | None,
               params: dict | None = None) -> str:
     """The artifact key of a stage call."""
     if name not in BY_NAME:
         raise ValueError(f"unknown stage {name!r}")
     return BY_NAME[name].key(inputs, config, params)
-
-
-def versions() -> dict[str, str]:
-    """Every stage's algorithm version (the raw input's too), as the manifests record them."""
-    return {"input": INPUT_VERSION, **{s.name: s.version for s in STAGES}}
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
-from facecap_core.dataset import inside
+from facecap_core.dataset import SUMMARY_NAMES
 from facecap_core.errors import InputError
 from tasks.store import ArtifactStore, input_key
 
@@ -49,8 +49,7 @@ def prune(store: ArtifactStore, before: datetime, dry_run: bool = False) -> Remo
            if datetime.fromisoformat(store.manifest(key).created) < before}
     removal = Removal(artifacts=sorted(derived(store, old)))
     if not dry_run:
-        for key in removal.artifacts:
-            store.delete(key)
+        _delete(store, removal.artifacts)
     return removal
 
 
@@ -59,9 +58,14 @@ def referenced(store: ArtifactStore, results: list[Path]) -> set[str]:
     artifact they were made from (what a rerun of those captures would reuse)."""
     named = set()
     for folder in results:
-        named |= _reported_keys(Path(folder))
+        named |= _reported_keys(Path(folder))[0]
+    return _with_ancestors(store, named)
+
+
+def _with_ancestors(store: ArtifactStore, keys: set[str]) -> set[str]:
+    """The stored artifacts among ``keys`` and every stored artifact they were made from."""
     inputs = {key: set(store.manifest(key).inputs.values()) for key in store.keys()}
-    found, frontier = set(), named & set(inputs)
+    found, frontier = set(), keys & set(inputs)
     while frontier:  # up the inputs: what each kept artifact was made from
         found |= frontier
         frontier = {k for key in frontier for k in inputs[key] if k in inputs} - found
@@ -84,9 +88,18 @@ def prune_unreferenced(store: ArtifactStore, results: list[Path], before: dateti
         key for key in set(store.keys()) - keep
         if datetime.fromisoformat(store.manifest(key).created) < before))
     if not dry_run:
-        for key in removal.artifacts:
-            store.delete(key)
+        _delete(store, removal.artifacts)
     return removal
+
+
+def _delete(store: ArtifactStore, keys: list[str]) -> None:
+    """Delete artifacts, each under its key's lock: a run computing one of them finishes its
+    commit first (and a later run computes it again)."""
+    from tasks.runner import key_lock
+
+    for key in keys:
+        with key_lock(store, key):
+            store.delete(key)
 
 
 def _subject_inputs(root: Path, subject: str) -> set[str]:
@@ -110,56 +123,108 @@ def _capture_labels(subject: str, root: Path | None, results: Path | None) -> li
     return sorted(f"{subject}/{name}" for name in names)
 
 
-def _reported_keys(folder: Path) -> set[str]:
-    """The artifact keys named by the run reports under a subject's results folder."""
-    keys = set()
+def _reported_keys(folder: Path) -> tuple[set[str], set[str]]:
+    """The artifact keys named by the run reports under a results folder, and the stores the
+    reports say the runs used."""
+    keys, stores = set(), set()
     for report in folder.rglob("report.json"):
         try:
-            keys |= {row["key"] for row in json.loads(report.read_text())["stages"].values()}
-        except (OSError, ValueError, KeyError, TypeError):
+            doc = json.loads(report.read_text())
+            keys |= {row["key"] for row in doc["stages"].values()}
+            stores.add(str(doc.get("store")))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
             continue  # not a facecap report: its folder is removed all the same
-    return keys
+    return keys, stores
 
 
-def _forget_history(out: Path, subject: str, dry_run: bool) -> int:
-    """Drop the subject's captures from the nightly evaluation history; returns how many
-    entries went."""
+def _rewrite(path: Path, doc) -> None:
+    tmp = path.with_name(f".{path.name}.part")
+    tmp.write_text(json.dumps(doc, indent=1))
+    tmp.replace(path)
+
+
+def _of(subject: str, name: object) -> bool:
+    return str(name).split("/", 1)[0] == subject
+
+
+def _forget_summaries(out: Path, subject: str, dry_run: bool) -> int:
+    """Drop the subject's captures from the nightly evaluation history and from the dataset
+    summaries (``dataset.json``, ``consistency.json``); returns how many history entries
+    went."""
     removed = 0
     for path in sorted((out / "evaluations").glob("*.json")):
         try:
             doc = json.loads(path.read_text())
             captures = doc["captures"]
-        except (OSError, ValueError, KeyError, TypeError):
+            names = [name for name in captures if _of(subject, name)]
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
             continue
-        names = [name for name in captures if name.split("/", 1)[0] == subject]
-        if not names:
+        skipped = [n for n in doc.get("skipped", []) if not _of(subject, n)]
+        if not names and len(skipped) == len(doc.get("skipped", [])):
             continue
         removed += len(names)
         for name in names:
             del captures[name]
+        doc["skipped"] = skipped
         doc["regressions"] = [r for r in doc.get("regressions", [])
-                              if str(r.get("capture", "")).split("/", 1)[0] != subject]
+                              if not _of(subject, r.get("capture", ""))]
         if not dry_run:
-            path.write_text(json.dumps(doc, indent=1))
+            _rewrite(path, doc)
+    def rows_of(rows: list) -> list:
+        return [r for r in rows if not (isinstance(r, dict) and r.get("subject") == subject)]
+
+    for name in ("consistency.json", "dataset.json"):
+        path = out / name
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(doc, list):
+            doc = rows_of(doc)
+        elif isinstance(doc, dict):
+            doc["done"] = [n for n in doc.get("done", []) if not _of(subject, n)]
+            doc["failed"] = {k: v for k, v in dict(doc.get("failed", {})).items()
+                             if not _of(subject, k)}
+            doc["consistency"] = rows_of(doc.get("consistency", []))
+        if not dry_run:
+            _rewrite(path, doc)
     return removed
 
 
-def forget(store: ArtifactStore, subject: str, root: Path | None, out: Path | None,
-           dry_run: bool = False) -> Removal:
-    """Remove every artifact derived from ``subject``'s captures and scan (found through the
-    dataset folder ``root`` and the run reports under ``out/<subject>``), the subject's
-    results folder and its entries in the evaluation history."""
-    if not subject or subject in (".", "..") or "/" in subject or "\\" in subject:
+def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
+                out: Path | None) -> Removal:
+    """What forgetting ``subject`` removes: every artifact derived from the subject's
+    captures and scan (found through the dataset folder ``root`` and the run reports under
+    ``out/<subject>``, with what those were made from, and the copies of the results' meshes
+    the nightly evaluation stored), the subject's results folder and UI pages. Removes
+    nothing; refuses what it cannot do safely."""
+    if (not subject or subject in (".", "..") or "/" in subject or "\\" in subject
+            or subject.startswith(".")):
         raise InputError(f"{subject!r} is not a subject name; give the name of a folder in "
                          "the dataset, such as 'alice'")
+    if subject in SUMMARY_NAMES:
+        raise InputError(f"{subject!r} is a summary the dataset and evaluation runs write, not "
+                         "a subject; give the name of a subject's folder")
     seeds: set[str] = set()
     removal = Removal()
     if root is not None:
+        if not Path(root).is_dir():
+            raise InputError(f"dataset folder not found: {root}; check the path (--root)")
         seeds |= _subject_inputs(Path(root), subject)
     results = Path(out) / subject if out is not None else None
-    if results is not None and results.is_dir():
-        inside(Path(out), results, "results folder")  # a link out of OUT is not followed
-        seeds |= _reported_keys(results)
+    if results is not None and (results.exists() or results.is_symlink()):
+        if results.is_symlink() or results.resolve() != Path(out).resolve() / subject:
+            raise InputError(f"{results} is a link; a subject's results folder must be a "
+                             "plain folder of the results folder (remove the link)")
+        reported, stores = _reported_keys(results)
+        if reported and not reported & set(store.keys()):
+            raise InputError(
+                f"none of the {len(reported)} artifacts the reports under {results} name is in "
+                f"the store {store.url} (the runs used {', '.join(sorted(stores))}); give that "
+                "store (--store); nothing was removed")
+        seeds |= _with_ancestors(store, reported)  # the video and scan they were made from
+        seeds |= {input_key(mesh) for mesh in results.rglob("mesh.ply")
+                  if mesh.is_file() and not mesh.is_symlink()}  # the nightly's copies
         removal.folders.append(results)
     if not seeds and not removal.folders:
         raise InputError(f"nothing of subject {subject!r} was found (no {subject}/ in the "
@@ -167,11 +232,20 @@ def forget(store: ArtifactStore, subject: str, root: Path | None, out: Path | No
                          "--out")
     removal.artifacts = sorted(derived(store, seeds))
     removal.captures = _capture_labels(subject, root, results)
+    return removal
+
+
+def forget(store: ArtifactStore, subject: str, root: Path | None, out: Path | None,
+           dry_run: bool = False) -> Removal:
+    """Remove what :func:`plan_forget` finds, and the subject's entries in the evaluation
+    history and the dataset summaries. The UI pages are the caller's (they live on the
+    Prefect server): remove them first, so that a server that cannot be reached leaves
+    everything in place to try again."""
+    removal = plan_forget(store, subject, root, out)
     if out is not None:
-        removal.history_entries = _forget_history(Path(out), subject, dry_run)
+        removal.history_entries = _forget_summaries(Path(out), subject, dry_run)
     if not dry_run:
-        for key in removal.artifacts:
-            store.delete(key)
+        _delete(store, removal.artifacts)
         for folder in removal.folders:
             shutil.rmtree(folder)
     return removal

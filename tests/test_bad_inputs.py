@@ -411,6 +411,9 @@ CORPUS = {
     "store: an HTTP URL (a request to an internal API)": (
         lambda m, t, k: ["reconstruct", m["orbit"], "--store", "http://127.0.0.1:8765/internal/api"],
         ["protocol 'http'", "cannot hold artifacts"]),
+    "store: a chained URL (the chained protocols would go unchecked)": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--store", f"simplecache::{t / 'chained'}"],
+        ["chains protocols (::)", "give a folder or an s3://"]),
     "dataset: a subject named dataset.json": (
         lambda m, t, k: ["dataset", _dataset_with_a_subject_named(t, "dataset.json", m["orbit"]),
                          "--out", k["out"]], ["dataset.json is named like the summary",

@@ -44,7 +44,8 @@ def world(tmp_path):
         keys[subject] = chain(store_url, video)
         (out / subject / "take1").mkdir(parents=True)
         (out / subject / "take1" / "report.json").write_text(json.dumps(
-            {"stages": {s: {"key": keys[subject][s]} for s in ("keyframes", "poses")}}))
+            {"store": store_url,
+             "stages": {s: {"key": keys[subject][s]} for s in ("keyframes", "poses")}}))
     (out / "evaluations").mkdir()
     (out / "evaluations" / "20261101T020000000000Z.json").write_text(json.dumps(
         {"captures": {"alice/take1": {}, "bob/take1": {}},
@@ -70,7 +71,7 @@ def test_forget_removes_the_subject_and_nothing_else(world):
     assert not (world["out"] / "alice").exists() and (world["out"] / "bob").is_dir()
     history = json.loads((world["out"] / "evaluations" / "20261101T020000000000Z.json")
                          .read_text())
-    assert history == {"captures": {"bob/take1": {}}, "regressions": []}
+    assert history == {"captures": {"bob/take1": {}}, "skipped": [], "regressions": []}
     assert removal.history_entries == 1
 
 
@@ -81,10 +82,44 @@ def test_forget_refuses_names_that_are_not_subjects(world, tmp_path):
             forget(store, name, world["root"], world["out"])
     with pytest.raises(InputError, match="nothing of subject 'carol'"):
         forget(store, "carol", world["root"], world["out"])
-    (world["out"] / "mallory").symlink_to(tmp_path / "data" / "bob")
-    with pytest.raises(InputError, match="outside the results folder"):
-        forget(store, "mallory", None, world["out"])
+    with pytest.raises(InputError, match="is a summary"):
+        forget(store, "evaluations", world["root"], world["out"])
+    before = set(store.keys())
+    # Links to a folder outside OUT, to another subject's results, to OUT itself.
+    for target in (tmp_path / "data" / "bob", world["out"] / "bob", world["out"]):
+        (world["out"] / "mallory").unlink(missing_ok=True)
+        (world["out"] / "mallory").symlink_to(target)
+        with pytest.raises(InputError, match="is a link"):
+            forget(store, "mallory", None, world["out"])
+    assert set(store.keys()) == before and (world["out"] / "evaluations").is_dir()
     assert (tmp_path / "data" / "bob" / "take1.mp4").is_file()
+    assert (world["out"] / "bob" / "take1" / "report.json").is_file()
+
+
+def test_forget_with_the_results_alone_removes_the_inputs_they_were_made_from(world):
+    """Without the dataset folder, the reports lead to the stage artifacts and up to the
+    video they were made from; the mesh the nightly evaluation stored goes too."""
+    store = ArtifactStore(world["store"])
+    mesh = world["out"] / "alice" / "take1" / "mesh.ply"
+    mesh.write_bytes(b"alice's fitted mesh")
+    copy = ingest(world["store"], mesh, "mesh.ply")
+    (world["out"] / "dataset.json").write_text(json.dumps(
+        {"captures": 2, "done": ["alice/take1", "bob/take1"], "failed": {},
+         "consistency": [{"subject": "alice", "capture_a": "take1"}]}))
+    removal = forget(store, "alice", None, world["out"])
+    assert set(removal.artifacts) == {*world["keys"]["alice"].values(), copy}
+    assert set(store.keys()) == set(world["keys"]["bob"].values())
+    summary = json.loads((world["out"] / "dataset.json").read_text())
+    assert summary["done"] == ["bob/take1"] and summary["consistency"] == []
+
+
+def test_forget_refuses_a_store_that_holds_none_of_the_reported_artifacts(world, tmp_path):
+    other = ArtifactStore(str(tmp_path / "other-store"))
+    ingest(other.url, world["root"] / "bob" / "take1.mp4", "video.mp4")
+    with pytest.raises(InputError, match="give that store"):
+        forget(other, "alice", None, world["out"])
+    assert (world["out"] / "alice").is_dir()
+    assert set(ArtifactStore(world["store"]).keys()) >= set(world["keys"]["alice"].values())
 
 
 def test_prune_removes_what_is_older_and_what_was_made_from_it(world, tmp_path):
@@ -134,8 +169,10 @@ def test_the_commands_say_what_they_removed(world, capsys, tmp_path):
     code = main(["store", "prune", "--older-than-days", "0", "--store", world["store"],
                  "--dry-run"])
     assert code == 0 and "would remove 3 artifacts" in capsys.readouterr().out
-    assert main(["store", "prune", "--older-than-days", "-1", "--store", world["store"]]) == 2
-    assert "is not an age" in capsys.readouterr().err
+    for days in ("-1", "800000"):
+        assert main(["store", "prune", "--older-than-days", days, "--store",
+                     world["store"]]) == 2
+        assert "is not an age" in capsys.readouterr().err
     assert main(["store", "prune", "--unreferenced", "--store", world["store"]]) == 2
     assert "give them with --out" in capsys.readouterr().err
     # bob is forgotten; results elsewhere name none of alice's artifacts.

@@ -107,6 +107,12 @@ def test_a_served_capture_reads_only_inside_the_input_roots(worker, prefect_serv
              video=str(worker["inputs"] / "anna" / "link.mp4"), out=out)
     _refused(reconstruct_capture, [outside],  # '..' out of a root
              video=str(worker["inputs"] / ".." / "elsewhere" / "secret.mp4"), out=out)
+    photos = worker["inputs"] / "anna" / "photos"  # a photo folder with a linked photo
+    photos.mkdir()
+    (worker["elsewhere"] / "face.jpg").write_bytes(b"a photo outside the roots")
+    (photos / "face.jpg").symlink_to(worker["elsewhere"] / "face.jpg")
+    _refused(reconstruct_capture, ["the photo", "face.jpg", outside], video=str(photos),
+             out=out)
     take = str(worker["inputs"] / "anna" / "take.mp4")
     for parameter in ("config", "scan", "scan_landmarks"):
         _refused(reconstruct_capture, [f"the {parameter.replace('_', ' ')} /etc/hostname",

@@ -53,6 +53,10 @@ def scheme(url: str | os.PathLike[str]) -> str:
 
 def _filesystem(url: str | os.PathLike[str]) -> tuple[fsspec.AbstractFileSystem, str]:
     """The fsspec filesystem and root of a store URL; anything else is bad input."""
+    if "::" in os.fspath(url):  # fsspec's URL chaining: the chained protocols go unchecked
+        raise InputError(f"the store {os.fspath(url)} chains protocols (::), which a store "
+                         "cannot do; give a folder or an s3://bucket/prefix URL (--store or "
+                         "FACECAP_STORE)")
     if scheme(url) not in SCHEMES:
         raise InputError(f"the store {os.fspath(url)} uses the protocol {scheme(url)!r}, which "
                          "cannot hold artifacts; give a folder or an s3://bucket/prefix URL "
@@ -66,9 +70,6 @@ def _filesystem(url: str | os.PathLike[str]) -> tuple[fsspec.AbstractFileSystem,
 
 
 class ArtifactStore:
-    is_local = False
-    """Whether the store is a folder of this machine."""
-
     """Content-addressed artifacts in a local folder or under any fsspec URL.
 
     ``ArtifactStore(url)`` gives the backend for the URL: :class:`~tasks.store.local.LocalStore`
