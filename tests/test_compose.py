@@ -180,7 +180,7 @@ def test_the_stack_has_its_services_wired_together(resolved):
     assert set(services) == SERVICES
 
     server = services["server"]
-    assert server["image"] == "prefecthq/prefect:3.8.8-python3.11"
+    assert server["image"] == "prefecthq/prefect:3.9.1-python3.11"
     assert "4200" in str(server["ports"])
     db_url = service_env(resolved, "server")["PREFECT_API_DATABASE_CONNECTION_URL"]
     assert db_url == (
@@ -331,7 +331,14 @@ def test_worker_image_installs_the_project_as_a_non_root_user():
     assert any("apt-get install" in r and "libusb-1.0-0" in r and "libgomp1" in r
                for r in run_lines)
     install = next(i for i, (w, a) in enumerate(instructions)
-                   if w == "RUN" and re.search(r"pip install \.(\s|$)", a))
+                   if w == "RUN" and re.search(r"pip install -c deploy/constraints.txt \.(\s|$)", a))
+    # The exact versions of the tested environment, copied in before the install that uses them.
+    assert any(w == "COPY" and re.search(r"(^|\s)deploy/?(\s|$)", a)
+               for w, a in instructions[:install])
+    constraints = (ROOT / "deploy" / "constraints.txt").read_text().splitlines()
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    prefect_pin = next(d for d in pyproject["project"]["dependencies"] if d.startswith("prefect=="))
+    assert prefect_pin in constraints
     users = [i for i, (w, a) in enumerate(instructions) if w == "USER"]
     assert users and users[-1] > install
     assert instructions[users[-1]][1] not in ("root", "0")
@@ -339,7 +346,6 @@ def test_worker_image_installs_the_project_as_a_non_root_user():
     assert "prefect" in instructions[-1][1] and "facecap" in instructions[-1][1]
 
     # Every package of the project, and the README pyproject names, is copied in.
-    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
     copied = " ".join(args for word, args in instructions if word == "COPY")
     for pattern in pyproject["tool"]["setuptools"]["packages"]["find"]["include"]:
         package = pattern.rstrip("*")
