@@ -110,6 +110,19 @@ def artifact_keys(label: str) -> list[str]:
     return [f"stages-{key}", f"capture-{key}"]
 
 
+def _legacy_keys(label: str) -> list[str]:
+    """The keys earlier versions published under: an ASCII name without the hash (names
+    that transliterate alike shared them, so their artifacts are told apart by the
+    description, which names the capture)."""
+    key = _slug(label).rsplit("-", 1)[0]
+    return [f"stages-{key}", f"capture-{key}"]
+
+
+def _describes(description: str | None, label: str) -> bool:
+    return bool(description) and (description.startswith(f"{label}: ")
+                                  or description.startswith(f"stages of {label}: "))
+
+
 def forget_artifacts(labels: list[str]) -> int:
     """Delete every version of the UI artifacts of these captures (``subject/capture``) from
     the Prefect server the runs reported to; returns how many went."""
@@ -119,6 +132,7 @@ def forget_artifacts(labels: list[str]) -> int:
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
 
     keys = [k for label in labels for k in artifact_keys(label)]
+    legacy = {k: label for label in labels for k in _legacy_keys(label)}
     if not keys:
         return 0
 
@@ -130,6 +144,15 @@ def forget_artifacts(labels: list[str]) -> int:
                 for artifact in found:
                     await client.delete_artifact(artifact.id)
                 deleted += len(found)
+            offset = 0
+            while found := await client.read_artifacts(
+                    artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=list(legacy))),
+                    limit=200, offset=offset):
+                ours = [a for a in found if _describes(a.description, legacy[a.key])]
+                for artifact in ours:
+                    await client.delete_artifact(artifact.id)
+                deleted += len(ours)
+                offset += len(found) - len(ours)
         return deleted
 
     return asyncio.run(delete())

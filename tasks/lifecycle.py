@@ -123,18 +123,27 @@ def _capture_labels(subject: str, root: Path | None, results: Path | None) -> li
     return sorted(f"{subject}/{name}" for name in names)
 
 
-def _reported_keys(folder: Path) -> tuple[set[str], set[str]]:
-    """The artifact keys named by the run reports under a results folder, and the stores the
-    reports say the runs used."""
-    keys, stores = set(), set()
+def _reported_keys(folder: Path) -> tuple[set[str], set[str], set[str]]:
+    """The artifact keys named by the run reports under a results folder, the stores the
+    reports say the runs used and the runs' ``subject/capture`` labels (their UI pages)."""
+    keys, stores, labels = set(), set(), set()
     for report in folder.rglob("report.json"):
         try:
             doc = json.loads(report.read_text())
             keys |= {row["key"] for row in doc["stages"].values()}
-            stores.add(str(doc.get("store")))
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
             continue  # not a facecap report: its folder is removed all the same
-    return keys, stores
+        if doc.get("store"):
+            stores.add(str(doc["store"]))
+        if doc.get("subject") and doc.get("capture"):
+            labels.add(f"{doc['subject']}/{doc['capture']}")
+    return keys, stores, labels
+
+
+def _same_store(a: str, b: str) -> bool:
+    if "://" in a or "://" in b:
+        return a.rstrip("/") == b.rstrip("/")
+    return Path(a).expanduser().resolve() == Path(b).expanduser().resolve()
 
 
 def _rewrite(path: Path, doc) -> None:
@@ -165,7 +174,8 @@ def _forget_summaries(out: Path, subject: str, dry_run: bool) -> int:
         removed += len(names)
         for name in names:
             del captures[name]
-        doc["skipped"] = skipped
+        if "skipped" in doc:
+            doc["skipped"] = skipped
         doc["regressions"] = [r for r in doc.get("regressions", [])
                               if not _of(subject, r.get("capture", ""))]
         if not dry_run:
@@ -179,14 +189,19 @@ def _forget_summaries(out: Path, subject: str, dry_run: bool) -> int:
             doc = json.loads(path.read_text())
         except (OSError, ValueError):
             continue
+        before = json.dumps(doc)
         if isinstance(doc, list):
             doc = rows_of(doc)
         elif isinstance(doc, dict):
-            doc["done"] = [n for n in doc.get("done", []) if not _of(subject, n)]
-            doc["failed"] = {k: v for k, v in dict(doc.get("failed", {})).items()
-                             if not _of(subject, k)}
-            doc["consistency"] = rows_of(doc.get("consistency", []))
-        if not dry_run:
+            for name_key in ("done", "consistency", "failed"):
+                if name_key not in doc:
+                    continue
+                value = doc[name_key]
+                doc[name_key] = (rows_of(value) if name_key == "consistency" else
+                                 {k: v for k, v in value.items() if not _of(subject, k)}
+                                 if isinstance(value, dict) else
+                                 [n for n in value if not _of(subject, n)])
+        if not dry_run and json.dumps(doc) != before:
             _rewrite(path, doc)
     return removed
 
@@ -212,15 +227,20 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
             raise InputError(f"dataset folder not found: {root}; check the path (--root)")
         seeds |= _subject_inputs(Path(root), subject)
     results = Path(out) / subject if out is not None else None
+    labels: set[str] = set()
     if results is not None and (results.exists() or results.is_symlink()):
         if results.is_symlink() or results.resolve() != Path(out).resolve() / subject:
             raise InputError(f"{results} is a link; a subject's results folder must be a "
                              "plain folder of the results folder (remove the link)")
-        reported, stores = _reported_keys(results)
-        if reported and not reported & set(store.keys()):
+        if not results.is_dir():
+            raise InputError(f"{results} is a file, not a subject's results folder; check the "
+                             "name and --out")
+        reported, stores, labels = _reported_keys(results)
+        others = [u for u in stores if not _same_store(u, str(store.url))]
+        if reported and not reported & set(store.keys()) and others:
             raise InputError(
                 f"none of the {len(reported)} artifacts the reports under {results} name is in "
-                f"the store {store.url} (the runs used {', '.join(sorted(stores))}); give that "
+                f"the store {store.url}; the runs used {', '.join(sorted(others))}: give that "
                 "store (--store); nothing was removed")
         seeds |= _with_ancestors(store, reported)  # the video and scan they were made from
         seeds |= {input_key(mesh) for mesh in results.rglob("mesh.ply")
@@ -231,7 +251,7 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
                          "dataset folder or the results folder); check the name, --root and "
                          "--out")
     removal.artifacts = sorted(derived(store, seeds))
-    removal.captures = _capture_labels(subject, root, results)
+    removal.captures = sorted(set(_capture_labels(subject, root, results)) | labels)
     return removal
 
 
@@ -242,10 +262,10 @@ def forget(store: ArtifactStore, subject: str, root: Path | None, out: Path | No
     Prefect server): remove them first, so that a server that cannot be reached leaves
     everything in place to try again."""
     removal = plan_forget(store, subject, root, out)
-    if out is not None:
-        removal.history_entries = _forget_summaries(Path(out), subject, dry_run)
     if not dry_run:
         _delete(store, removal.artifacts)
         for folder in removal.folders:
             shutil.rmtree(folder)
+    if out is not None:  # last: a failure above leaves the summaries to name what remains
+        removal.history_entries = _forget_summaries(Path(out), subject, dry_run)
     return removal

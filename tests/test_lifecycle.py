@@ -71,7 +71,7 @@ def test_forget_removes_the_subject_and_nothing_else(world):
     assert not (world["out"] / "alice").exists() and (world["out"] / "bob").is_dir()
     history = json.loads((world["out"] / "evaluations" / "20261101T020000000000Z.json")
                          .read_text())
-    assert history == {"captures": {"bob/take1": {}}, "skipped": [], "regressions": []}
+    assert history == {"captures": {"bob/take1": {}}, "regressions": []}
     assert removal.history_entries == 1
 
 
@@ -111,6 +111,21 @@ def test_forget_with_the_results_alone_removes_the_inputs_they_were_made_from(wo
     assert set(store.keys()) == set(world["keys"]["bob"].values())
     summary = json.loads((world["out"] / "dataset.json").read_text())
     assert summary["done"] == ["bob/take1"] and summary["consistency"] == []
+
+
+def test_forget_after_the_store_was_emptied_still_removes_the_results(world):
+    """The reports name artifacts already pruned from the store they name: the results
+    folder (which holds the face) still goes. A file where a results folder would be is
+    refused before anything is removed."""
+    store = ArtifactStore(world["store"])
+    for key in list(store.keys()):
+        store.delete(key)
+    (world["out"] / "carol").write_text("not a folder")
+    with pytest.raises(InputError, match="is a file"):
+        forget(store, "carol", None, world["out"])
+    removal = forget(store, "alice", None, world["out"])
+    assert removal.artifacts == [] and not (world["out"] / "alice").exists()
+    assert removal.captures == ["alice/take1"]
 
 
 def test_forget_refuses_a_store_that_holds_none_of_the_reported_artifacts(world, tmp_path):

@@ -41,12 +41,20 @@ def test_a_forgotten_subjects_ui_pages_are_deleted_and_no_one_elses():
     def publish(labels: list[str]) -> None:
         for label in labels:
             for key in artifact_keys(label):
-                create_markdown_artifact("a face", key=key)
+                create_markdown_artifact("a face", key=key, description=f"{label}: a page")
+
+    @flow
+    def publish_legacy(labels: list[str]) -> None:
+        # Earlier versions: the ASCII slug alone, which "Alice/take1" and "alice/take1" share.
+        for label in labels:
+            create_markdown_artifact("a face", key="capture-alice-take1",
+                                     description=f"{label}: results and previews")
 
     with prefect_test_harness(server_startup_timeout=120):
         # Names whose transliterations meet alice's keep their own pages.
         others = ["bob/take1", "Alice/take1", "alice-take/1", "alice/take-2"]
         publish(["alice/take1", "alice/take1", "alice/take 2", *others])
-        assert forget_artifacts(["alice/take1", "alice/take 2"]) == 6
-        assert asyncio.run(keys_on_server()) == sorted(k for label in others
-                                                       for k in artifact_keys(label))
+        publish_legacy(["alice/take1", "Alice/take1"])
+        assert forget_artifacts(["alice/take1", "alice/take 2"]) == 7
+        assert asyncio.run(keys_on_server()) == sorted(
+            ["capture-alice-take1", *(k for label in others for k in artifact_keys(label))])
