@@ -92,7 +92,7 @@ def forget(args) -> int:
         # then leaves everything in place for another try.
         print(f"removed {_forget_ui(planned.captures)} UI artifacts of "
               f"{', '.join(planned.captures)}")
-    removal = lifecycle.forget(store, args.subject, root, out, dry_run=args.dry_run)
+    removal = lifecycle.remove(store, planned, args.subject, out, dry_run=args.dry_run)
     print_removal(removal, args.dry_run)
     return 0
 

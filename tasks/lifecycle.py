@@ -31,51 +31,54 @@ class Removal:
     """``subject/capture`` of each capture forgotten (their UI pages go too)."""
 
 
-def derived(store: ArtifactStore, keys: set[str]) -> set[str]:
-    """The stored artifacts among ``keys`` and every stored artifact made from them."""
-    inputs = {key: set(store.manifest(key).inputs.values()) for key in store.keys()}
-    found = keys & set(inputs)
+def _made_from(manifests: dict) -> dict[str, set[str]]:
+    """Each stored artifact's input keys (its manifest's ``inputs``)."""
+    return {key: set(manifest.inputs.values()) for key, manifest in manifests.items()}
+
+
+def _manifests(store: ArtifactStore) -> dict:
+    """Every stored artifact's manifest, read once per command."""
+    return {key: store.manifest(key) for key in store.keys()}
+
+
+def _down(made_from: dict[str, set[str]], keys: set[str]) -> set[str]:
+    found = keys & set(made_from)
     grew = True
     while grew:  # artifacts name their inputs, not their readers: walk until nothing is added
-        new = {key for key, made_from in inputs.items() if key not in found and made_from & found}
+        new = {key for key, inputs in made_from.items() if key not in found and inputs & found}
         found |= new
         grew = bool(new)
     return found
 
 
+def _up(made_from: dict[str, set[str]], keys: set[str]) -> set[str]:
+    found, frontier = set(), keys & set(made_from)
+    while frontier:  # up the inputs: what each artifact was made from
+        found |= frontier
+        frontier = {k for key in frontier for k in made_from[key] if k in made_from} - found
+    return found
+
+
+def derived(store: ArtifactStore, keys: set[str]) -> set[str]:
+    """The stored artifacts among ``keys`` and every stored artifact made from them."""
+    return _down(_made_from(_manifests(store)), keys)
+
+
 def prune(store: ArtifactStore, before: datetime, dry_run: bool = False) -> Removal:
     """Remove the artifacts committed before ``before`` and every artifact made from them."""
-    old = {key for key in store.keys()
-           if datetime.fromisoformat(store.manifest(key).created) < before}
-    removal = Removal(artifacts=sorted(derived(store, old)))
+    manifests = _manifests(store)
+    old = {key for key, m in manifests.items() if datetime.fromisoformat(m.created) < before}
+    removal = Removal(artifacts=sorted(_down(_made_from(manifests), old)))
     if not dry_run:
         _delete(store, removal.artifacts)
     return removal
 
 
-def referenced(store: ArtifactStore, results: list[Path]) -> set[str]:
-    """The artifacts that the run reports under the ``results`` folders name, and every
-    artifact they were made from (what a rerun of those captures would reuse)."""
-    named = set()
-    for folder in results:
-        named |= _reported_keys(Path(folder))[0]
-    return _with_ancestors(store, named)
-
-
-def _with_ancestors(store: ArtifactStore, keys: set[str]) -> set[str]:
-    """The stored artifacts among ``keys`` and every stored artifact they were made from."""
-    inputs = {key: set(store.manifest(key).inputs.values()) for key in store.keys()}
-    found, frontier = set(), keys & set(inputs)
-    while frontier:  # up the inputs: what each kept artifact was made from
-        found |= frontier
-        frontier = {k for key in frontier for k in inputs[key] if k in inputs} - found
-    return found
-
-
 def prune_unreferenced(store: ArtifactStore, results: list[Path], before: datetime,
                        dry_run: bool = False) -> Removal:
     """Remove the artifacts committed before ``before`` that no run report under the
-    ``results`` folders names, directly or as what a named artifact was made from.
+    ``results`` folders names, directly or as what a named artifact was made from (what a
+    rerun of those captures would reuse stays).
 
     ``before`` spares the artifacts of runs still in progress: they are named by a report
     only when their run ends."""
@@ -83,10 +86,12 @@ def prune_unreferenced(store: ArtifactStore, results: list[Path], before: dateti
         if not Path(folder).is_dir():
             raise InputError(f"results folder not found: {folder}; give the --out folders "
                              "whose results keep their artifacts")
-    keep = referenced(store, results)
+    manifests = _manifests(store)
+    named = set().union(*(_reported_keys(Path(folder))[0] for folder in results))
+    keep = _up(_made_from(manifests), named)
     removal = Removal(artifacts=sorted(
-        key for key in set(store.keys()) - keep
-        if datetime.fromisoformat(store.manifest(key).created) < before))
+        key for key, m in manifests.items()
+        if key not in keep and datetime.fromisoformat(m.created) < before))
     if not dry_run:
         _delete(store, removal.artifacts)
     return removal
@@ -222,6 +227,7 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
                          "a subject; give the name of a subject's folder")
     seeds: set[str] = set()
     removal = Removal()
+    made_from = _made_from(_manifests(store))
     if root is not None:
         if not Path(root).is_dir():
             raise InputError(f"dataset folder not found: {root}; check the path (--root)")
@@ -237,12 +243,12 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
                              "name and --out")
         reported, stores, labels = _reported_keys(results)
         others = [u for u in stores if not _same_store(u, str(store.url))]
-        if reported and not reported & set(store.keys()) and others:
+        if reported and not reported & set(made_from) and others:
             raise InputError(
                 f"none of the {len(reported)} artifacts the reports under {results} name is in "
                 f"the store {store.url}; the runs used {', '.join(sorted(others))}: give that "
                 "store (--store); nothing was removed")
-        seeds |= _with_ancestors(store, reported)  # the video and scan they were made from
+        seeds |= _up(made_from, reported)  # the video and scan they were made from
         seeds |= {input_key(mesh) for mesh in results.rglob("mesh.ply")
                   if mesh.is_file() and not mesh.is_symlink()}  # the nightly's copies
         removal.folders.append(results)
@@ -250,18 +256,23 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
         raise InputError(f"nothing of subject {subject!r} was found (no {subject}/ in the "
                          "dataset folder or the results folder); check the name, --root and "
                          "--out")
-    removal.artifacts = sorted(derived(store, seeds))
+    removal.artifacts = sorted(_down(made_from, seeds))
     removal.captures = sorted(set(_capture_labels(subject, root, results)) | labels)
     return removal
 
 
 def forget(store: ArtifactStore, subject: str, root: Path | None, out: Path | None,
            dry_run: bool = False) -> Removal:
-    """Remove what :func:`plan_forget` finds, and the subject's entries in the evaluation
+    """Remove what :func:`plan_forget` finds (see :func:`remove`)."""
+    return remove(store, plan_forget(store, subject, root, out), subject, out, dry_run)
+
+
+def remove(store: ArtifactStore, removal: Removal, subject: str, out: Path | None,
+           dry_run: bool = False) -> Removal:
+    """Carry out a :func:`plan_forget`, and drop the subject's entries from the evaluation
     history and the dataset summaries. The UI pages are the caller's (they live on the
     Prefect server): remove them first, so that a server that cannot be reached leaves
     everything in place to try again."""
-    removal = plan_forget(store, subject, root, out)
     if not dry_run:
         _delete(store, removal.artifacts)
         for folder in removal.folders:
