@@ -161,53 +161,48 @@ def _of(subject: str, name: object) -> bool:
     return str(name).split("/", 1)[0] == subject
 
 
+def _without(subject: str, doc):
+    """A summary the runs write into OUT (an evaluation, ``dataset.json``,
+    ``consistency.json``) without the subject's entries."""
+    def rows(items: list) -> list:
+        return [r for r in items if not (isinstance(r, dict) and r.get("subject") == subject)]
+
+    if isinstance(doc, list):  # consistency.json
+        return rows(doc)
+    if not isinstance(doc, dict):
+        return doc
+    doc = dict(doc)
+    for key in ("captures", "failed"):
+        if isinstance(doc.get(key), dict):
+            doc[key] = {n: v for n, v in doc[key].items() if not _of(subject, n)}
+    for key in ("done", "skipped"):
+        if isinstance(doc.get(key), list):
+            doc[key] = [n for n in doc[key] if not _of(subject, n)]
+    if isinstance(doc.get("regressions"), list):
+        doc["regressions"] = [r for r in doc["regressions"]
+                              if not (isinstance(r, dict) and _of(subject, r.get("capture")))]
+    if isinstance(doc.get("consistency"), list):
+        doc["consistency"] = rows(doc["consistency"])
+    return doc
+
+
 def _forget_summaries(out: Path, subject: str, dry_run: bool) -> int:
     """Drop the subject's captures from the nightly evaluation history and from the dataset
-    summaries (``dataset.json``, ``consistency.json``); returns how many history entries
-    went."""
+    summaries; returns how many history entries went."""
     removed = 0
-    for path in sorted((out / "evaluations").glob("*.json")):
-        try:
-            doc = json.loads(path.read_text())
-            captures = doc["captures"]
-            names = [name for name in captures if _of(subject, name)]
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
-            continue
-        skipped = [n for n in doc.get("skipped", []) if not _of(subject, n)]
-        if not names and len(skipped) == len(doc.get("skipped", [])):
-            continue
-        removed += len(names)
-        for name in names:
-            del captures[name]
-        if "skipped" in doc:
-            doc["skipped"] = skipped
-        doc["regressions"] = [r for r in doc.get("regressions", [])
-                              if not _of(subject, r.get("capture", ""))]
-        if not dry_run:
-            _rewrite(path, doc)
-    def rows_of(rows: list) -> list:
-        return [r for r in rows if not (isinstance(r, dict) and r.get("subject") == subject)]
-
-    for name in ("consistency.json", "dataset.json"):
-        path = out / name
+    history = sorted((out / "evaluations").glob("*.json"))
+    for path in [*history, out / "dataset.json", out / "consistency.json"]:
         try:
             doc = json.loads(path.read_text())
         except (OSError, ValueError):
             continue
-        before = json.dumps(doc)
-        if isinstance(doc, list):
-            doc = rows_of(doc)
-        elif isinstance(doc, dict):
-            for name_key in ("done", "consistency", "failed"):
-                if name_key not in doc:
-                    continue
-                value = doc[name_key]
-                doc[name_key] = (rows_of(value) if name_key == "consistency" else
-                                 {k: v for k, v in value.items() if not _of(subject, k)}
-                                 if isinstance(value, dict) else
-                                 [n for n in value if not _of(subject, n)])
-        if not dry_run and json.dumps(doc) != before:
-            _rewrite(path, doc)
+        kept = _without(subject, doc)
+        if kept == doc:
+            continue
+        if path in history and isinstance(doc, dict) and isinstance(doc.get("captures"), dict):
+            removed += len(doc["captures"]) - len(kept["captures"])
+        if not dry_run:
+            _rewrite(path, kept)
     return removed
 
 
