@@ -4,12 +4,7 @@ evaluation (a real ``prefect server start``, its scheduler running)."""
 from __future__ import annotations
 
 import asyncio
-import os
-import socket
-import subprocess
-import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
@@ -46,39 +41,6 @@ def test_served_flows_accept_only_documented_parameters():
     assert set(schema.required) == {"video", "out"}
     documented = (Path(__file__).parents[1] / "docs" / "deploy.md").read_text()
     assert "`ipd_mm`" in documented
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.fixture(scope="module")
-def live_server(tmp_path_factory):
-    port = _free_port()
-    env = {**os.environ, "PREFECT_HOME": str(tmp_path_factory.mktemp("prefect")),
-           "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "PREFECT_UI_ENABLED": "false",
-           "PREFECT_SERVER_SERVICES_SCHEDULER_LOOP_SECONDS": "2"}
-    proc = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host",
-                             "127.0.0.1", "--port", str(port)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}/api"
-    try:
-        for _ in range(240):
-            try:
-                urllib.request.urlopen(f"{url}/health", timeout=1)
-                break
-            except OSError:
-                if proc.poll() is not None:
-                    pytest.fail("prefect server exited at start")
-                time.sleep(0.5)
-        else:
-            pytest.fail("prefect server did not become healthy in 120 s")
-        yield url
-    finally:
-        proc.terminate()
-        proc.wait(30)
 
 
 @pytest.mark.slow
