@@ -1,16 +1,20 @@
 """``facecap serve``: the deployments a facecap host offers, served from this process.
 
 * ``reconstruct-dataset/reconstruct-dataset`` — on demand (UI "Run", or
-  ``prefect deployment run``), parameters ``root``, ``out``, ``config``;
+  ``prefect deployment run``), parameters ``root``, ``out``, ``config``, ``until``; served
+  from this process, its captures run one after another inside it;
 * ``reconstruct-capture/reconstruct-capture`` — on demand, one video;
 * ``evaluate-dataset/nightly-evaluation`` — on a cron schedule (default 02:00) in a
-  configurable time zone, scoring ``out`` against the scans under ``root``.
+  configurable time zone, scoring ``out`` against the scans under ``root``; a night whose
+  evaluation is still running skips the next.
 
-Workers on other machines use ``deploy/prefect.yaml`` and a process work pool instead.
+Workers on other machines use ``deploy/prefect.yaml`` and a process work pool instead; there a
+dataset run spreads its captures over the pool's workers.
 """
 
 from __future__ import annotations
 
+from prefect.client.schemas.objects import ConcurrencyLimitConfig, ConcurrencyLimitStrategy
 from prefect.schedules import Cron
 
 NIGHTLY_CRON = "0 2 * * *"
@@ -33,6 +37,9 @@ def deployments(root: str, out: str, cron: str = NIGHTLY_CRON, timezone: str = "
         evaluate_dataset.to_deployment(
             name="nightly-evaluation", parameters={"root": root, "out": out},
             schedules=[Cron(cron, timezone=timezone)],
+            # A night whose evaluation still runs when the next is due skips the next.
+            concurrency_limit=ConcurrencyLimitConfig(
+                limit=1, collision_strategy=ConcurrencyLimitStrategy.CANCEL_NEW),
             description="Score the dataset's reconstructions against its scans; flag "
                         "regressions.", tags=["facecap", "nightly"]),
     ]

@@ -32,7 +32,8 @@ class StrictModel(BaseModel):
     infinite numbers are refused (they pass every ``gt``/``le`` bound they meet in a list
     or an unbounded field)."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False,
+                              use_attribute_docstrings=True)
 
 
 class SynthConfig(StrictModel):
@@ -824,9 +825,13 @@ def input_limits() -> InputLimits:
                          f"{validation_message(exc)}; correct them") from None
 
 
-def load_pipeline_config(path: str | Path | None = None, overrides: dict | None = None
-                         ) -> PipelineConfig:
-    """The pipeline config from a YAML file (or the defaults), with ``overrides``."""
-    if path is None:
-        return build(PipelineConfig, overrides or {}, source="pipeline config")
-    return load_yaml(PipelineConfig, path, overrides)
+def load_pipeline_config(source: str | Path | PipelineConfig | dict | None = None,
+                         overrides: dict | None = None) -> PipelineConfig:
+    """The pipeline config from a YAML file, a config given as such (a flow parameter) or
+    the defaults, with ``overrides``."""
+    if isinstance(source, PipelineConfig):
+        source = source.model_dump(mode="json", exclude_unset=True)
+    if source is None or isinstance(source, dict):
+        return build(PipelineConfig, {**(source or {}), **(overrides or {})},
+                     source="pipeline config")
+    return load_yaml(PipelineConfig, source, overrides)

@@ -46,6 +46,10 @@ from tasks.stages import call_ingest, call_stage
 
 Step = Literal[STEPS]
 """What ``until`` can stop after, in order: the steps of the stage graph."""
+ConfigParameter = PipelineConfig | str | None
+"""A run's pipeline settings: given as such (the UI's Run form shows every field with its
+description, and the server refuses an out-of-range value before the run is created), or the
+path of a YAML file of them, or nothing for the defaults."""
 MAX_WORKERS = 16
 """Threads of a capture run's task runner: the most depth maps ``mvs.workers`` can ask for
 at once."""
@@ -180,19 +184,28 @@ def _stage_report(store: str, runs: dict[str, tuple[str, bool]]) -> dict:
 
 @flow(name="reconstruct-capture", flow_run_name=_run_name, log_prints=True,
       task_runner=ThreadPoolTaskRunner(max_workers=MAX_WORKERS))
-def reconstruct_capture(video: str, out: str, config: str | None = None,
+def reconstruct_capture(video: str, out: str, config: ConfigParameter = None,
                         scan: str | None = None, scan_landmarks: str | None = None,
                         until: Step = "evaluation", store: str | None = None,
                         progress: bool = False, ipd_mm: float | None = None) -> dict:
     """Reconstruct one capture; returns the report (also written to ``out/report.json``).
 
-    ``config``: a PipelineConfig YAML; ``scan``/``scan_landmarks``: ground truth to score
-    against; ``store``: artifact store URL (default ``$FACECAP_STORE``); ``ipd_mm``: the
-    subject's interpupillary distance (far PD, mm), a scale cue (``coarse.ipd_mm``).
+    Args:
+        video: The capture: a video file, or a folder of photos.
+        out: The folder the mesh, cameras, cloud, report and preview are written to.
+        config: The pipeline's settings (any subset; the rest keep their defaults), or the
+            path of a YAML file of them.
+        scan: A ground-truth scan in mm to score the mesh against.
+        scan_landmarks: The scan's 68 3D landmarks (iBUG order, JSON), needed with a scan.
+        until: The last stage to run.
+        store: The artifact store (a folder or s3://bucket/prefix); default the
+            deployment's, FACECAP_STORE.
+        progress: Show progress bars on the console.
+        ipd_mm: The subject's interpupillary distance (far PD, mm) if measured: a scale cue.
     """
     logger = get_run_logger()
     start = time.perf_counter()
-    store = guard(out, store, video=video, config=config, scan=scan,
+    store = guard(out, store, video=video, config=config_file(config), scan=scan,
                   scan_landmarks=scan_landmarks)  # a served run: only what it may touch
     cfg = with_ipd(preflight(video, config, scan, scan_landmarks, out), ipd_mm)
     out_dir = Path(out)
@@ -243,7 +256,7 @@ MIN_VIDEO_SIDE_PX = 120
 """Shortest video side accepted: below it a face is too few pixels to find landmarks on."""
 
 
-def preflight(video: str | Path, config: str | Path | None = None, scan: str | None = None,
+def preflight(video: str | Path, config: ConfigParameter | Path = None, scan: str | None = None,
               scan_landmarks: str | None = None, out: str | Path | None = None
               ) -> PipelineConfig:
     """Checks that need no stage: the files exist, the video decodes, is long and large
@@ -305,6 +318,12 @@ def preflight(video: str | Path, config: str | Path | None = None, scan: str | N
                 raise InputError(f"the {what} {path} would be overwritten by a result of the same "
                                  f"name in the output folder {out}; give another --out")
     return cfg
+
+
+def config_file(config: ConfigParameter) -> str | None:
+    """The file a run reads its settings from, if it names one (a path is an input a served
+    run may only take from inside its input roots)."""
+    return config if isinstance(config, str) else None
 
 
 def check_file_size(capture: str | Path, max_mb: float) -> None:

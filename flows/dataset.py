@@ -9,15 +9,28 @@ ends Failed if any capture failed, so the UI shows it.
 from __future__ import annotations
 
 import json
+import time
 from itertools import combinations
 from pathlib import Path
 
 from prefect import flow, get_run_logger
 
+from facecap_core.config import PipelineConfig
 from facecap_core.dataset import SUMMARY_NAMES, CaptureEntry, mesh_consistency, scan_dataset
 from facecap_core.errors import FacecapError, InputError
-from flows.capture import as_user_sees_it, reconstruct_capture
+from flows.capture import (
+    ConfigParameter,
+    Step,
+    as_user_sees_it,
+    config_file,
+    reconstruct_capture,
+)
 from flows.service import guard
+
+CAPTURE_DEPLOYMENT = "reconstruct-capture/reconstruct-capture"
+"""The deployment a dataset run on a work pool submits each capture to (deploy/prefect.yaml)."""
+POLL_SECONDS = 5.0
+"""How often a dataset run on a work pool reads its capture runs' states."""
 
 
 def _run_name() -> str:
@@ -56,31 +69,39 @@ def consistency_report(out: Path, done: dict[tuple[str, str], Path]) -> list[dic
 
 
 @flow(name="reconstruct-dataset", flow_run_name=_run_name, log_prints=True)
-def reconstruct_dataset(root: str, out: str, config: str | None = None,
-                        store: str | None = None) -> dict:
-    """Reconstruct every capture under ``root`` into ``out/<subject>/<capture>/``."""
+def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
+                        store: str | None = None, until: Step = "evaluation") -> dict:
+    """Reconstruct every capture under ``root`` into ``out/<subject>/<capture>/``.
+
+    Args:
+        root: The dataset folder: ROOT/<subject>/<capture>.mp4 (or a photo folder), with
+            an optional scan.ply and scan_landmarks.json per subject.
+        out: The results folder: OUT/<subject>/<capture>/ for each capture.
+        config: The pipeline's settings for every capture (any subset), or the path of a
+            YAML file of them.
+        store: The artifact store; default the deployment's, FACECAP_STORE.
+        until: The last stage to run for every capture (e.g. poses, to check a dataset's
+            cameras first).
+    """
     from prefect.artifacts import create_table_artifact
 
     logger = get_run_logger()
-    store = guard(out, store, dataset=root, config=config)  # a served run: only what it may touch
+    store = guard(out, store, dataset=root, config=config_file(config))  # a served run: only what it may touch
     entries = scan_dataset(root)
     out_root = Path(out)
     check_dataset_output(entries, out_root)
     out_root.mkdir(parents=True, exist_ok=True)
-    done, failed = {}, {}
-    for entry in entries:
-        folder = entry.out_dir(out_root)
-        try:
-            reconstruct_capture(str(entry.video), str(folder), config=config,
-                                scan=str(entry.scan) if entry.scan else None,
-                                scan_landmarks=(str(entry.scan_landmarks)
-                                                if entry.scan and entry.scan_landmarks else None),
-                                store=store)
-            done[(entry.subject, entry.capture)] = folder
-        except FacecapError as exc:
-            failed[f"{entry.subject}/{entry.capture}"] = as_user_sees_it(str(exc), entry.video)
-            # exc_info marks it as bad input: the CLI prints it once, in its summary line.
-            logger.error(f"{entry.subject}/{entry.capture}: {exc}", exc_info=exc)
+    pool = _work_pool()
+    if pool:
+        logger.info(f"{len(entries)} captures, one {CAPTURE_DEPLOYMENT} run each on the work "
+                    f"pool {pool}")
+        failed = _through_deployment(entries, out_root, config, until)
+        for name, message in failed.items():
+            logger.error(f"{name}: {message}")
+    else:
+        failed = _in_process(entries, out_root, config, store, until)
+    done = {(e.subject, e.capture): e.out_dir(out_root) for e in entries
+            if f"{e.subject}/{e.capture}" not in failed}
     rows = consistency_report(out_root, done)
     if rows:
         create_table_artifact(rows, key="cross-capture-consistency",
@@ -92,3 +113,82 @@ def reconstruct_dataset(root: str, out: str, config: str | None = None,
         raise FacecapError(f"{len(failed)} of {len(entries)} captures failed: "
                            + "; ".join(f"{k}: {v}" for k, v in failed.items()))
     return summary
+
+
+def _capture_parameters(entry: CaptureEntry, out_root: Path, config: ConfigParameter,
+                        until: str) -> dict:
+    return {"video": str(entry.video), "out": str(entry.out_dir(out_root)), "config": config,
+            "scan": str(entry.scan) if entry.scan else None,
+            "scan_landmarks": (str(entry.scan_landmarks)
+                               if entry.scan and entry.scan_landmarks else None),
+            "until": until}
+
+
+def _in_process(entries: list[CaptureEntry], out_root: Path, config: ConfigParameter,
+                store: str, until: str) -> dict[str, str]:
+    """One capture after another as subflows of this run (the ``facecap dataset`` command,
+    ``facecap serve``); returns ``{subject/capture: why it failed}``."""
+    logger, failed = get_run_logger(), {}
+    for entry in entries:
+        try:
+            reconstruct_capture(**_capture_parameters(entry, out_root, config, until),
+                                store=store)
+        except FacecapError as exc:
+            failed[f"{entry.subject}/{entry.capture}"] = as_user_sees_it(str(exc), entry.video)
+            # exc_info marks it as bad input: the CLI prints it once, in its summary line.
+            logger.error(f"{entry.subject}/{entry.capture}: {exc}", exc_info=exc)
+    return failed
+
+
+def _work_pool() -> str | None:
+    """The work pool this run's deployment runs on; None outside a deployment, or for one
+    served by a process of its own (``facecap serve``), whose captures run in-process."""
+    from prefect.context import FlowRunContext
+
+    context = FlowRunContext.get()
+    run = context.flow_run if context else None
+    if run is None or run.deployment_id is None:
+        return None
+    from prefect.client.orchestration import get_client
+
+    with get_client(sync_client=True) as client:
+        return client.read_deployment(run.deployment_id).work_pool_name
+
+
+def _through_deployment(entries: list[CaptureEntry], out_root: Path, config: ConfigParameter,
+                        until: str) -> dict[str, str]:
+    """One run of the capture deployment per capture, all submitted at once: the pool's
+    workers take them as the deployment's and the pool's concurrency limits allow. Waits
+    for every one; returns ``{subject/capture: why it failed}``."""
+    from prefect.client.orchestration import get_client
+    from prefect.deployments import run_deployment
+
+    if isinstance(config, PipelineConfig):
+        config = config.model_dump(mode="json", exclude_unset=True)
+    runs = {f"{e.subject}/{e.capture}": run_deployment(
+                CAPTURE_DEPLOYMENT, parameters=_capture_parameters(e, out_root, config, until),
+                timeout=0, tags=["facecap", "dataset"])
+            for e in entries}
+    failed, pending = {}, dict(runs)
+    with get_client(sync_client=True) as client:
+        while pending:
+            time.sleep(POLL_SECONDS)
+            for name, run in list(pending.items()):
+                state = client.read_flow_run(run.id).state
+                if state is None or not state.is_final():
+                    continue
+                del pending[name]
+                if not state.is_completed():
+                    failed[name] = _reason(state)
+    return failed
+
+
+def _reason(state) -> str:
+    """Why a capture run ended without a result: the facecap error it raised, in its own
+    words, else the state's name and message."""
+    message = state.message or ""
+    for cls in (InputError, FacecapError):
+        marker = f"{cls.__name__}: "
+        if marker in message:
+            return message.split(marker, 1)[1].strip()
+    return f"{state.name}: {message}".strip(": ")

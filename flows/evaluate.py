@@ -73,7 +73,16 @@ def check_history(out: Path) -> dict:
 @flow(name="evaluate-dataset", flow_run_name=_run_name, log_prints=True)
 def evaluate_dataset(root: str, out: str, store: str | None = None,
                      tolerance_mm: float = 0.05, tolerance_rel: float = 0.05) -> dict:
-    """Score ``out/<subject>/<capture>/mesh.ply`` against ``root/<subject>/scan.*``."""
+    """Score ``out/<subject>/<capture>/mesh.ply`` against ``root/<subject>/scan.*``.
+
+    Args:
+        root: The dataset folder, with a scan.ply and scan_landmarks.json per subject.
+        out: The results folder of the dataset's reconstructions.
+        store: The artifact store; default the deployment's, FACECAP_STORE.
+        tolerance_mm: A median that grows by more than this many mm (and by more than
+            tolerance_rel) since the last evaluation is a regression.
+        tolerance_rel: The relative growth a regression needs as well (0.05 = 5 %).
+    """
     from prefect.artifacts import create_markdown_artifact, create_table_artifact
     from prefect.events import emit_event
 

@@ -37,7 +37,7 @@ PREFECT_YAML = ROOT / "deploy" / "prefect.yaml"
 ENV_EXAMPLE = ROOT / ".env.example"
 PREFECT_BIN = Path(sys.executable).with_name("prefect")
 
-SERVICES = {"postgres", "server", "minio", "minio-init", "deployments", "worker"}
+SERVICES = {"postgres", "server", "minio", "minio-init", "deployments", "worker", "conductor"}
 
 # A test .env with values that are easy to find again in the resolved configuration.
 TEST_ENV = {
@@ -58,8 +58,8 @@ SECRETS = ["POSTGRES_PASSWORD", "MINIO_ROOT_PASSWORD", "AWS_SECRET_ACCESS_KEY",
 SECRET_HOLDERS = {
     "POSTGRES_PASSWORD": {"postgres", "server"},
     "MINIO_ROOT_PASSWORD": {"minio", "minio-init"},
-    "AWS_SECRET_ACCESS_KEY": {"minio-init", "worker"},
-    "PREFECT_API_AUTH_STRING": {"server", "deployments", "worker"},
+    "AWS_SECRET_ACCESS_KEY": {"minio-init", "worker", "conductor"},
+    "PREFECT_API_AUTH_STRING": {"server", "deployments", "worker", "conductor"},
 }
 SECRET_NAME = re.compile(r"PASSWORD|SECRET|AUTH_STRING|TOKEN|ACCESS_KEY", re.IGNORECASE)
 
@@ -198,7 +198,11 @@ def test_the_stack_has_its_services_wired_together(resolved):
     assert worker["depends_on"]["minio-init"]["condition"] == "service_completed_successfully"
     assert worker["deploy"]["replicas"] == 3  # FACECAP_WORKERS from .env
     command = " ".join(worker["command"])
-    assert "prefect worker start --pool facecap --type process" in command
+    assert "prefect worker start --pool facecap --type process --work-queue captures" in command
+    conductor = services["conductor"]
+    assert "--work-queue default" in " ".join(conductor["command"])
+    assert service_env(resolved, "conductor") == service_env(resolved, "worker")
+    assert "set-concurrency-limit facecap" in " ".join(services["deployments"]["command"])
     env = service_env(resolved, "worker")
     assert env["PREFECT_API_URL"] == "http://server:4200/api"
     assert env["FACECAP_STORE"] == "s3://facecap-test-bucket/artifacts"
@@ -216,6 +220,7 @@ def test_state_lives_in_named_volumes(resolved):
     assert "postgres-data" in mounted["postgres"]
     assert "minio-data" in mounted["minio"]
     assert {"facecap-home", "facecap-output"} <= mounted["worker"]
+    assert mounted["conductor"] == mounted["worker"]
 
 
 def test_each_container_gets_only_the_credentials_it_needs(resolved):

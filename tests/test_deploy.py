@@ -31,7 +31,7 @@ def test_served_flows_accept_only_documented_parameters():
     from flows.dataset import reconstruct_dataset
 
     schema = reconstruct_dataset.parameters
-    assert set(schema.properties) == {"root", "out", "config", "store"}
+    assert set(schema.properties) == {"root", "out", "config", "store", "until"}
     assert set(schema.required) == {"root", "out"}
     from flows.capture import reconstruct_capture
 
