@@ -5,15 +5,21 @@ again changes nothing but their contents."""
 from __future__ import annotations
 
 import json
+import re
+import subprocess
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 
 import pytest
+import yaml
 
 from deploy import alerts
 from facecap_core.errors import InputError
 from flows.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 class Webhook:
@@ -213,3 +219,41 @@ def test_bad_operator_input_is_one_line_and_exit_code_2(capsys, monkeypatch):
     with temporary_settings(restore_defaults={PREFECT_API_URL}):
         assert main(["alerts", "--webhook", "http://hooks.example/x"]) == 2
         assert "PREFECT_API_URL is not set" in capsys.readouterr().err
+
+
+def run_registration_job(tmp_path: Path, webhook: str, deploy_status: int = 0):
+    """The compose `deployments` job's command, run by sh with stand-ins for `prefect` and
+    `facecap` that log their arguments; returns (exit code, the log, stdout)."""
+    raw = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+    job = raw["services"]["deployments"]
+    assert job["command"][:2] == ["sh", "-c"]
+    command = job["command"][2].replace("$$", "$")  # as Compose hands it to the shell
+    log = tmp_path / "calls.log"
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir(exist_ok=True)
+    for name, status in (("prefect", f'case "$*" in *deploy*) exit {deploy_status};; esac'),
+                         ("facecap", "")):
+        stub = bin_dir / name
+        stub.write_text(f'#!/bin/sh\necho "{name} $*" >> "{log}"\n{status}\n')
+        stub.chmod(0o755)
+    env = {"PATH": f"{bin_dir}:/usr/bin:/bin", "FACECAP_ALERT_WEBHOOK": webhook}
+    done = subprocess.run(["sh", "-c", command], env=env, capture_output=True, text=True,
+                          timeout=30)
+    calls = log.read_text() if log.exists() else ""
+    log.unlink(missing_ok=True)
+    return done.returncode, calls, done.stdout
+
+
+def test_the_compose_registration_sets_up_the_alerts_when_a_webhook_is_set(tmp_path):
+    environment = yaml.safe_load((ROOT / "docker-compose.yml").read_text())[
+        "services"]["deployments"]["environment"]
+    assert environment[alerts.WEBHOOK_ENV] == "${FACECAP_ALERT_WEBHOOK:-}"
+    assert re.search(rf"^{alerts.WEBHOOK_ENV}=$", (ROOT / ".env.example").read_text(), re.M)
+
+    status, calls, _ = run_registration_job(tmp_path, "https://hooks.example/x")
+    assert status == 0 and calls.splitlines()[-1] == "facecap alerts"
+    assert "deploy --all --prefect-file deploy/prefect.yaml" in calls
+    status, calls, out = run_registration_job(tmp_path, "")
+    assert status == 0 and "facecap alerts" not in calls and "no alerts" in out
+    status, calls, _ = run_registration_job(tmp_path, "https://hooks.example/x", deploy_status=1)
+    assert status == 1 and "facecap alerts" not in calls  # a failed registration stops the job
