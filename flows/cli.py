@@ -201,6 +201,14 @@ def _cmd_serve(args) -> int:
     return 0
 
 
+def _cmd_alerts(args) -> int:
+    from deploy.alerts import set_up_alerts
+
+    for line in set_up_alerts(webhook=args.webhook, block=args.block):
+        print(line)
+    return 0
+
+
 def _cmd_demo(args) -> int:
     import os
 
@@ -315,6 +323,17 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--timezone", default="UTC", help="time zone of the schedule (IANA name)")
     sv.add_argument("--limit", type=int, default=1, help="flow runs at once")
     sv.set_defaults(func=_cmd_serve)
+
+    al = sub.add_parser("alerts", help="notify a webhook when the nightly evaluation regresses "
+                                       "or a facecap run fails (on the server in PREFECT_API_URL)")
+    where = al.add_mutually_exclusive_group()
+    where.add_argument("--webhook", help="URL the alerts are POSTed to as JSON {\"text\": ...} "
+                                         "(Slack, Mattermost, any HTTP endpoint; default "
+                                         "$FACECAP_ALERT_WEBHOOK)")
+    where.add_argument("--block", metavar="TYPE/NAME",
+                       help="send through this notification block made in the Prefect UI "
+                            "instead (e.g. ms-teams-webhook/ops)")
+    al.set_defaults(func=_cmd_alerts)
 
     fg = sub.add_parser("forget", help="remove everything derived from one subject's captures: "
                                        "the store's artifacts, the results folder and the "
