@@ -218,6 +218,10 @@ reverse): retrying seconds later cannot help."""
 def is_transient(exc: BaseException) -> bool:
     """Bad input is never retried; store, network and OS faults are, unless the disk is
     full or the location is read-only or forbidden."""
+    from prefect.task_engine import TaskRunTimeoutError
+
+    if isinstance(exc, TaskRunTimeoutError):  # over its time limit: it would be again
+        return False
     cause = exc.__cause__ if isinstance(exc, StoreWriteError) else exc
     if isinstance(cause, OSError) and cause.errno in LASTING_ERRNOS:
         return False
