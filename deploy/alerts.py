@@ -63,9 +63,9 @@ ended {{ event.resource['prefect.state-name'] }}:
 
 def webhook_from_environment() -> str | None:
     """The operator's webhook URL from ``$FACECAP_ALERT_WEBHOOK`` (the only place it is read)."""
-    import os
+    from facecap_core.settings import settings
 
-    return os.environ.get(WEBHOOK_ENV) or None
+    return settings().alert_webhook
 
 
 def facecap_flow_names() -> list[str]:

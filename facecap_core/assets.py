@@ -26,6 +26,7 @@ import tempfile
 from pathlib import Path
 
 from facecap_core.errors import FacecapError
+from facecap_core.settings import settings
 
 MENPO3D_SDIST = "menpo3d-0.8.6.tar.gz"
 MENPO3D_SHA256 = "96ad2c8b55b74e026cdc190cf6b1564ad7c8e6c53976cf897d6a1bf4940f084a"
@@ -46,7 +47,7 @@ refused instead of silently changing every reconstruction."""
 
 def facecap_home() -> Path:
     """The user cache folder: ``$FACECAP_HOME`` or ``~/.cache/facecap``."""
-    return Path(os.environ.get("FACECAP_HOME") or Path.home() / ".cache" / "facecap").expanduser()
+    return settings().home
 
 
 MENPO3D_PROJECT = "menpo3d"
@@ -211,7 +212,7 @@ def packaged_ict_model() -> Path:
 def default_ict_model() -> Path:
     """The ICT Face Model to use when none is given: ``$FACECAP_ICT_MODEL`` (e.g. the full
     100-mode model), else the packaged trimmed one."""
-    return Path(os.environ.get(ICT_MODEL_ENV) or packaged_ict_model())
+    return settings().ict_model or packaged_ict_model()
 
 
 PROVENANCE = """\

@@ -794,37 +794,6 @@ class PipelineConfig(StrictModel):
     """Non-rigid template fitting and texture."""
 
 
-class InputLimits(StrictModel):
-    """The largest capture a run accepts, checked before any compute (``flows.capture.
-    preflight``). Whoever runs facecap sets them, in the environment as
-    ``FACECAP_<FIELD>`` (``FACECAP_MAX_DURATION_S=300``): they are not part of a run's config,
-    so that a run of a shared service cannot raise its own limits. The defaults admit any
-    phone capture (a 10-minute 4K video at 60 fps is 36,000 frames and about 4 GB)."""
-
-    max_file_mb: float = Field(8192.0, gt=0)
-    """Largest video file (a photo folder: all its photos), in MiB: checked before the file
-    is opened, and the store holds a copy of it."""
-    max_duration_s: float = Field(600.0, gt=0)
-    """Longest video, in seconds (an ear-to-ear sweep takes 10 to 30)."""
-    max_frames: int = Field(36_000, ge=2, le=10 * MAX_FRAMES)
-    """Most frames of a video, or photos in a folder: the keyframe stage decodes every one."""
-    max_side_px: int = Field(8192, ge=120, le=65536)
-    """Longest image side in pixels (8K); the keyframes are kept at full resolution."""
-
-
-def input_limits() -> InputLimits:
-    """The limits set in the environment (``FACECAP_MAX_...``), else the defaults."""
-    import os
-
-    values = {name: os.environ[f"FACECAP_{name.upper()}"] for name in InputLimits.model_fields
-              if os.environ.get(f"FACECAP_{name.upper()}")}
-    try:
-        return InputLimits.model_validate(values, strict=False)
-    except ValidationError as exc:
-        raise InputError(f"invalid input limits in the environment (FACECAP_MAX_...): "
-                         f"{validation_message(exc)}; correct them") from None
-
-
 def load_pipeline_config(source: str | Path | PipelineConfig | dict | None = None,
                          overrides: dict | None = None) -> PipelineConfig:
     """The pipeline config from a YAML file, a config given as such (a flow parameter) or

@@ -260,13 +260,13 @@ def preflight(video: str | Path, config: ConfigParameter | Path = None, scan: st
               scan_landmarks: str | None = None, out: str | Path | None = None
               ) -> PipelineConfig:
     """Checks that need no stage: the files exist, the video decodes, is long and large
-    enough and within the limits (:class:`~facecap_core.config.InputLimits`), the config is
-    valid, the output folder is writable. Run before anything is started so bad input fails
-    in a second with one line."""
-    from facecap_core.config import input_limits
+    enough and within the input limits (``FACECAP_MAX_*``, :mod:`facecap_core.settings`), the
+    config is valid, the output folder is writable. Run before anything is started so bad
+    input fails in a second with one line."""
+    from facecap_core.settings import settings
     from facecap_core.video import probe, stored_frame_count
 
-    limits = input_limits()
+    limits = settings()  # the environment's limits, never the run's config
     photos = Path(video).is_dir()
     if not photos and not Path(video).is_file():
         raise InputError(f"capture not found: {video}; give a video file or a folder of photos")

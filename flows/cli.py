@@ -186,12 +186,16 @@ def _cmd_evaluate_dataset(args) -> int:
 def _cmd_serve(args) -> int:
     import os
 
+    from facecap_core.settings import settings
     from flows.service import INPUT_ROOTS_ENV, OUTPUT_ROOT_ENV
 
     # Served runs (processes of their own) read only under ROOT and write only under OUT
-    # unless the environment sets other folders.
-    os.environ.setdefault(INPUT_ROOTS_ENV, str(Path(args.root).resolve()))
-    os.environ.setdefault(OUTPUT_ROOT_ENV, str(Path(args.out).resolve()))
+    # unless the environment sets other folders (an empty variable counts as unset, as everywhere).
+    configured = settings()
+    if not configured.input_roots:
+        os.environ[INPUT_ROOTS_ENV] = str(Path(args.root).resolve())
+    if configured.output_root is None:
+        os.environ[OUTPUT_ROOT_ENV] = str(Path(args.out).resolve())
     _prefect_env("INFO")  # a server's console is its log
     from deploy.serve import serve
 
@@ -210,15 +214,14 @@ def _cmd_alerts(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    import os
-
     from facecap_core.baselines import mean_template
     from facecap_core.config import SynthConfig
     from facecap_core.evaluation import score_json
+    from facecap_core.settings import settings
     from facecap_core.synthetic import synthesize
     from facecap_core.template import Template
 
-    ict_model = args.ict_model or os.environ.get("FACECAP_ICT_MODEL")
+    ict_model = args.ict_model or settings().ict_model
     subject = "ict:3" if ict_model else "james"
     config = SynthConfig(subject=subject, ict_model=ict_model, width=args.width,
                          height=args.height, fps=args.fps, duration_s=args.seconds)
@@ -295,7 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--scan", help="ground-truth scan (mm) to score the mesh against")
     r.add_argument("--scan-landmarks", help="68 3D landmarks of the scan")
     r.add_argument("--store", help="artifact store: folder or s3://bucket/prefix "
-                                   "(default $FACECAP_STORE or ~/.cache/facecap/store)")
+                                   "(default $FACECAP_STORE, else $FACECAP_HOME/store)")
     r.set_defaults(func=_cmd_reconstruct)
 
     ds = sub.add_parser("dataset", help="reconstruct every capture of ROOT/<subject>/<capture>.mp4 "
@@ -435,9 +438,15 @@ def _write_crash_log(exc: BaseException, argv: list[str] | None) -> Path:
     import time
     import traceback
 
+    from facecap_core.errors import FacecapError
+    from facecap_core.settings import default_home
     from tasks.runner import facecap_home
 
-    folder = facecap_home() / "logs"
+    try:
+        home = facecap_home()
+    except FacecapError:  # a bad FACECAP_* value must not hide the bug being logged
+        home = default_home()
+    folder = home / "logs"
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"crash-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.log"
     path.write_text(f"facecap {' '.join(sys.argv[1:] if argv is None else argv)}\n\n"

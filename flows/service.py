@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from facecap_core.errors import InputError
+from facecap_core.settings import settings
 
 LOCAL_COMMAND: ContextVar[bool] = ContextVar("facecap_local_command", default=False)
 """Set by the ``facecap`` command for the flows it runs in its own process: a user on their
@@ -58,11 +59,10 @@ class ServicePolicy:
     def from_env(cls) -> ServicePolicy:
         from tasks.runner import default_store_url
 
-        roots = tuple(Path(p).expanduser().resolve()
-                      for p in os.environ.get(INPUT_ROOTS_ENV, "").split(os.pathsep) if p)
-        output = os.environ.get(OUTPUT_ROOT_ENV)
-        return cls(roots, Path(output).expanduser().resolve() if output else None,
-                   default_store_url())
+        configured = settings()
+        output = configured.output_root
+        return cls(tuple(root.resolve() for root in configured.input_roots),
+                   output.resolve() if output else None, default_store_url())
 
     def input(self, path: str | os.PathLike | None, what: str) -> None:
         """Refuse an input outside every input root."""
@@ -99,8 +99,9 @@ def service_policy() -> ServicePolicy | None:
     command, or a process whose environment sets no limits, outside any deployment)."""
     if LOCAL_COMMAND.get():
         return None
-    configured = os.environ.get(INPUT_ROOTS_ENV) or os.environ.get(OUTPUT_ROOT_ENV)
-    if not configured and not _from_deployment():
+    # Set at all (even to ':', which names no folder) makes a worker: it reads nothing.
+    limited = {"input_roots", "output_root"} & settings().model_fields_set
+    if not limited and not _from_deployment():
         return None
     return ServicePolicy.from_env()
 

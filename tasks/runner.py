@@ -26,13 +26,15 @@ from pathlib import Path
 
 from facecap_core.assets import facecap_home
 from facecap_core.errors import FacecapError, InputError
+from facecap_core.settings import settings
 from tasks.graph import INPUT_VERSION, Stage
 from tasks.store import ArtifactStore, CorruptArtifactError, StoreWriteError, input_key
 
 
 def default_store_url() -> str:
     """``$FACECAP_STORE`` (a folder or ``s3://bucket/prefix``), else ``$FACECAP_HOME/store``."""
-    return os.environ.get("FACECAP_STORE") or str(facecap_home() / "store")
+    configured = settings()
+    return configured.store or str(configured.home / "store")
 
 
 def open_store(url: str) -> ArtifactStore:
@@ -149,7 +151,7 @@ def inject_fault(stage: str, work: Path) -> None:
     (default: the process dies at once with code 137, as if killed by SIGKILL, no cleanup),
     ``interrupt`` (KeyboardInterrupt, as Ctrl-C) or ``oserror`` (a transient I/O error that
     the task's retries absorb)."""
-    spec = os.environ.get("FACECAP_FAULT")
+    spec = settings().fault  # validated: STAGE[:N[:HOW]]
     if not spec:
         return
     parts = spec.split(":")

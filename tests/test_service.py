@@ -1,5 +1,5 @@
 """The shared service's bounds: what a served run may read, write and reach
-(``flows/service.py``), and the largest capture any run accepts (``InputLimits``).
+(``flows/service.py``), and the largest capture any run accepts (``FACECAP_MAX_*``).
 
 Served runs are tested through the flow functions in a process whose environment sets the
 worker's limits (``FACECAP_INPUT_ROOTS``, ``FACECAP_OUTPUT_ROOT``, ``FACECAP_STORE``), as a
@@ -223,4 +223,4 @@ def test_input_limits_are_checked_before_any_compute(variable, videos, tmp_path,
 def test_input_limits_are_validated(videos, tmp_path, monkeypatch, capfd):
     monkeypatch.setenv("FACECAP_MAX_FRAMES", "many")
     code, _, err = facecap(capfd, "reconstruct", videos["orbit"], "--out", tmp_path / "out")
-    assert_one_line_error(code, err, ["invalid input limits", "max_frames"])
+    assert_one_line_error(code, err, ["invalid FACECAP_MAX_FRAMES='many'", "valid integer"])

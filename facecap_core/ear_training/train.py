@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -33,6 +32,7 @@ from facecap_core.ear_training.render import (
     save_dataset,
 )
 from facecap_core.errors import InputError
+from facecap_core.settings import settings
 
 
 def iou(a, b) -> float:
@@ -156,7 +156,7 @@ def train(out_dir: str | Path, config: EarTrainingConfig | None = None,
     and ``previews/*.png``; returns ``out_dir``.
     """
     config = config or EarTrainingConfig()
-    ict_model = config.ict_model or os.environ.get("FACECAP_ICT_MODEL")
+    ict_model = config.ict_model or settings().ict_model
     if not ict_model:
         raise InputError("ear training needs the ICT Face Model: set ict_model or "
                          "FACECAP_ICT_MODEL to PATH/ict_face_model.npz")

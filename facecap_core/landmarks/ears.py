@@ -16,7 +16,6 @@ views; a right-ear image is mirrored before detection and the points mirrored ba
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -24,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from facecap_core.errors import FacecapError, InputError
+from facecap_core.settings import settings
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
 DETECTOR_FILE = "ear_detector.svm"
@@ -39,8 +39,7 @@ background views with a box stay at 5 %; below -0.5 these false boxes climb quic
 
 def models_dir() -> Path:
     """The folder the ear model files are read from (``$FACECAP_EAR_MODELS`` or the package)."""
-    env = os.environ.get("FACECAP_EAR_MODELS")
-    return Path(env) if env else MODELS_DIR
+    return settings().ear_models or MODELS_DIR
 
 
 def model_digest() -> str:

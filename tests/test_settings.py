@@ -1,0 +1,168 @@
+"""facecap's settings (``facecap_core/settings.py``): every ``FACECAP_*`` variable, read in one
+place, documented in ``docs/deploy.md``, and one rule for empty values and ``~``."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import uuid
+from pathlib import Path
+
+import pytest
+
+from facecap_core.errors import InputError
+from facecap_core.settings import FacecapSettings, env_name, settings
+
+ROOT = Path(__file__).resolve().parents[1]
+SETTINGS_HEADING = "### facecap's settings"
+VARIABLES = {env_name(field) for field in FacecapSettings.model_fields}
+
+
+@pytest.fixture(autouse=True)
+def clean_environment(monkeypatch):
+    """No FACECAP_* variable of the machine running the tests leaks in."""
+    for variable in VARIABLES:
+        monkeypatch.delenv(variable, raising=False)
+
+
+# --------------------------------------------------------------------------- documentation
+
+
+def table_rows(markdown: str, heading: str) -> list[list[str]]:
+    """The cells of the first table after ``heading`` (header and rule left out)."""
+    after = markdown.split(heading + "\n", 1)[1]
+    lines = re.split(r"\n#+ ", after, maxsplit=1)[0].splitlines()
+    table = [line for line in lines if line.startswith("|")]
+    return [[cell.strip() for cell in row.strip("|").split("|")] for row in table[2:]]
+
+
+def named_variables(cell: str) -> set[str]:
+    return set(re.findall(r"`(FACECAP_[A-Z0-9_]+)`", cell))
+
+
+def test_the_deploy_docs_list_exactly_the_settings():
+    docs = (ROOT / "docs" / "deploy.md").read_text()
+    rows = table_rows(docs, SETTINGS_HEADING)
+    documented = [cell for row in rows for cell in named_variables(row[0])]
+    assert sorted(documented) == sorted(VARIABLES)  # each once, none missing, none extra
+    for row in rows:  # a number given as the default is the code's default
+        field = FacecapSettings.model_fields[row[0].strip("`")[len("FACECAP_"):].lower()]
+        if isinstance(field.default, int | float):
+            assert row[1] == f"`{field.default:g}`", row
+
+
+def test_the_stack_variables_table_holds_no_setting():
+    docs = (ROOT / "docs" / "deploy.md").read_text()
+    rows = table_rows(docs, "## Environment variables")
+    stack = set().union(*(named_variables(row[0]) for row in rows))
+    assert stack and not stack & VARIABLES  # each variable is documented in one place
+
+
+def test_every_variable_the_code_names_is_a_setting():
+    """A FACECAP_* variable named in the code is a setting, so it is validated and
+    documented (``FACECAP_MAX_...`` abbreviates the limits)."""
+    named = set()
+    for package in ("facecap_core", "tasks", "flows", "deploy"):
+        for source in (ROOT / package).rglob("*.py"):
+            named |= set(re.findall(r"FACECAP_[A-Z0-9_]*[A-Z0-9]", source.read_text()))
+    unknown = {name for name in named
+               if name not in VARIABLES and not any(v.startswith(name + "_") for v in VARIABLES)}
+    assert not unknown
+
+
+# --------------------------------------------------------------------------- FACECAP_HOME
+
+
+@pytest.fixture(scope="module")
+def template_assets() -> Path:
+    """The template assets of the machine's cache, copied into each test's home."""
+    from facecap_core import assets
+
+    return assets.menpo3d_data()
+
+
+@pytest.mark.parametrize("value", ["~/.cache/facecap", "", None],
+                         ids=["tilde", "empty", "unset"])
+def test_facecap_home_resolves_one_way_everywhere(value, tmp_path, monkeypatch,
+                                                  template_assets):
+    """``~`` expanded, an empty value and no value all mean ``~/.cache/facecap``, for the
+    default store, the assets, the locks of a remote store and the copies of its artifacts."""
+    from facecap_core import assets
+    from tasks.runner import default_store_url, key_lock
+    from tasks.store import ArtifactStore
+    from tasks.store.remote import cache_root
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    if value is not None:
+        monkeypatch.setenv("FACECAP_HOME", value)
+    home = tmp_path / ".cache" / "facecap"
+    shutil.copytree(template_assets, home / "assets" / template_assets.name)
+
+    def no_download(dest):  # assets looked for in another folder would be downloaded
+        raise AssertionError("the assets were looked for outside FACECAP_HOME")
+
+    monkeypatch.setattr(assets, "_download_sdist", no_download)
+
+    assert settings().home == home
+    assert default_store_url() == str(home / "store")
+    assert assets.default_template_files()[0] == home / "assets" / "menpo3d-0.8.6" / "template.ply"
+    assert cache_root() == home / "store-cache"
+    with key_lock(ArtifactStore(f"memory://facecap-test-{uuid.uuid4().hex}"), "input-" + "0" * 32):
+        assert (home / "locks" / ("input-" + "0" * 32 + ".lock")).is_file()
+
+
+def test_facecap_home_expands_tilde_and_is_read_again_when_it_changes(tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.setenv("FACECAP_HOME", "~/first")
+    assert settings().home == tmp_path / "first"
+    monkeypatch.setenv("FACECAP_HOME", "~/second")
+    assert settings().home == tmp_path / "second"
+
+
+def test_an_empty_value_is_the_default_for_every_setting(monkeypatch):
+    for variable in VARIABLES:
+        monkeypatch.setenv(variable, "")
+    assert settings() == FacecapSettings.model_construct()  # the defaults, unvalidated
+    assert settings().max_frames == 36_000 and settings().store is None
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+def test_input_roots_parse_as_a_list_of_paths(tmp_path, monkeypatch):
+    from flows.service import ServicePolicy
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.setenv("FACECAP_INPUT_ROOTS", f"~/videos::{tmp_path / 'scans'}:")
+    assert settings().input_roots == (tmp_path / "videos", tmp_path / "scans")
+    assert ServicePolicy.from_env().input_roots == (tmp_path.resolve() / "videos",
+                                                    tmp_path.resolve() / "scans")
+
+
+def test_the_timeouts_have_their_defaults_and_read_the_environment(monkeypatch):
+    assert (settings().capture_timeout_s, settings().stage_timeout_s) == (21600, 7200)
+    monkeypatch.setenv("FACECAP_CAPTURE_TIMEOUT_S", "90.5")
+    monkeypatch.setenv("FACECAP_STAGE_TIMEOUT_S", "30")
+    assert (settings().capture_timeout_s, settings().stage_timeout_s) == (90.5, 30)
+
+
+INVALID = {
+    "FACECAP_MAX_FRAMES": ("many", "valid integer"),
+    "FACECAP_MAX_FILE_MB": ("-1", "greater than 0"),
+    "FACECAP_MAX_SIDE_PX": ("50", "greater than or equal to 120"),
+    "FACECAP_CAPTURE_TIMEOUT_S": ("0", "greater than 0"),
+    "FACECAP_STAGE_TIMEOUT_S": ("inf", "finite number"),
+    "FACECAP_FAULT": ("views:first", "STAGE[:N[:HOW]]"),
+}
+
+
+@pytest.mark.parametrize("variable", sorted(INVALID))
+def test_an_invalid_value_names_its_variable(variable, monkeypatch):
+    value, reason = INVALID[variable]
+    monkeypatch.setenv(variable, value)
+    with pytest.raises(InputError) as error:
+        settings()
+    message = str(error.value)
+    assert "\n" not in message
+    assert f"invalid {variable}={value!r}" in message and reason in message
+    assert "correct it or unset it" in message
