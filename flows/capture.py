@@ -29,6 +29,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from facecap_core.config import PipelineConfig, load_pipeline_config
 from facecap_core.errors import InputError
+from facecap_core.settings import settings
 from flows.service import guard
 from tasks.graph import (
     BY_NAME,
@@ -42,7 +43,7 @@ from tasks.graph import (
     stages_until,
 )
 from tasks.runner import open_store
-from tasks.stages import call_ingest, call_stage
+from tasks.stages import call_ingest, call_stage, stage_result
 
 Step = Literal[STEPS]
 """What ``until`` can stop after, in order: the steps of the stage graph."""
@@ -118,7 +119,7 @@ def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: dict, lab
             running.append((i, call_stage(stage.name, store, inputs, config, label,
                                           params={"index": i}, submit=True)))
         i, future = running.pop(0)
-        results[stage.row_name({"index": i})] = tuple(future.result())
+        results[stage.row_name({"index": i})] = stage_result(stage.name, future, label)
         bar.update()
         update_progress_artifact(artifact, 100.0 * len(results) / len(indices))
     bar.close()
@@ -183,7 +184,8 @@ def _stage_report(store: str, runs: dict[str, tuple[str, bool]]) -> dict:
 
 
 @flow(name="reconstruct-capture", flow_run_name=_run_name, log_prints=True,
-      task_runner=ThreadPoolTaskRunner(max_workers=MAX_WORKERS))
+      task_runner=ThreadPoolTaskRunner(max_workers=MAX_WORKERS),
+      timeout_seconds=settings().capture_timeout_s)
 def reconstruct_capture(video: str, out: str, config: ConfigParameter = None,
                         scan: str | None = None, scan_landmarks: str | None = None,
                         until: Step = "evaluation", store: str | None = None,

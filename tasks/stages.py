@@ -10,12 +10,15 @@ flag from the tasks themselves.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 from prefect.futures import PrefectFuture
 
+from facecap_core.errors import FacecapError
+from facecap_core.settings import settings
 from tasks.graph import BY_NAME, STAGES
 from tasks.runner import default_store_url, ingest, retry_condition, run_stage
 
@@ -61,15 +64,33 @@ def ingest_task(store: str, path: str, name: str, label: str = "") -> str:
 def call_stage(name: str, store: str, inputs: dict[str, str], config: dict | None,
                label: str = "", params: dict | None = None, submit: bool = False
                ) -> tuple[str, bool] | PrefectFuture:
-    """Run (or ``submit``) the task of stage ``name``; returns ``(key, computed)``."""
-    runner = TASKS[name]
+    """Run (or ``submit``) the task of stage ``name``, within ``FACECAP_STAGE_TIMEOUT_S``;
+    returns ``(key, computed)``, or a future for :func:`stage_result`."""
+    runner = TASKS[name].with_options(timeout_seconds=settings().stage_timeout_s)
     if submit:
         return runner.submit(store, inputs, config or {}, params, label)
-    return tuple(runner(store, inputs, config or {}, params, label))
+    return stage_result(name, lambda: runner(store, inputs, config or {}, params, label), label)
+
+
+def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: str = ""
+                 ) -> tuple[str, bool]:
+    """``(key, computed)`` of a stage's task (a future, or the call itself); a stage stopped
+    at its time limit ends its task run TimedOut and raises a one-line FacecapError."""
+    from prefect.task_engine import TaskRunTimeoutError
+
+    try:
+        return tuple(result.result() if isinstance(result, PrefectFuture) else result())
+    except TaskRunTimeoutError:
+        limit = settings().stage_timeout_s
+        raise FacecapError(f"the {name} stage of {label or 'the capture'} was stopped after "
+                           f"its time limit of {limit:g} s (FACECAP_STAGE_TIMEOUT_S); raise "
+                           "the limit for a capture this large, or look for what held it up "
+                           "in the run's log") from None
 
 
 def call_ingest(store: str, path: str | Path, name: str, label: str = "") -> str:
     return ingest_task(store, str(path), name, label)
 
 
-__all__ = ["TASKS", "call_ingest", "call_stage", "default_store_url", "ingest_task"]
+__all__ = ["TASKS", "call_ingest", "call_stage", "default_store_url", "ingest_task",
+           "stage_result"]

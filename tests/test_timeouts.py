@@ -1,0 +1,65 @@
+"""Time limits: a stage that runs past ``FACECAP_STAGE_TIMEOUT_S`` is stopped, its task run
+ends TimedOut and the capture run Failed with one line, on a real Prefect server; nothing
+hangs and nothing retries it."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from facecap_core.errors import FacecapError
+from tests.media import write_video
+from tests.test_bad_inputs import orbit_frames
+
+
+@pytest.fixture
+def worker_home(tmp_path, monkeypatch):
+    from facecap_core import assets
+
+    source = assets.menpo3d_data()
+    (tmp_path / "home" / "assets").mkdir(parents=True)
+    (tmp_path / "home" / "assets" / source.name).symlink_to(source)
+    monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("FACECAP_STORE", str(tmp_path / "store"))
+    return tmp_path
+
+
+def test_a_stage_past_its_time_limit_fails_the_run(worker_home, live_server, monkeypatch):
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    from flows.capture import reconstruct_capture
+
+    video = write_video(worker_home / "orbit.mp4", orbit_frames(150))
+    monkeypatch.setenv("FACECAP_STAGE_TIMEOUT_S", "0.05")  # decoding 150 frames takes longer
+    start = time.perf_counter()
+    with temporary_settings({PREFECT_API_URL: live_server}):
+        state = reconstruct_capture(str(video), str(worker_home / "out"), until="keyframes",
+                                    return_state=True)
+        seconds = time.perf_counter() - start
+        with pytest.raises(FacecapError) as stopped:
+            state.result()
+        with get_client(sync_client=True) as client:
+            run = client.read_flow_run(state.state_details.flow_run_id)
+            for _ in range(30):  # task runs reach the server as events, a moment later
+                keyframes = [t for t in client.read_task_runs(flow_run_filter=FlowRunFilter(
+                    id=FlowRunFilterId(any_=[run.id]))) if t.name.startswith("keyframes")]
+                if keyframes and keyframes[0].state and keyframes[0].state.is_final():
+                    break
+                time.sleep(1)
+    message = str(stopped.value)
+    assert "keyframes stage" in message and "0.05 s" in message
+    assert "FACECAP_STAGE_TIMEOUT_S" in message and "\n" not in message
+    assert run.state.is_failed()
+    assert [t.state.name for t in keyframes] == ["TimedOut"]  # not retried
+    assert keyframes[0].run_count == 1
+    assert seconds < 60, seconds  # the retries' delays alone would be 42 s
+
+
+def test_the_capture_flow_has_the_configured_time_limit(monkeypatch):
+    from facecap_core.settings import settings
+    from flows.capture import reconstruct_capture
+
+    assert reconstruct_capture.timeout_seconds == settings().capture_timeout_s == 21600
