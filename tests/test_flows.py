@@ -244,3 +244,45 @@ def test_core_logs_are_in_the_runs_log(first_run):
     assert len({log.task_run_id for log in depth}) == len(KEYFRAMES)  # each in its task run
     assert "MVS references" in by_module["facecap_core.mvs.views"][0].message
 
+
+def test_one_progress_artifact_reaches_100(first_run):
+    from prefect.client.schemas.filters import (
+        ArtifactFilter,
+        ArtifactFilterFlowRunId,
+        ArtifactFilterType,
+    )
+
+    found = read_api(lambda c: c.read_artifacts(artifact_filter=ArtifactFilter(
+        flow_run_id=ArtifactFilterFlowRunId(any_=[first_run["flow_run_id"]]),
+        type=ArtifactFilterType(any_=["progress"]))))
+    assert len(found) == 1  # one for the run, the depth maps' steps in it
+    assert float(found[0].data) == 100.0
+    assert found[0].description.startswith("t: evaluation done")
+
+
+def test_the_results_link_of_a_local_store_is_the_output_folder(first_run, tmp_path):
+    from prefect import flow
+
+    from flows.capture import _stage_report
+    from flows.ui import artifact_keys, publish_capture
+
+    keys = first_run["keys"]
+    runs = {name: (keys[name], False) for name in ("fusion", "fitting", "evaluation")}
+    report = {"subject": "subject a", "capture": "video (1)", "store": first_run["store"],
+              "computed": 0, "cached": 3, "wall_seconds": 1.0,
+              "stages": _stage_report(first_run["store"], runs)}
+    out = tmp_path / "results (1)"
+    out.mkdir()
+
+    @flow(name="publish")
+    def publish() -> None:
+        publish_capture(report, out, "subject a/video (1)")
+
+    publish()
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    link_key = artifact_keys("subject a/video (1)")[2]
+    (link,) = read_api(lambda c: c.read_artifacts(
+        artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=[link_key]))))
+    assert link.data == f"[results of subject a/video \\(1\\)]({out.resolve().as_uri()})"
+    assert link.description == "subject a/video (1): results (the output folder)"
