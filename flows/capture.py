@@ -101,14 +101,37 @@ def _inputs(stage: Stage, keys: dict[str, str]) -> dict[str, str] | None:
     return inputs
 
 
+class _RunProgress:
+    """The capture run's progress artifact in the UI, one per run: advanced after every stage
+    (one share of the bar each, a skipped stage too) and after every depth map (the fan-out's
+    share split among its maps), its description naming the capture and the last step."""
+
+    def __init__(self, label: str, stages: int):
+        from prefect.artifacts import create_progress_artifact
+
+        self.label, self.stages, self.done = label, max(stages, 1), 0
+        self.id = create_progress_artifact(0.0, description=f"{label}: started")
+
+    def update(self, what: str, fraction: float = 0.0) -> None:
+        """``what`` happened; ``fraction`` of the stage in progress is done."""
+        from prefect.artifacts import update_progress_artifact
+
+        percent = min(100.0, 100.0 * (self.done + fraction) / self.stages)
+        update_progress_artifact(self.id, percent, description=f"{self.label}: {what}")
+
+    def stage_done(self, name: str, outcome: str = "done") -> None:
+        self.done += 1
+        self.update(f"{name} {outcome} ({self.done} of {self.stages} stages)")
+
+
 def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: dict, label: str,
-             workers: int, progress: bool) -> dict[str, tuple[str, bool]]:
-    """One task per keyframe, at most ``workers`` at once; a progress artifact in the UI."""
-    from prefect.artifacts import create_progress_artifact, update_progress_artifact
+             workers: int, progress: bool, run_progress: _RunProgress
+             ) -> dict[str, tuple[str, bool]]:
+    """One task per keyframe, at most ``workers`` at once; the run's progress artifact (and
+    with ``progress`` a console bar) advanced after each."""
     from tqdm import tqdm
 
     indices = stage.per_keyframe(_StoredFolders(store, inputs))
-    artifact = create_progress_artifact(0.0, description=f"{stage.name} of {label}")
     bar = tqdm(total=len(indices), desc=f"{stage.name} maps", unit="map",
                disable=not progress)
     pending, results = list(indices), {}
@@ -121,7 +144,9 @@ def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: dict, lab
         i, future = running.pop(0)
         results[stage.row_name({"index": i})] = stage_result(stage.name, future, label)
         bar.update()
-        update_progress_artifact(artifact, 100.0 * len(results) / len(indices))
+        if len(results) < len(indices):  # the last one completes the stage
+            run_progress.update(f"{stage.name} map {len(results)} of {len(indices)}",
+                                len(results) / len(indices))
     bar.close()
     return results
 
@@ -131,20 +156,25 @@ def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str
     """Run ``stages`` in graph order (inside a flow). ``keys`` holds the artifacts at hand
     (raw inputs by name, earlier stages) and receives the new ones; a stage whose required
     input is missing (the evaluation without a scan) is skipped. Returns ``{report row:
-    (key, computed)}``."""
+    (key, computed)}``. The run's progress artifact follows the stages and the depth maps."""
+    stages = list(stages)
+    run_progress = _RunProgress(label, len(stages))
     runs: dict[str, tuple[str, bool]] = {}
     for stage in stages:
         inputs = _inputs(stage, keys)
         if inputs is None:
+            run_progress.stage_done(stage.name, "skipped")
             continue
         config = stage.config_data(cfg)
         if stage.per_keyframe:
-            items = _fan_out(stage, store, inputs, config, label, cfg.mvs.workers, progress)
+            items = _fan_out(stage, store, inputs, config, label, cfg.mvs.workers, progress,
+                             run_progress)
             keys.update({row: key for row, (key, _) in items.items()})
             runs.update(items)
         else:
             runs[stage.name] = call_stage(stage.name, store, inputs, config, label)
             keys[stage.name] = runs[stage.name][0]
+        run_progress.stage_done(stage.name)
     return runs
 
 

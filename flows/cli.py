@@ -21,8 +21,8 @@ def _prefect_defaults() -> None:
 
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
-    # No PREFECT_LOGGING_LEVEL: the UI keeps every log line; the console is quieted by its
-    # handlers (see _quiet_console).
+    # No PREFECT_LOGGING_LEVEL: the UI keeps every log line; the console is quieted by a
+    # logging configuration (see _quiet_console).
 
 
 _VERBOSE = False
@@ -54,35 +54,36 @@ def _prefect_env(console_level: str = "WARNING") -> None:
     _quiet_console(console_level)
 
 
+RUN_LOGGERS = ("prefect.flow_runs", "prefect.task_runs")
+"""Prefect's loggers of flow and task runs (what the run pages of the UI show)."""
+
+
+def console_logging(level: str, runs_on_console: bool = False) -> dict:
+    """The command line's logging configuration, applied over Prefect's own (``logging.yml``,
+    whose console handler is named ``console``) with :func:`logging.config.dictConfig`: the
+    runs' logs go to the API alone unless ``runs_on_console``, and the console shows
+    ``level`` and above of the other loggers."""
+    from prefect.logging.configuration import PROCESS_LOGGING_CONFIG
+
+    console = "console" in PROCESS_LOGGING_CONFIG.get("handlers", {})  # a logging.yml of
+    handlers = {"console": {"level": level}} if console else {}  # one's own may lack it
+    return {"version": 1, "incremental": True, "handlers": handlers,
+            "loggers": {name: {"propagate": runs_on_console} for name in RUN_LOGGERS}}
+
+
 def _quiet_console(level: str = "WARNING") -> None:
-    """Bad input is reported once, as one line, by :func:`main`: keep Prefect's console
-    handler from also printing its traceback or the failed state that carries it, and
-    below ``level`` from printing at all (the UI and the API logs still get everything).
-    Prefect is imported before the environment defaults are set, so the handlers are set
-    here rather than through ``PREFECT_LOGGING_LEVEL``."""
-    import logging
-    import re
+    """A failed run reaches the user once, from :func:`main`: bad input as one line, a bug
+    as one line naming the log file with its traceback. So the runs' logs (the failed state,
+    the traceback) go to the API and the UI alone, not to the console, unless ``--verbose``
+    asks for them; and below ``level`` nothing reaches the console (the API logs still get
+    everything). Prefect is imported before the environment defaults are set, so this is
+    applied over its logging setup rather than through ``PREFECT_LOGGING_*`` settings."""
+    import logging.config
 
-    from prefect.logging.configuration import setup_logging
-    from prefect.logging.handlers import PrefectConsoleHandler
+    from prefect.logging.configuration import ensure_logging_setup
 
-    setup_logging()
-
-    def not_bad_input(record: logging.LogRecord) -> bool:
-        # Failures reach the user once, from main: bad input as one line, a bug as one line
-        # naming the log file with its traceback.
-        if record.exc_info and record.exc_info[1] is not None:
-            return False
-        # "Finished in state Failed('Task run encountered an exception InputError: ...')"
-        return not re.search(r"encountered an exception (\w+):", record.getMessage())
-
-    loggers = [logging.getLogger()] + [logging.getLogger(name) for name in
-                                       logging.Logger.manager.loggerDict]
-    for logger in loggers:
-        for handler in logger.handlers:
-            if isinstance(handler, PrefectConsoleHandler):
-                handler.addFilter(not_bad_input)
-                handler.setLevel(max(handler.level, logging.getLevelName(level)))
+    ensure_logging_setup()
+    logging.config.dictConfig(console_logging(level, runs_on_console=_VERBOSE))
 
 
 def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:

@@ -1,6 +1,6 @@
 """What a capture run shows in the Prefect UI: a stage table, a markdown page with preview
-images (embedded as data URIs, so the browser needs no access to the store), and an event
-that automations can react to."""
+images (embedded as data URIs, so the browser needs no access to the store), a link to the
+results, and an event that automations can react to."""
 
 from __future__ import annotations
 
@@ -105,15 +105,39 @@ def capture_markdown(report: dict, out: Path, images: list[tuple[str, Path]]) ->
 
 
 def artifact_keys(label: str) -> list[str]:
-    """The keys of the UI artifacts a capture run publishes (every version shares them)."""
+    """The keys of the UI artifacts a capture run publishes (every version shares them):
+    the stage table, the results page and the link to the results."""
     key = _slug(label)
-    return [f"stages-{key}", f"capture-{key}"]
+    return [f"stages-{key}", f"capture-{key}", f"results-{key}"]
+
+
+RESULTS_LINK_SECONDS = 24 * 3600
+"""How long the link to a capture's mesh in an S3 store lasts: whoever has it can download
+the mesh until then, without credentials. A rerun (every stage reused, seconds) publishes a
+fresh one; ``facecap forget`` deletes the link and the mesh."""
+
+
+def results_link(report: dict, out: Path) -> tuple[str, str]:
+    """``(link, where)`` to a capture run's results: where the store is S3, a presigned URL of
+    the fitted mesh in the store (valid :data:`RESULTS_LINK_SECONDS`); otherwise (a local
+    store, or no mesh: a run ``--until`` an earlier stage) the ``file://`` URI of the output
+    folder."""
+    from facecap_core.fitting.run import MESH_PLY
+    from tasks.runner import open_store
+
+    fitting = report.get("stages", {}).get("fitting")
+    if fitting and report.get("store"):
+        url = open_store(report["store"]).presigned_url(fitting["key"], MESH_PLY,
+                                                         RESULTS_LINK_SECONDS)
+        if url:
+            return url, f"{MESH_PLY} in the store, for {RESULTS_LINK_SECONDS // 3600} h"
+    return Path(out).resolve().as_uri(), "the output folder"
 
 
 def _legacy_keys(label: str) -> list[str]:
     """The keys earlier versions published under: an ASCII name without the hash (names
     that transliterate alike shared them, so their artifacts are told apart by the
-    description, which names the capture)."""
+    description, which names the capture); they published no link."""
     key = _slug(label).rsplit("-", 1)[0]
     return [f"stages-{key}", f"capture-{key}"]
 
@@ -159,11 +183,15 @@ def forget_artifacts(labels: list[str]) -> int:
 
 
 def publish_capture(report: dict, out: Path, label: str) -> None:
-    from prefect.artifacts import create_markdown_artifact, create_table_artifact
+    from prefect.artifacts import (
+        create_link_artifact,
+        create_markdown_artifact,
+        create_table_artifact,
+    )
     from prefect.events import emit_event
 
     key = _slug(label)
-    stages_key, capture_key = artifact_keys(label)
+    stages_key, capture_key, results_key = artifact_keys(label)
     create_table_artifact(stage_rows(report), key=stages_key,
                           description=f"stages of {label}: computed or reused, seconds")
     images = []
@@ -174,6 +202,9 @@ def publish_capture(report: dict, out: Path, label: str) -> None:
         images.append(("Accuracy (similarity)", out / "heatmap_similarity.png"))
     create_markdown_artifact(capture_markdown(report, out, images), key=capture_key,
                              description=f"{label}: results and previews")
+    link, where = results_link(report, out)
+    create_link_artifact(link, link_text=f"results of {markdown_text(label)}",
+                         key=results_key, description=f"{label}: results ({where})")
     emit_event(event="facecap.capture.completed",
                resource={"prefect.resource.id": f"facecap.capture.{key}",
                          "prefect.resource.name": label},

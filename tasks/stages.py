@@ -5,7 +5,8 @@ Every task has the signature ``(store, inputs, config, params, label) -> (key, c
 ``inputs`` maps input names to artifact keys, ``config`` is the stage's config section as
 JSON data and ``params`` its per-keyframe parameters. The store is the cache: a task whose
 artifact is stored returns at once with ``computed`` false, and the run report takes that
-flag from the tasks themselves.
+flag from the tasks themselves. What facecap_core logs at INFO and above while a task runs
+is in the task run's log (:mod:`tasks.logs`).
 """
 
 from __future__ import annotations
@@ -20,7 +21,10 @@ from prefect.futures import PrefectFuture
 from facecap_core.errors import FacecapError
 from facecap_core.settings import settings
 from tasks.graph import BY_NAME, STAGES
+from tasks.logs import send_core_logs_to_runs
 from tasks.runner import default_store_url, ingest, retry_condition, run_stage
+
+send_core_logs_to_runs()  # every process that runs a stage: facecap_core's log in its runs
 
 
 def _run_name(template: str):
@@ -39,6 +43,7 @@ def _stage_task(name: str):
 
     def body(store: str, inputs: dict[str, str], config: dict, params: dict | None = None,
              label: str = "") -> tuple[str, bool]:
+        send_core_logs_to_runs()  # again, should a logging setup since the import have undone it
         return run_stage(store, stage, inputs, config, params)
 
     body.__name__ = f"{name}_task"

@@ -110,7 +110,10 @@ def make_tail_flow():
 
     @flow(name="tail", task_runner=ThreadPoolTaskRunner(max_workers=2))
     def tail(store: str, seeded: dict, config: dict, scan: str, scan_landmarks: str) -> dict:
-        """The stages after the seeded coarse mesh; returns their keys and what computed."""
+        """The stages after the seeded coarse mesh; returns their keys, what computed and
+        the flow run's id."""
+        from prefect.runtime import flow_run
+
         cfg = PipelineConfig.model_validate(config)
         keys = dict(seeded)
         keys["scan"] = call_ingest(store, scan, Path(scan).name, "t")
@@ -118,15 +121,20 @@ def make_tail_flow():
         after = [s for s in STAGES if s.name not in ("keyframes", "poses", "landmarks",
                                                       "coarse")]
         runs = run_stages(store, keys, cfg, "t", after)
-        return {"keys": keys, "computed": sorted(row for row, (_, new) in runs.items() if new)}
+        return {"keys": keys, "computed": sorted(row for row, (_, new) in runs.items() if new),
+                "flow_run_id": flow_run.id}
 
     return tail
 
 
+def tail_result(tail, store_url, seeded, config, capture) -> dict:
+    return tail(store_url, seeded, config.model_dump(mode="json"),
+                str(capture / "gt" / "mesh.ply"), str(capture / "gt" / "landmarks.json"))
+
+
 def run_tail(tail, store_url, seeded, config, capture):
     """The tail flow's keys, and the report rows it computed (the tasks' own word)."""
-    result = tail(store_url, seeded, config.model_dump(mode="json"),
-                  str(capture / "gt" / "mesh.ply"), str(capture / "gt" / "landmarks.json"))
+    result = tail_result(tail, store_url, seeded, config, capture)
     return result["keys"], set(result["computed"])
 
 
@@ -136,9 +144,9 @@ def first_run(prefect_server, capture, tmp_path_factory):
     store_url = str(tmp / "store")
     seeded = seed_upstream(store_url, capture, tmp)
     tail = make_tail_flow()
-    keys, computed = run_tail(tail, store_url, seeded, small_config(), capture)
-    return {"store": store_url, "seeded": seeded, "tail": tail, "keys": keys,
-            "computed": computed}
+    result = tail_result(tail, store_url, seeded, small_config(), capture)
+    return {"store": store_url, "seeded": seeded, "tail": tail, "keys": result["keys"],
+            "computed": set(result["computed"]), "flow_run_id": result["flow_run_id"]}
 
 
 def test_tail_reconstructs_the_capture(first_run, capture):
@@ -193,3 +201,88 @@ def test_lost_depth_maps_are_recomputed_alone(first_run, capture):
                                   small_config(), capture)
     assert new_keys == keys
     assert computed == {f"depth_{i:05d}" for i in KEYFRAMES[2:4]}
+
+
+def read_api(read):
+    """``await read(client)`` on the test server."""
+    import asyncio
+
+    from prefect.client.orchestration import get_client
+
+    async def main():
+        async with get_client() as client:
+            return await read(client)
+
+    return asyncio.run(main())
+
+
+def test_core_logs_are_in_the_runs_log(first_run):
+    """What facecap_core's modules log at INFO is in the flow run's log in the API, each line
+    in the task run it happened in: the depth maps from the task runner's threads too."""
+    import time
+
+    from prefect.client.schemas.filters import LogFilter, LogFilterFlowRunId
+
+    log_filter = LogFilter(flow_run_id=LogFilterFlowRunId(any_=[first_run["flow_run_id"]]))
+    for _ in range(60):  # the logs reach the API in batches
+        core = [log for log in read_api(lambda c: c.read_logs(log_filter=log_filter))
+                if log.name.startswith("facecap_core.")]
+        if any("landmark RMS" in log.message for log in core):  # the last one
+            break
+        time.sleep(0.5)
+    by_module: dict[str, list] = {}
+    for log in core:
+        by_module.setdefault(log.name, []).append(log)
+    assert all(log.level >= 20 and log.task_run_id is not None for log in core)
+    (fit,) = [log for log in by_module["facecap_core.fitting.run"]
+              if log.message.startswith("fitted ")]
+    assert "landmark RMS" in fit.message and "cloud targets" in fit.message
+    (fusion,) = by_module["facecap_core.mvs.fusion"]
+    assert f"from {len(KEYFRAMES)} depth maps" in fusion.message
+    depth = by_module["facecap_core.mvs.depth"]
+    assert sorted(int(log.message.split()[4].rstrip(":")) for log in depth) == KEYFRAMES
+    assert len({log.task_run_id for log in depth}) == len(KEYFRAMES)  # each in its task run
+    assert "MVS references" in by_module["facecap_core.mvs.views"][0].message
+
+
+def test_one_progress_artifact_reaches_100(first_run):
+    from prefect.client.schemas.filters import (
+        ArtifactFilter,
+        ArtifactFilterFlowRunId,
+        ArtifactFilterType,
+    )
+
+    found = read_api(lambda c: c.read_artifacts(artifact_filter=ArtifactFilter(
+        flow_run_id=ArtifactFilterFlowRunId(any_=[first_run["flow_run_id"]]),
+        type=ArtifactFilterType(any_=["progress"]))))
+    assert len(found) == 1  # one for the run, the depth maps' steps in it
+    assert float(found[0].data) == 100.0
+    assert found[0].description.startswith("t: evaluation done")
+
+
+def test_the_results_link_of_a_local_store_is_the_output_folder(first_run, tmp_path):
+    from prefect import flow
+
+    from flows.capture import _stage_report
+    from flows.ui import artifact_keys, publish_capture
+
+    keys = first_run["keys"]
+    runs = {name: (keys[name], False) for name in ("fusion", "fitting", "evaluation")}
+    report = {"subject": "subject a", "capture": "video (1)", "store": first_run["store"],
+              "computed": 0, "cached": 3, "wall_seconds": 1.0,
+              "stages": _stage_report(first_run["store"], runs)}
+    out = tmp_path / "results (1)"
+    out.mkdir()
+
+    @flow(name="publish")
+    def publish() -> None:
+        publish_capture(report, out, "subject a/video (1)")
+
+    publish()
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    link_key = artifact_keys("subject a/video (1)")[2]
+    (link,) = read_api(lambda c: c.read_artifacts(
+        artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=[link_key]))))
+    assert link.data == f"[results of subject a/video \\(1\\)]({out.resolve().as_uri()})"
+    assert link.description == "subject a/video (1): results (the output folder)"

@@ -157,3 +157,47 @@ def test_results_are_exported_only_as_they_were_committed(tmp_path):
     with pytest.raises(CorruptArtifactError, match="cameras.json"):
         _export(str(tmp_path / "store"), {"poses": key}, tmp_path / "again")
     assert not (tmp_path / "again" / "cameras.json").exists()
+
+
+@pytest.mark.parametrize("when_missing", ["warn", "error"])
+def test_core_logs_outside_a_run_neither_warn_nor_fail(when_missing, capfd):
+    """facecap_core used outside any run (a benchmark, plain Python): the run log handler
+    skips its records, whatever PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW says (Prefect's
+    own handler warns there, or raises)."""
+    import logging
+    import warnings
+
+    from prefect.settings import PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW, temporary_settings
+
+    from tasks.logs import in_run, send_core_logs_to_runs
+
+    send_core_logs_to_runs()
+    assert not in_run()
+    log = logging.getLogger("facecap_core.fitting.run")
+    with temporary_settings({PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW: when_missing}):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            log.info("fitted outside a run")
+            log.warning("a warning outside a run")
+    assert "Logging error" not in capfd.readouterr().err
+
+
+def test_core_logs_go_to_runs_once_whatever_the_extra_loggers_say(tmp_path):
+    """A worker started with Prefect's default settings sends facecap_core's INFO records to
+    its runs; one whose PREFECT_LOGGING_EXTRA_LOGGERS names facecap_core or one of its
+    modules sends each record once (Prefect's handler there is replaced)."""
+    import os
+    import subprocess
+    import sys
+
+    script = ("import logging, tasks.stages\n"
+              "for name in ('facecap_core', 'facecap_core.mvs'):\n"
+              "    logger = logging.getLogger(name)\n"
+              "    print(name, logger.level, [type(h).__name__ for h in logger.handlers])\n")
+    root = Path(__file__).resolve().parents[1]
+    for extra in ("", "facecap_core,facecap_core.mvs"):
+        env = {**os.environ, "PREFECT_LOGGING_EXTRA_LOGGERS": extra,
+               "PREFECT_HOME": str(tmp_path)}
+        out = subprocess.run([sys.executable, "-c", script], cwd=root, env=env, check=True,
+                             capture_output=True, text=True, timeout=120).stdout
+        assert out.splitlines() == ["facecap_core 20 ['RunLogHandler']", "facecap_core.mvs 0 []"]

@@ -134,6 +134,11 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
     save_landmarks(out / MESH_LANDMARKS, result.template.landmark_points,
                    template=template.name)
     write_report(out / FIT_JSON, result, config, sanity, relaxed)
+    last = result.log[-1] if result.log else {}
+    log.info("fitted %d vertices in %d steps (%.1f s): landmark RMS %.2f mm, %d cloud targets, "
+             "last step moved %.3f mm", len(result.vertices), result.iterations, result.wall_s,
+             last.get("landmark_rms_mm", float("nan")), last.get("cloud_targets", 0),
+             last.get("max_move_mm", float("nan")))
     return ply
 
 

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,8 @@ from facecap_core.mvs.images import MVSView, load_view, metric_cameras
 from facecap_core.mvs.patchmatch import DepthMap, patchmatch_depth
 from facecap_core.mvs.prior import coarse_prior
 from facecap_core.mvs.views import read_views
+
+log = logging.getLogger(__name__)
 
 
 def depth_map_name(index: int) -> str:
@@ -85,4 +88,7 @@ def main(index: int, frames_dir: str | Path, cameras_json: str | Path,
             "cpu_seconds": round(filtered.cpu_seconds, 3),
             "valid_pixels": int(filtered.valid.sum())}
     path.with_suffix(".json").write_text(json.dumps(meta))
+    log.info("depth map of keyframe %d: %d valid pixels (%.0f %%) from %d source views in "
+             "%.1f s", int(index), meta["valid_pixels"], 100.0 * filtered.valid.mean(),
+             len(srcs), filtered.seconds)
     return path

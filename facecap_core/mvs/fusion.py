@@ -10,6 +10,7 @@ point is not emitted again from another view.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 from dataclasses import dataclass
@@ -23,6 +24,8 @@ from facecap_core.mvs.depth import load_depth_map
 from facecap_core.mvs.filtering import _partners, agreement, backproject, geometric_filter
 from facecap_core.mvs.images import load_view, metric_cameras
 from facecap_core.mvs.patchmatch import DepthMap
+
+log = logging.getLogger(__name__)
 
 CLOUD = "cloud.ply"
 FUSION = "fusion.json"
@@ -129,7 +132,9 @@ def main(depth_npzs: list[str | Path], frames_dir: str | Path, cameras_json: str
                          "the coarse mesh)")
     out = Path(out_dir)
     ply = write_ply(cloud, out / CLOUD)
+    seconds = round(time.perf_counter() - start, 2)
     (out / FUSION).write_text(json.dumps({
-        "points": len(cloud.points), "depth_maps": len(maps),
-        "seconds": round(time.perf_counter() - start, 2)}))
+        "points": len(cloud.points), "depth_maps": len(maps), "seconds": seconds}))
+    log.info("fused %d points from %d depth maps in %.1f s", len(cloud.points), len(maps),
+             seconds)
     return ply

@@ -10,6 +10,7 @@ occlusion) are scored down. MVSNet's score, as used by Agrawal et al. 2020.
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,8 @@ from facecap_core.config import ViewSelectionConfig
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_mesh
 from facecap_core.mvs.images import MVSView, metric_cameras
+
+log = logging.getLogger(__name__)
 
 VIEWS = "views.json"
 
@@ -157,6 +160,8 @@ def main(frames_dir: str | Path, cameras_json: str | Path, coarse_ply: str | Pat
         "scored_with": source,
         "sources": {str(views[i].index): [int(views[j].index) for j in s]
                     for i, s in enumerate(sources)}}, indent=1))
+    log.info("%d of %d keyframes chosen as MVS references, sources scored with %s",
+             len(views), count, source)
     return path
 
 

@@ -179,6 +179,13 @@ class ArtifactStore:
                 raise self._corrupt(key, name, problem)
         return data
 
+    def presigned_url(self, key: str, name: str, expires: int) -> str | None:
+        """An HTTP URL that serves one file of a committed artifact for ``expires`` seconds to
+        whoever has it, without credentials (S3's presigned URL); None where the store cannot
+        make one (a folder, ``memory://``)."""
+        self._entry(self.manifest(key), name)
+        return None
+
     def verify(self, key: str) -> None:
         """Check every file of an artifact against its manifest; CorruptArtifactError if not."""
         manifest = self.manifest(key)

@@ -15,7 +15,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from facecap_core.assets import facecap_home
-from tasks.store.base import ArtifactStore, MakeManifest
+from tasks.store.base import ArtifactStore, MakeManifest, scheme
 from tasks.store.files import (
     MANIFEST_NAME,
     ArtifactNotFoundError,
@@ -34,6 +34,9 @@ from tasks.store.files import (
     write_local_file,
 )
 from tasks.store.keys import check_key
+
+PRESIGNED_MAX_SECONDS = 7 * 24 * 3600
+"""The longest an S3 presigned URL (signature version 4) can last."""
 
 
 def cache_root() -> Path:
@@ -103,6 +106,18 @@ class RemoteStore(ArtifactStore):
             self._fs.rm(f"{self._artifact_path(key)}/{folder}", recursive=True)
         except Exception:  # noqa: BLE001 - cleanup must not hide the original error
             pass
+
+    def presigned_url(self, key: str, name: str, expires: int) -> str | None:
+        """S3: a presigned GET URL of the file, signed with the store's credentials and
+        naming the endpoint as this machine reaches it; valid ``expires`` seconds (S3 allows
+        at most 7 days)."""
+        manifest = self.manifest(key)
+        self._entry(manifest, name)
+        if scheme(self.url) != "s3":
+            return None
+        if not 0 < expires <= PRESIGNED_MAX_SECONDS:
+            raise ValueError(f"a presigned URL lasts 1 s to 7 days; got {expires} s")
+        return self._fs.url(self._stored_path(manifest, name), expires=int(expires))
 
     def get(self, key: str, verify: bool = True) -> Path:
         """The local copy in ``$FACECAP_HOME/store-cache/<key>/``, downloaded once and reused
