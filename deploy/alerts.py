@@ -34,7 +34,8 @@ RUN_FAILED = "facecap: run failed"
 FAILED_STATES = ("Failed", "Crashed", "TimedOut")  # TimedOut is a Failed-type state of its own
 
 # flows/evaluate.py names the dataset in the resource id (facecap.dataset.<folder name>) and
-# lists the regressions in the payload: {capture, measure, previous_mm, now_mm} each.
+# lists the regressions in the payload: {capture, measure, previous_mm, now_mm} each (now_mm
+# None: the capture has no mesh any more).
 REGRESSED_SUBJECT = (
     "facecap: accuracy regressed on "
     "{{ event.resource.id | replace('facecap.dataset.', '', 1) }}")
@@ -42,7 +43,8 @@ REGRESSED_BODY = """\
 The evaluation of dataset {{ event.resource.id | replace('facecap.dataset.', '', 1) }} \
 found {{ event.payload.regressions | length }} regression(s) against the previous evaluation:
 {% for r in event.payload.regressions %}
-- {{ r.capture }}: {{ r.measure }} {{ r.previous_mm }} mm -> {{ r.now_mm }} mm
+- {{ r.capture }}: {{ r.measure }} {% if r.now_mm is none %}(accuracy median was \
+{{ r.previous_mm }} mm){% else %}{{ r.previous_mm }} mm -> {{ r.now_mm }} mm{% endif %}
 {%- endfor %}
 {% if flow_run %}
 Run: {{ flow_run.name }} {{ flow_run | ui_url or '' }}

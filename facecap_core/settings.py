@@ -92,6 +92,9 @@ class FacecapSettings(BaseSettings):
     alert_webhook: str | None = None
     """Webhook URL ``facecap alerts`` sends the service's alerts to (regressions, failed
     runs; ``deploy/alerts.py``). Default unset: ``facecap alerts`` needs ``--webhook``."""
+    evaluation_timeout_s: float = Field(21600.0, gt=0)
+    """The longest a dataset evaluation run (the nightly one) may take, in seconds, before
+    it ends Failed: a hung night must not make the later ones skip. Default 21600 (6 hours)."""
     fault: str | None = None
     """Fault injection for the robustness tests, ``STAGE[:N[:HOW]]``: the N-th computation
     (default 1) of STAGE in a process fails before its commit; HOW is ``exit`` (default),
@@ -130,6 +133,17 @@ class FacecapSettings(BaseSettings):
             raise ValueError("expected STAGE[:N[:HOW]], N a positive count and HOW one of "
                              "exit, interrupt, oserror")
         return value
+
+
+def time_limit(field: str) -> float:
+    """A flow's time limit (``capture_timeout_s``, ``evaluation_timeout_s``), read when the
+    flow's module is imported (a worker imports it for each flow run). A bad FACECAP_* value
+    must not make that import fail: the default stands in, and the run itself reports the
+    value at its first check."""
+    try:
+        return getattr(settings(), field)
+    except InputError:
+        return FacecapSettings.model_fields[field].default
 
 
 def env_name(field: str) -> str:

@@ -29,7 +29,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from facecap_core.config import PipelineConfig, load_pipeline_config
 from facecap_core.errors import InputError
-from facecap_core.settings import settings
+from facecap_core.settings import settings, time_limit
 from flows.service import guard
 from tasks.graph import (
     BY_NAME,
@@ -51,6 +51,9 @@ ConfigParameter = PipelineConfig | str | None
 """A run's pipeline settings: given as such (the UI's Run form shows every field with its
 description, and the server refuses an out-of-range value before the run is created), or the
 path of a YAML file of them, or nothing for the defaults."""
+BACKSTOP_S = 60.0
+"""Prefect's own limit on a capture run comes this long after FACECAP_CAPTURE_TIMEOUT_S,
+which the stages keep themselves: it stops a run stuck outside any stage."""
 MAX_WORKERS = 16
 """Threads of a capture run's task runner: the most depth maps ``mvs.workers`` can ask for
 at once."""
@@ -125,8 +128,8 @@ class _RunProgress:
 
 
 def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: dict, label: str,
-             workers: int, progress: bool, run_progress: _RunProgress
-             ) -> dict[str, tuple[str, bool]]:
+             workers: int, progress: bool, run_progress: _RunProgress,
+             deadline: float | None = None) -> dict[str, tuple[str, bool]]:
     """One task per keyframe, at most ``workers`` at once; the run's progress artifact (and
     with ``progress`` a console bar) advanced after each."""
     from tqdm import tqdm
@@ -134,7 +137,7 @@ def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: dict, lab
     indices = stage.per_keyframe(_StoredFolders(store, inputs))
     bar = tqdm(total=len(indices), desc=f"{stage.name} maps", unit="map",
                disable=not progress)
-    pending, results = list(indices), {}
+    pending, results, started = list(indices), {}, time.monotonic()
     running: list[tuple[int, object]] = []
     while pending or running:
         while pending and len(running) < workers:
@@ -142,7 +145,8 @@ def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: dict, lab
             running.append((i, call_stage(stage.name, store, inputs, config, label,
                                           params={"index": i}, submit=True)))
         i, future = running.pop(0)
-        results[stage.row_name({"index": i})] = stage_result(stage.name, future, label)
+        results[stage.row_name({"index": i})] = stage_result(stage.name, future, label,
+                                                             started, deadline)
         bar.update()
         if len(results) < len(indices):  # the last one completes the stage
             run_progress.update(f"{stage.name} map {len(results)} of {len(indices)}",
@@ -152,11 +156,13 @@ def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: dict, lab
 
 
 def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str,
-               stages: Iterable[Stage], progress: bool = False) -> dict[str, tuple[str, bool]]:
+               stages: Iterable[Stage], progress: bool = False,
+               deadline: float | None = None) -> dict[str, tuple[str, bool]]:
     """Run ``stages`` in graph order (inside a flow). ``keys`` holds the artifacts at hand
     (raw inputs by name, earlier stages) and receives the new ones; a stage whose required
     input is missing (the evaluation without a scan) is skipped. Returns ``{report row:
-    (key, computed)}``. The run's progress artifact follows the stages and the depth maps."""
+    (key, computed)}``. The run's progress artifact follows the stages and the depth maps.
+    Every stage ends by the capture's ``deadline`` (``time.monotonic()``) too."""
     stages = list(stages)
     run_progress = _RunProgress(label, len(stages))
     runs: dict[str, tuple[str, bool]] = {}
@@ -168,11 +174,12 @@ def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str
         config = stage.config_data(cfg)
         if stage.per_keyframe:
             items = _fan_out(stage, store, inputs, config, label, cfg.mvs.workers, progress,
-                             run_progress)
+                             run_progress, deadline)
             keys.update({row: key for row, (key, _) in items.items()})
             runs.update(items)
         else:
-            runs[stage.name] = call_stage(stage.name, store, inputs, config, label)
+            runs[stage.name] = call_stage(stage.name, store, inputs, config, label,
+                                          deadline=deadline)
             keys[stage.name] = runs[stage.name][0]
         run_progress.stage_done(stage.name)
     return runs
@@ -215,7 +222,7 @@ def _stage_report(store: str, runs: dict[str, tuple[str, bool]]) -> dict:
 
 @flow(name="reconstruct-capture", flow_run_name=_run_name, log_prints=True,
       task_runner=ThreadPoolTaskRunner(max_workers=MAX_WORKERS),
-      timeout_seconds=settings().capture_timeout_s)
+      timeout_seconds=time_limit("capture_timeout_s") + BACKSTOP_S)
 def reconstruct_capture(video: str, out: str, config: ConfigParameter = None,
                         scan: str | None = None, scan_landmarks: str | None = None,
                         until: Step = "evaluation", store: str | None = None,
@@ -248,7 +255,11 @@ def reconstruct_capture(video: str, out: str, config: ConfigParameter = None,
     for name, path in (("scan", scan), ("scan_landmarks", scan_landmarks)):
         if path:
             keys[name] = call_ingest(store, path, Path(path).name, label)
-    runs = run_stages(store, keys, cfg, label, stages_until(until), progress)
+    # The capture's time limit, kept by the stages themselves: Prefect's own limit on the
+    # flow (BACKSTOP_S later) is a signal in the main thread, which Prefect holds off while
+    # it talks to its API and which can land in any code.
+    deadline = time.monotonic() + settings().capture_timeout_s - (time.perf_counter() - start)
+    runs = run_stages(store, keys, cfg, label, stages_until(until), progress, deadline)
     _export(store, keys, out_dir)
     stages = _stage_report(store, runs)
     cached = sum(info["cached"] for info in stages.values())
@@ -295,7 +306,6 @@ def preflight(video: str | Path, config: ConfigParameter | Path = None, scan: st
     enough and within the input limits (``FACECAP_MAX_*``, :mod:`facecap_core.settings`), the
     config is valid, the output folder is writable. Run before anything is started so bad
     input fails in a second with one line."""
-    from facecap_core.settings import settings
     from facecap_core.video import probe, stored_frame_count
 
     limits = settings()  # the environment's limits, never the run's config

@@ -411,6 +411,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("facecap: interrupted", file=sys.stderr)
         return 130
+    except _time_limits():  # outside any stage (a stage's says which limit it was)
+        from tasks.stages import capture_time_limit_message
+
+        print(f"facecap: error: {capture_time_limit_message('the run')}", file=sys.stderr)
+        return 2
     except _network_errors() as exc:  # the store went away mid-run, after the task's retries
         from tasks.runner import default_store_url, store_unreachable
 
@@ -425,6 +430,12 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     finally:
         LOCAL_COMMAND.reset(local)
+
+
+def _time_limits() -> tuple[type[BaseException], ...]:
+    from prefect.flow_engine import FlowRunTimeoutError
+
+    return (FlowRunTimeoutError,)
 
 
 def _network_errors() -> tuple[type[BaseException], ...]:

@@ -1,5 +1,6 @@
 """``reconstruct-dataset``: every capture of a dataset folder (layout in
-:mod:`facecap_core.dataset`), one ``reconstruct-capture`` subflow each, then a
+:mod:`facecap_core.dataset`), one ``reconstruct-capture`` run each (on a work pool, runs of
+the capture deployment spread over its workers; else subflows in this process), then a
 cross-capture consistency report for subjects with several captures.
 
 A capture that fails (bad video, no face) is reported and the others go on; the flow
@@ -13,6 +14,7 @@ import time
 from itertools import combinations
 from pathlib import Path
 
+import httpx
 from prefect import flow, get_run_logger
 
 from facecap_core.config import PipelineConfig
@@ -86,6 +88,7 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
     from prefect.artifacts import create_table_artifact
 
     logger = get_run_logger()
+    named_store = store  # the capture runs get it as named: each worker checks it again
     store = guard(out, store, dataset=root, config=config_file(config))  # a served run: only what it may touch
     entries = scan_dataset(root)
     out_root = Path(out)
@@ -95,7 +98,7 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
     if pool:
         logger.info(f"{len(entries)} captures, one {CAPTURE_DEPLOYMENT} run each on the work "
                     f"pool {pool}")
-        failed = _through_deployment(entries, out_root, config, until)
+        failed = _through_deployment(entries, out_root, config, named_store, until)
         for name, message in failed.items():
             logger.error(f"{name}: {message}")
     else:
@@ -156,31 +159,47 @@ def _work_pool() -> str | None:
 
 
 def _through_deployment(entries: list[CaptureEntry], out_root: Path, config: ConfigParameter,
-                        until: str) -> dict[str, str]:
+                        store: str | None, until: str) -> dict[str, str]:
     """One run of the capture deployment per capture, all submitted at once: the pool's
     workers take them as the deployment's and the pool's concurrency limits allow. Waits
     for every one; returns ``{subject/capture: why it failed}``."""
     from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
     from prefect.deployments import run_deployment
+    from prefect.exceptions import ObjectNotFound
 
     if isinstance(config, PipelineConfig):
         config = config.model_dump(mode="json", exclude_unset=True)
-    runs = {f"{e.subject}/{e.capture}": run_deployment(
-                CAPTURE_DEPLOYMENT, parameters=_capture_parameters(e, out_root, config, until),
-                timeout=0, tags=["facecap", "dataset"])
-            for e in entries}
-    failed, pending = {}, dict(runs)
+    with get_client(sync_client=True) as client:
+        try:
+            deployment = client.read_deployment_by_name(CAPTURE_DEPLOYMENT)
+        except ObjectNotFound:
+            raise FacecapError(f"the deployment {CAPTURE_DEPLOYMENT} a dataset run submits its "
+                               "captures to is not on this server; register facecap's "
+                               "deployments (prefect deploy --prefect-file "
+                               "deploy/prefect.yaml)") from None
+    by_id = {run_deployment(deployment.id, timeout=0, tags=["facecap", "dataset"],
+                            parameters={**_capture_parameters(e, out_root, config, until),
+                                        "store": store}).id: e
+             for e in entries}
+    failed, pending = {}, set(by_id)
     with get_client(sync_client=True) as client:
         while pending:
             time.sleep(POLL_SECONDS)
-            for name, run in list(pending.items()):
-                state = client.read_flow_run(run.id).state
-                if state is None or not state.is_final():
+            try:
+                runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(
+                    id=FlowRunFilterId(any_=sorted(pending))))
+            except httpx.HTTPError:  # the API away for a moment: the runs go on; ask again
+                continue
+            for run in runs:
+                if run.state is None or not run.state.is_final():
                     continue
-                del pending[name]
-                if not state.is_completed():
-                    failed[name] = _reason(state)
-    return failed
+                pending.discard(run.id)
+                entry = by_id[run.id]
+                if not run.state.is_completed():
+                    failed[f"{entry.subject}/{entry.capture}"] = as_user_sees_it(
+                        _reason(run.state), entry.video)
+    return dict(sorted(failed.items()))
 
 
 def _reason(state) -> str:

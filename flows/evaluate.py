@@ -17,6 +17,7 @@ from prefect import flow, get_run_logger
 
 from facecap_core.dataset import inside, scan_dataset
 from facecap_core.errors import InputError
+from facecap_core.settings import time_limit
 from flows.service import guard
 from tasks.stages import call_ingest, call_stage
 
@@ -28,9 +29,13 @@ def _run_name() -> str:
 
 
 def regressions(current: dict, previous: dict, tolerance_mm: float,
-                tolerance_rel: float) -> list[dict]:
-    """Captures whose medians got worse than the previous evaluation's by both tolerances."""
-    flagged = []
+                tolerance_rel: float, without_mesh: list[str] = ()) -> list[dict]:
+    """Captures whose medians got worse than the previous evaluation's by both tolerances,
+    and captures the previous evaluation scored that have a scan but no mesh now (a failed
+    or cut-short reconstruction: ``now_mm`` None)."""
+    flagged = [{"capture": name, "measure": "mesh missing",
+                "previous_mm": round(previous[name]["accuracy"]["median"], 3), "now_mm": None}
+               for name in without_mesh if name in previous]
     for name, now in current.items():
         before = previous.get(name)
         if not before:
@@ -70,7 +75,8 @@ def check_history(out: Path) -> dict:
     return previous_evaluation(out / "evaluations", "99999999T999999999999Z")
 
 
-@flow(name="evaluate-dataset", flow_run_name=_run_name, log_prints=True)
+@flow(name="evaluate-dataset", flow_run_name=_run_name, log_prints=True,
+      timeout_seconds=time_limit("evaluation_timeout_s"))
 def evaluate_dataset(root: str, out: str, store: str | None = None,
                      tolerance_mm: float = 0.05, tolerance_rel: float = 0.05) -> dict:
     """Score ``out/<subject>/<capture>/mesh.ply`` against ``root/<subject>/scan.*``.
@@ -91,12 +97,14 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
     out_root = Path(out)
     entries = scan_dataset(root)
     previous = check_history(out_root)  # a damaged history fails before any scoring
-    current, skipped = {}, []
+    current, skipped, without_mesh = {}, [], []
     for entry in entries:
         mesh = entry.out_dir(out_root) / "mesh.ply"
         name = f"{entry.subject}/{entry.capture}"
         if entry.scan is None or entry.scan_landmarks is None or not mesh.is_file():
             skipped.append(name)
+            if entry.scan is not None and not mesh.is_file():
+                without_mesh.append(name)
             continue
         mesh = inside(out_root, mesh, "results folder")  # not a link to elsewhere
         inputs = {"mesh": call_ingest(store, mesh, "mesh.ply", name),
@@ -111,7 +119,7 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
     history = out_root / "evaluations"
     history.mkdir(parents=True, exist_ok=True)
-    flagged = regressions(current, previous, tolerance_mm, tolerance_rel)
+    flagged = regressions(current, previous, tolerance_mm, tolerance_rel, without_mesh)
     (history / f"{stamp}.json").write_text(json.dumps(
         {"time": stamp, "captures": current, "skipped": skipped, "regressions": flagged},
         indent=1))
@@ -126,7 +134,7 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
         create_table_artifact(rows, key="evaluation", description="similarity protocol, mm")
         table = _table(current)
         create_markdown_artifact(table + ("\n\n**Regressions:** " + ", ".join(
-            f"{f['capture']} {f['measure']} {f['previous_mm']} → {f['now_mm']} mm"
+            f"{f['capture']} {f['measure']} {f['previous_mm']} → {f['now_mm'] or '–'} mm"
             for f in flagged) if flagged else "\n\nNo regression."),
             key="evaluation-table", description="paper-style table")
     if flagged:

@@ -11,6 +11,7 @@ is in the task run's log (:mod:`tasks.logs`).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -67,35 +68,82 @@ def ingest_task(store: str, path: str, name: str, label: str = "") -> str:
 
 
 def call_stage(name: str, store: str, inputs: dict[str, str], config: dict | None,
-               label: str = "", params: dict | None = None, submit: bool = False
-               ) -> tuple[str, bool] | PrefectFuture:
-    """Run (or ``submit``) the task of stage ``name``, within ``FACECAP_STAGE_TIMEOUT_S``;
-    returns ``(key, computed)``, or a future for :func:`stage_result`."""
-    runner = TASKS[name].with_options(timeout_seconds=settings().stage_timeout_s)
+               label: str = "", params: dict | None = None, submit: bool = False,
+               deadline: float | None = None) -> tuple[str, bool] | PrefectFuture:
+    """Run the task of stage ``name`` within ``FACECAP_STAGE_TIMEOUT_S`` and before the
+    capture's ``deadline`` (``time.monotonic()``); returns ``(key, computed)``.
+
+    With ``submit``, a future for :func:`stage_result`: a fanned-out stage's tasks run in
+    the flow's threads, where Prefect's timeout cannot interrupt and warns on every run, so
+    the fan-out as a whole keeps the limits (``stage_result``'s wait)."""
+    runner = TASKS[name]
     if submit:
         return runner.submit(store, inputs, config or {}, params, label)
-    return stage_result(name, lambda: runner(store, inputs, config or {}, params, label), label)
+    started = time.monotonic()
+    end = _end(started, deadline)
+    if end <= started:
+        raise FacecapError(capture_time_limit_message(label or "the capture", name))
+    runner = runner.with_options(timeout_seconds=end - started)
+    return stage_result(name, lambda: runner(store, inputs, config or {}, params, label), label,
+                        started, deadline)
 
 
-def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: str = ""
-                 ) -> tuple[str, bool]:
-    """``(key, computed)`` of a stage's task (a future, or the call itself); a stage stopped
-    at its time limit ends its task run TimedOut and raises a one-line FacecapError."""
+def _end(started: float, deadline: float | None) -> float:
+    """When a stage started at ``started`` must end: its own limit or the capture's."""
+    end = started + settings().stage_timeout_s
+    return end if deadline is None else min(end, deadline)
+
+
+def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: str,
+                 started: float, deadline: float | None = None) -> tuple[str, bool]:
+    """``(key, computed)`` of a stage's task: a future (waited for until the stage's time
+    limit from ``started``, or the capture's ``deadline``) or the call itself. A stage
+    stopped at either limit raises a one-line FacecapError naming that limit."""
+    from prefect.flow_engine import FlowRunTimeoutError
     from prefect.task_engine import TaskRunTimeoutError
 
+    end = _end(started, deadline)
     try:
-        return tuple(result.result() if isinstance(result, PrefectFuture) else result())
-    except TaskRunTimeoutError:
-        limit = settings().stage_timeout_s
-        raise FacecapError(f"the {name} stage of {label or 'the capture'} was stopped after "
-                           f"its time limit of {limit:g} s (FACECAP_STAGE_TIMEOUT_S); raise "
-                           "the limit for a capture this large, or look for what held it up "
-                           "in the run's log") from None
+        if isinstance(result, PrefectFuture):
+            value = tuple(result.result(timeout=max(0.0, end - time.monotonic())))
+        else:
+            value = tuple(result())
+    except (TaskRunTimeoutError, FlowRunTimeoutError, TimeoutError) as exc:
+        waited = isinstance(result, PrefectFuture) and not result.state.is_final()
+        if not (waited or isinstance(exc, TaskRunTimeoutError | FlowRunTimeoutError)):
+            raise  # the stage's own TimeoutError (a network call): not a time limit
+        where = label or "the capture"
+        if isinstance(exc, FlowRunTimeoutError) or (deadline is not None and end == deadline):
+            raise FacecapError(capture_time_limit_message(where, name)) from None
+        raise FacecapError(stage_time_limit_message(where, name)) from None
+    # Prefect interrupts a stage by raising in its thread, which a native call holds off and
+    # a logging or cleanup handler can swallow: the limit holds at the latest here, with
+    # the stage's artifact stored (a rerun with a higher limit reuses it).
+    if deadline is not None and time.monotonic() > deadline:
+        raise FacecapError(capture_time_limit_message(label or "the capture", name))
+    if time.monotonic() - started > settings().stage_timeout_s:
+        raise FacecapError(stage_time_limit_message(label or "the capture", name))
+    return value
+
+
+def stage_time_limit_message(where: str, stage: str) -> str:
+    """What a stage stopped at ``FACECAP_STAGE_TIMEOUT_S`` says."""
+    return (f"the {stage} stage of {where} was stopped after its time limit of "
+            f"{settings().stage_timeout_s:g} s (FACECAP_STAGE_TIMEOUT_S); raise the limit for "
+            "a capture this large, or look for what held it up in the run's log")
+
+
+def capture_time_limit_message(where: str, stage: str | None = None) -> str:
+    """What a capture run stopped at ``FACECAP_CAPTURE_TIMEOUT_S`` says."""
+    during = f" during the {stage} stage" if stage else ""
+    return (f"{where} was stopped after the capture's time limit of "
+            f"{settings().capture_timeout_s:g} s (FACECAP_CAPTURE_TIMEOUT_S){during}; raise "
+            "the limit for a capture this large, or look for what held it up in the run's log")
 
 
 def call_ingest(store: str, path: str | Path, name: str, label: str = "") -> str:
     return ingest_task(store, str(path), name, label)
 
 
-__all__ = ["TASKS", "call_ingest", "call_stage", "default_store_url", "ingest_task",
-           "stage_result"]
+__all__ = ["TASKS", "call_ingest", "call_stage", "capture_time_limit_message",
+           "default_store_url", "ingest_task", "stage_result"]

@@ -132,10 +132,13 @@ def test_a_regression_reaches_the_webhook_naming_dataset_and_figures(alerts_set_
         {"capture": "ict3/take1", "measure": "accuracy median", "previous_mm": 0.262,
          "now_mm": 0.413},
         {"capture": "ict4/take1", "measure": "completion median", "previous_mm": 0.5,
-         "now_mm": 0.71}])
+         "now_mm": 0.71},
+        {"capture": "ict5/take1", "measure": "mesh missing", "previous_mm": 0.3,
+         "now_mm": None}])
     text = alerts_set_up.wait_for("nightly-set")
     assert "accuracy regressed" in text
-    assert "2 regression(s)" in text
+    assert "3 regression(s)" in text
+    assert "ict5/take1: mesh missing (accuracy median was 0.3 mm)" in text
     assert "ict3/take1: accuracy median 0.262 mm -> 0.413 mm" in text
     assert "ict4/take1: completion median 0.5 mm -> 0.71 mm" in text
     assert "Run: dataset nightly-set" in text  # the evaluation's flow run

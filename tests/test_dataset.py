@@ -97,6 +97,15 @@ def test_regressions_need_both_tolerances():
                         "now_mm": 1.2}]
 
 
+def test_a_scored_capture_that_lost_its_mesh_is_a_regression():
+    """A capture scored last night with a scan but no mesh now (a failed or cut-short run)
+    is flagged, not quietly skipped; one never scored is not."""
+    previous = {"a/1": _score(1.0, 1.0)}
+    flagged = regressions({}, previous, 0.05, 0.05, without_mesh=["a/1", "new/1"])
+    assert flagged == [{"capture": "a/1", "measure": "mesh missing", "previous_mm": 1.0,
+                        "now_mm": None}]
+
+
 def test_scale_error_is_the_meshs_size_against_the_scans():
     """A mesh 2 % too large: the similarity protocol shrinks it by 1/1.02 onto the scan, and
     the reported scale error is +2 %."""
