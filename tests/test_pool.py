@@ -5,6 +5,7 @@ when is read back from the server's API."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -20,8 +21,9 @@ from tests.test_bad_inputs import orbit_frames
 pytestmark = pytest.mark.slow
 
 REPO = Path(__file__).resolve().parents[1]
-POOL_LIMIT = 3
-"""Flow runs the pool may run at once: the dataset run and two captures."""
+POOL_LIMIT = 4
+"""Flow runs the pool may run at once: room for the dataset run and three captures, so that
+the capture deployment's limit is what holds the captures to two."""
 CAPTURE_LIMIT = 2
 """The capture deployment's concurrency limit in deploy/prefect.yaml."""
 CAPTURES = [("anna", "take1"), ("anna", "take2"), ("ben", "take1"), ("ben", "take2")]
@@ -34,8 +36,9 @@ def _prefect(args: list[str], env: dict) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def pool(live_server, tmp_path_factory):
-    """The pool "facecap" with facecap's deployments and two workers, each allowed two runs
-    at once; yields the worker environment's folders."""
+    """The pool "facecap" with facecap's deployments and two workers, each taking both
+    queues and two runs at once (room for more captures than the limits allow, so that the
+    limits are what bound them); yields the worker environment's folders."""
     tmp = tmp_path_factory.mktemp("pool")
     folders = {name: tmp / name for name in ("datasets", "output", "store", "home")}
     for folder in folders.values():
@@ -117,6 +120,8 @@ def test_a_dataset_spreads_its_captures_over_the_pool(pool, live_server):
     for i, (subject, capture) in enumerate(CAPTURES):
         (root / subject).mkdir(parents=True, exist_ok=True)
         write_video(root / subject / f"{capture}.mp4", orbit_frames(40, seed=i))
+    (root / "carl").mkdir()
+    write_video(root / "carl" / "short.mp4", orbit_frames(3))  # refused by its capture run
     out = pool["output"] / "study"
     start = time.perf_counter()
     with temporary_settings({PREFECT_API_URL: live_server}):
@@ -134,10 +139,14 @@ def test_a_dataset_spreads_its_captures_over_the_pool(pool, live_server):
             in_pool = client.read_flow_runs(work_pool_filter=WorkPoolFilter(
                 name=WorkPoolFilterName(any_=["facecap"])))
     print(f"dataset of {len(CAPTURES)} captures over the pool: {wall:.0f} s wall")
-    assert dataset.state.is_completed(), dataset.state
+    assert dataset.state.is_failed(), dataset.state  # one capture failed; the others ran
     assert sorted(r.parameters["video"] for r in captures) == sorted(
-        str(root / s / f"{c}.mp4") for s, c in CAPTURES)
-    assert all(r.state.is_completed() for r in captures)
+        [str(root / s / f"{c}.mp4") for s, c in CAPTURES] + [str(root / "carl" / "short.mp4")])
+    assert sum(r.state.is_completed() for r in captures) == len(CAPTURES)
+    summary = json.loads((out / "dataset.json").read_text())
+    assert sorted(summary["done"]) == sorted(f"{s}/{c}" for s, c in CAPTURES)
+    [(name, why)] = summary["failed"].items()
+    assert name == "carl/short" and str(root / "carl" / "short.mp4") in why and "frames" in why
     assert most_at_once(_intervals(captures)) == CAPTURE_LIMIT  # pairs ran together
     assert most_at_once(_intervals(in_pool)) <= POOL_LIMIT
     ran_on = {r.work_queue_name for r in captures}
@@ -149,13 +158,14 @@ def test_a_dataset_spreads_its_captures_over_the_pool(pool, live_server):
 def test_an_out_of_range_setting_is_refused_before_the_run_exists(pool, live_server):
     from prefect.client.orchestration import get_client
     from prefect.deployments import run_deployment
+    from prefect.exceptions import PrefectHTTPStatusError
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
     with temporary_settings({PREFECT_API_URL: live_server}):
         with get_client(sync_client=True) as client:
             deployment = client.read_deployment_by_name("reconstruct-capture/reconstruct-capture")
             before = client.count_flow_runs()
-            with pytest.raises(Exception) as refused:
+            with pytest.raises(PrefectHTTPStatusError) as refused:
                 run_deployment(deployment.id, timeout=0, as_subflow=False, parameters={
                     "video": str(pool["datasets"] / "v.mp4"), "out": str(pool["output"]),
                     "config": {"mvs": {"depth": {"iterations": 0}}}})
@@ -195,3 +205,18 @@ def test_the_run_form_documents_every_setting(pool, live_server):
         for field, info in model.model_fields.items():
             assert info.description and served[field]["description"] == info.description, \
                 f"{name}.{field}"
+
+
+def test_a_dataset_run_without_the_capture_deployment_says_so(live_server, monkeypatch,
+                                                               tmp_path):
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    from facecap_core.errors import FacecapError
+    from flows import dataset
+
+    monkeypatch.setattr(dataset, "CAPTURE_DEPLOYMENT", "reconstruct-capture/not-registered")
+    with temporary_settings({PREFECT_API_URL: live_server}):
+        with pytest.raises(FacecapError) as refused:
+            dataset._through_deployment([], tmp_path, None, None, "poses")
+    message = str(refused.value)
+    assert "reconstruct-capture/not-registered" in message and "prefect deploy" in message
