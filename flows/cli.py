@@ -153,7 +153,8 @@ def _cmd_dataset(args) -> int:
     _prefect_env()
     from flows.dataset import reconstruct_dataset
 
-    summary = reconstruct_dataset(args.root, args.out, config=args.config, store=args.store)
+    summary = reconstruct_dataset(args.root, args.out, config=args.config, store=args.store,
+                                  until=args.until)
     print(f"{len(summary['done'])} of {summary['captures']} captures reconstructed into "
           f"{args.out}")
     for row in summary["consistency"]:
@@ -308,6 +309,8 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--out", required=True, help="results go to OUT/<subject>/<capture>/")
     ds.add_argument("--config", help="PipelineConfig YAML")
     ds.add_argument("--store", help="artifact store (see reconstruct)")
+    ds.add_argument("--until", choices=list(STEPS), default="evaluation",
+                    help="last stage to run for every capture")
     ds.set_defaults(func=_cmd_dataset)
 
     ed = sub.add_parser("evaluate-dataset", help="score a dataset's reconstructions against its "

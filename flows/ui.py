@@ -123,12 +123,15 @@ def results_link(report: dict, out: Path) -> tuple[str, str]:
     store, or no mesh: a run ``--until`` an earlier stage) the ``file://`` URI of the output
     folder."""
     from facecap_core.fitting.run import MESH_PLY
-    from tasks.runner import open_store
+    from tasks.runner import network_errors, open_store
 
     fitting = report.get("stages", {}).get("fitting")
     if fitting and report.get("store"):
-        url = open_store(report["store"]).presigned_url(fitting["key"], MESH_PLY,
-                                                         RESULTS_LINK_SECONDS)
+        try:
+            url = open_store(report["store"]).presigned_url(fitting["key"], MESH_PLY,
+                                                             RESULTS_LINK_SECONDS)
+        except (OSError, *network_errors()):  # the results are made: a link is not worth failing for
+            url = None
         if url:
             return url, f"{MESH_PLY} in the store, for {RESULTS_LINK_SECONDS // 3600} h"
     return Path(out).resolve().as_uri(), "the output folder"
