@@ -110,6 +110,8 @@ def test_a_dataset_spreads_its_captures_over_the_pool(pool, live_server):
         DeploymentFilterName,
         FlowRunFilter,
         FlowRunFilterParentFlowRunId,
+        LogFilter,
+        LogFilterFlowRunId,
         WorkPoolFilter,
         WorkPoolFilterName,
     )
@@ -153,6 +155,14 @@ def test_a_dataset_spreads_its_captures_over_the_pool(pool, live_server):
     assert ran_on == {"captures"}
     for subject, capture in CAPTURES:
         assert (out / subject / capture / "report.json").is_file()
+    # facecap's own log lines reach the run's log from the worker's process.
+    with temporary_settings({PREFECT_API_URL: live_server}):
+        with get_client(sync_client=True) as client:
+            first = next(r for r in captures if r.state.is_completed())
+            logs = client.read_logs(log_filter=LogFilter(
+                flow_run_id=LogFilterFlowRunId(any_=[first.id])))
+    assert any(log.name == "facecap_core.pose.stage" and "cameras of" in log.message
+               for log in logs), sorted({log.name for log in logs})
 
 
 def test_an_out_of_range_setting_is_refused_before_the_run_exists(pool, live_server):

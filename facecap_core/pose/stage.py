@@ -181,6 +181,8 @@ def main(video: str | Path, keyframes_json: str | Path, out_dir: str | Path,
     if dropped:
         log.warning("%d of %d keyframes could not be registered and are left out",
                     len(dropped), len(keyframes.indices))
+    log.info("cameras of %d keyframes by %s in %.1f s", len(final.frame_indices),
+             " + ".join(steps), time.perf_counter() - start)
     return write_outputs(final, out, method=list(steps)[-1], dropped=dropped,
                          wall_seconds=round(time.perf_counter() - start, 2),
                          cpu_seconds=round(time.process_time() - cpu, 2))
