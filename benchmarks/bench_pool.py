@@ -58,16 +58,6 @@ def prefect(args: list[str], env: dict) -> None:
                    capture_output=True, timeout=300)
 
 
-def most_at_once(runs) -> int:
-    events = sorted([(r.start_time, 1) for r in runs] + [(r.end_time, -1) for r in runs],
-                    key=lambda e: (e[0], e[1]))
-    running = peak = 0
-    for _, step in events:
-        running += step
-        peak = max(peak, running)
-    return peak
-
-
 def main() -> Path:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/bench_pool"))
@@ -103,8 +93,6 @@ def main() -> Path:
         workers = [start(["worker", "start", "--pool", "facecap", "--type", "process",
                           "--limit", "2", "--name", f"bench{i}"], worker_env,
                          out / f"worker{i}.log") for i in range(a.workers)]
-        from prefect.client.orchestration import get_client
-        from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterParentFlowRunId
         from prefect.deployments import run_deployment
         from prefect.settings import PREFECT_API_URL, temporary_settings
 
@@ -115,11 +103,9 @@ def main() -> Path:
                 as_subflow=False, parameters={"root": str(root), "out": str(out / "pool"),
                                               "config": CONFIG, "until": a.until})
             pool_s = time.perf_counter() - t0
-            with get_client(sync_client=True) as client:
-                runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(
-                    parent_flow_run_id=FlowRunFilterParentFlowRunId(any_=[dataset.id])))
-        print(f"pool: {dataset.state.name}, {pool_s:.0f} s wall, "
-              f"{most_at_once(runs)} captures at once", flush=True)
+        at_once = json.loads((out / "pool" / "dataset.json").read_text())["captures_at_once"]
+        print(f"pool: {dataset.state.name}, {pool_s:.0f} s wall, {at_once} captures at once",
+              flush=True)
         t0 = time.perf_counter()
         serial = subprocess.run([sys.executable, "-m", "flows.cli", "dataset", str(root),
                                  "--out", str(out / "serial"), "--config", str(config)],
@@ -133,7 +119,7 @@ def main() -> Path:
             process.wait(60)
     report = {"captures": len(CAPTURES), "workers": a.workers, "until": a.until,
               "pool_state": dataset.state.name, "pool_wall_s": round(pool_s, 1),
-              "captures_at_once": most_at_once(runs), "in_process_exit": serial.returncode,
+              "captures_at_once": at_once, "in_process_exit": serial.returncode,
               "in_process_wall_s": round(serial_s, 1), "cpu_count": os.cpu_count()}
     path = out / "report.json"
     path.write_text(json.dumps(report, indent=1))

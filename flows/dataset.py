@@ -98,11 +98,11 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
     if pool:
         logger.info(f"{len(entries)} captures, one {CAPTURE_DEPLOYMENT} run each on the work "
                     f"pool {pool}")
-        failed = _through_deployment(entries, out_root, config, named_store, until)
+        failed, at_once = _through_deployment(entries, out_root, config, named_store, until)
         for name, message in failed.items():
             logger.error(f"{name}: {message}")
     else:
-        failed = _in_process(entries, out_root, config, store, until)
+        failed, at_once = _in_process(entries, out_root, config, store, until), 1
     done = {(e.subject, e.capture): e.out_dir(out_root) for e in entries
             if f"{e.subject}/{e.capture}" not in failed}
     rows = consistency_report(out_root, done)
@@ -110,7 +110,7 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
         create_table_artifact(rows, key="cross-capture-consistency",
                               description="same subject, two captures: vertex-to-vertex mm")
     summary = {"captures": len(entries), "done": [f"{s}/{c}" for s, c in done],
-               "failed": failed, "consistency": rows}
+               "failed": failed, "consistency": rows, "captures_at_once": at_once}
     (out_root / "dataset.json").write_text(json.dumps(summary, indent=1))
     if failed:
         raise FacecapError(f"{len(failed)} of {len(entries)} captures failed: "
@@ -159,10 +159,11 @@ def _work_pool() -> str | None:
 
 
 def _through_deployment(entries: list[CaptureEntry], out_root: Path, config: ConfigParameter,
-                        store: str | None, until: str) -> dict[str, str]:
+                        store: str | None, until: str) -> tuple[dict[str, str], int]:
     """One run of the capture deployment per capture, all submitted at once: the pool's
     workers take them as the deployment's and the pool's concurrency limits allow. Waits
-    for every one; returns ``{subject/capture: why it failed}``."""
+    for every one; returns ``{subject/capture: why it failed}`` and the most that ran at
+    once."""
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
     from prefect.deployments import run_deployment
@@ -182,7 +183,7 @@ def _through_deployment(entries: list[CaptureEntry], out_root: Path, config: Con
                             parameters={**_capture_parameters(e, out_root, config, until),
                                         "store": store}).id: e
              for e in entries}
-    failed, pending = {}, set(by_id)
+    failed, pending, ran = {}, set(by_id), []
     with get_client(sync_client=True) as client:
         while pending:
             time.sleep(POLL_SECONDS)
@@ -195,11 +196,25 @@ def _through_deployment(entries: list[CaptureEntry], out_root: Path, config: Con
                 if run.state is None or not run.state.is_final():
                     continue
                 pending.discard(run.id)
+                if run.start_time and run.end_time:
+                    ran.append((run.start_time, run.end_time))
                 entry = by_id[run.id]
                 if not run.state.is_completed():
                     failed[f"{entry.subject}/{entry.capture}"] = as_user_sees_it(
                         _reason(run.state), entry.video)
-    return dict(sorted(failed.items()))
+    return dict(sorted(failed.items())), most_at_once(ran)
+
+
+def most_at_once(intervals: list[tuple]) -> int:
+    """The largest number of (start, end) intervals that overlap at one moment (one that
+    ends as another starts does not overlap it)."""
+    events = sorted([(start, 1) for start, _ in intervals] + [(end, -1) for _, end in intervals],
+                    key=lambda e: (e[0], e[1]))
+    running = peak = 0
+    for _, step in events:
+        running += step
+        peak = max(peak, running)
+    return peak
 
 
 def _reason(state) -> str:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from flows.dataset import most_at_once
 from tests.media import write_video
 from tests.test_bad_inputs import orbit_frames
 
@@ -85,17 +86,6 @@ def _intervals(runs) -> list[tuple[datetime, datetime]]:
     return [(r.start_time, r.end_time) for r in runs if r.start_time and r.end_time]
 
 
-def most_at_once(intervals: list[tuple[datetime, datetime]]) -> int:
-    """The largest number of intervals that overlap at one moment."""
-    events = sorted([(start, 1) for start, _ in intervals] + [(end, -1) for _, end in intervals],
-                    key=lambda e: (e[0], e[1]))
-    running = peak = 0
-    for _, step in events:
-        running += step
-        peak = max(peak, running)
-    return peak
-
-
 def test_most_at_once_counts_overlaps():
     t = [datetime(2026, 1, 1, 0, m) for m in range(6)]
     assert most_at_once([(t[0], t[2]), (t[1], t[3]), (t[2], t[4])]) == 2  # touching ends
@@ -150,6 +140,7 @@ def test_a_dataset_spreads_its_captures_over_the_pool(pool, live_server):
     [(name, why)] = summary["failed"].items()
     assert name == "carl/short" and str(root / "carl" / "short.mp4") in why and "frames" in why
     assert most_at_once(_intervals(captures)) == CAPTURE_LIMIT  # pairs ran together
+    assert summary["captures_at_once"] == CAPTURE_LIMIT
     assert most_at_once(_intervals(in_pool)) <= POOL_LIMIT
     ran_on = {r.work_queue_name for r in captures}
     assert ran_on == {"captures"}
