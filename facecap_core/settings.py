@@ -84,11 +84,12 @@ class FacecapSettings(BaseSettings):
     """Longest image side a run accepts, in pixels; the keyframes are kept at full
     resolution. Default 8192 (8K)."""
     capture_timeout_s: float = Field(21600.0, gt=0)
-    """The longest a capture flow run may take, in seconds, before it ends Failed. Default
+    """The longest a capture flow run may take, in seconds, before it ends Failed: its
+    stages keep it, and Prefect's own limit on the run follows a minute later. Default
     21600 (6 hours)."""
     stage_timeout_s: float = Field(7200.0, gt=0)
-    """The longest one stage task may take, in seconds, before it ends Failed. Default 7200
-    (2 hours)."""
+    """The longest one stage may take, in seconds, before the run ends Failed; the depth
+    maps together count as one stage. Default 7200 (2 hours)."""
     alert_webhook: str | None = None
     """Webhook URL ``facecap alerts`` sends the service's alerts to (regressions, failed
     runs; ``deploy/alerts.py``). Default unset: ``facecap alerts`` needs ``--webhook``."""

@@ -143,7 +143,8 @@ def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: dict, lab
         while pending and len(running) < workers:
             i = pending.pop(0)
             running.append((i, call_stage(stage.name, store, inputs, config, label,
-                                          params={"index": i}, submit=True)))
+                                          params={"index": i}, submit=True,
+                                          deadline=deadline, started=started)))
         i, future = running.pop(0)
         results[stage.row_name({"index": i})] = stage_result(stage.name, future, label,
                                                              started, deadline)

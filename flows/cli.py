@@ -414,10 +414,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("facecap: interrupted", file=sys.stderr)
         return 130
-    except _time_limits():  # outside any stage (a stage's says which limit it was)
-        from tasks.stages import capture_time_limit_message
-
-        print(f"facecap: error: {capture_time_limit_message('the run')}", file=sys.stderr)
+    except _time_limits():  # Prefect's own limit on a flow (a stage says which it hit)
+        variable = ("FACECAP_EVALUATION_TIMEOUT_S" if args.func is _cmd_evaluate_dataset
+                    else "FACECAP_CAPTURE_TIMEOUT_S")
+        print(f"facecap: error: the run was stopped at its time limit ({variable}); raise "
+              "the limit, or look for what held it up in the run's log", file=sys.stderr)
         return 2
     except _network_errors() as exc:  # the store went away mid-run, after the task's retries
         from tasks.runner import default_store_url, store_unreachable

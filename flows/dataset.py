@@ -16,6 +16,7 @@ from pathlib import Path
 
 import httpx
 from prefect import flow, get_run_logger
+from prefect.flow_engine import FlowRunTimeoutError
 
 from facecap_core.config import PipelineConfig
 from facecap_core.dataset import SUMMARY_NAMES, CaptureEntry, mesh_consistency, scan_dataset
@@ -28,6 +29,7 @@ from flows.capture import (
     reconstruct_capture,
 )
 from flows.service import guard
+from tasks.stages import capture_time_limit_message
 
 CAPTURE_DEPLOYMENT = "reconstruct-capture/reconstruct-capture"
 """The deployment a dataset run on a work pool submits each capture to (deploy/prefect.yaml)."""
@@ -140,6 +142,9 @@ def _in_process(entries: list[CaptureEntry], out_root: Path, config: ConfigParam
             failed[f"{entry.subject}/{entry.capture}"] = as_user_sees_it(str(exc), entry.video)
             # exc_info marks it as bad input: the CLI prints it once, in its summary line.
             logger.error(f"{entry.subject}/{entry.capture}: {exc}", exc_info=exc)
+        except FlowRunTimeoutError:  # Prefect's own limit, past the stages' own: go on
+            failed[f"{entry.subject}/{entry.capture}"] = capture_time_limit_message(
+                "the capture")
     return failed
 
 

@@ -59,7 +59,9 @@ def previous_evaluation(folder: Path, before: str) -> dict:
     if not older:
         return {}
     try:
-        captures = json.loads(older[-1].read_text(encoding="utf-8"))["captures"]
+        doc = json.loads(older[-1].read_text(encoding="utf-8"))
+        # A capture without a mesh then keeps its last score, the baseline for its return.
+        captures = {**doc.get("carried", {}), **doc["captures"]}
         for record in captures.values():
             for side in ("accuracy", "completion"):
                 float(record[side]["median"])
@@ -121,7 +123,8 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
     history.mkdir(parents=True, exist_ok=True)
     flagged = regressions(current, previous, tolerance_mm, tolerance_rel, without_mesh)
     (history / f"{stamp}.json").write_text(json.dumps(
-        {"time": stamp, "captures": current, "skipped": skipped, "regressions": flagged},
+        {"time": stamp, "captures": current, "skipped": skipped, "regressions": flagged,
+         "carried": {name: previous[name] for name in without_mesh if name in previous}},
         indent=1))
     rows = [{"capture": name, "accuracy_mean": round(s["accuracy"]["mean"], 3),
              "accuracy_median": round(s["accuracy"]["median"], 3),

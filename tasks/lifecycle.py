@@ -172,7 +172,7 @@ def _without(subject: str, doc):
     if not isinstance(doc, dict):
         return doc
     doc = dict(doc)
-    for key in ("captures", "failed"):
+    for key in ("captures", "carried", "failed"):
         if isinstance(doc.get(key), dict):
             doc[key] = {n: v for n, v in doc[key].items() if not _of(subject, n)}
     for key in ("done", "skipped"):

@@ -69,23 +69,30 @@ def ingest_task(store: str, path: str, name: str, label: str = "") -> str:
 
 def call_stage(name: str, store: str, inputs: dict[str, str], config: dict | None,
                label: str = "", params: dict | None = None, submit: bool = False,
-               deadline: float | None = None) -> tuple[str, bool] | PrefectFuture:
+               deadline: float | None = None, started: float | None = None
+               ) -> tuple[str, bool] | PrefectFuture:
     """Run the task of stage ``name`` within ``FACECAP_STAGE_TIMEOUT_S`` and before the
     capture's ``deadline`` (``time.monotonic()``); returns ``(key, computed)``.
 
-    With ``submit``, a future for :func:`stage_result`: a fanned-out stage's tasks run in
-    the flow's threads, where Prefect's timeout cannot interrupt and warns on every run, so
-    the fan-out as a whole keeps the limits (``stage_result``'s wait)."""
+    With ``submit`` (one map of a fanned-out stage, which ``started`` then), a future for
+    :func:`stage_result`: the fan-out as a whole keeps the limits, by the wait in
+    ``stage_result``; its maps carry no Prefect timeout of their own, which would warn on
+    every map."""
     runner = TASKS[name]
+    now = time.monotonic()
+    end = _end(now if started is None else started, deadline)
+    if end <= now:
+        raise FacecapError(capture_time_limit_message(label or "the capture", name)
+                           if deadline is not None and end == deadline
+                           else stage_time_limit_message(label or "the capture", name))
+    # A retry starts the attempt's time again: none once the limit has passed.
+    runner = runner.with_options(retry_condition_fn=lambda task, run, state: (
+        time.monotonic() < end and retry_condition(task, run, state)))
     if submit:
         return runner.submit(store, inputs, config or {}, params, label)
-    started = time.monotonic()
-    end = _end(started, deadline)
-    if end <= started:
-        raise FacecapError(capture_time_limit_message(label or "the capture", name))
-    runner = runner.with_options(timeout_seconds=end - started)
+    runner = runner.with_options(timeout_seconds=end - now)
     return stage_result(name, lambda: runner(store, inputs, config or {}, params, label), label,
-                        started, deadline)
+                        now, deadline)
 
 
 def _end(started: float, deadline: float | None) -> float:
@@ -98,31 +105,34 @@ def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: 
                  started: float, deadline: float | None = None) -> tuple[str, bool]:
     """``(key, computed)`` of a stage's task: a future (waited for until the stage's time
     limit from ``started``, or the capture's ``deadline``) or the call itself. A stage
-    stopped at either limit raises a one-line FacecapError naming that limit."""
-    from prefect.flow_engine import FlowRunTimeoutError
+    stopped at either limit raises a one-line FacecapError naming that limit; the task's
+    own errors pass through."""
+    import concurrent.futures
+
     from prefect.task_engine import TaskRunTimeoutError
 
     end = _end(started, deadline)
-    try:
-        if isinstance(result, PrefectFuture):
-            value = tuple(result.result(timeout=max(0.0, end - time.monotonic())))
-        else:
+    where = label or "the capture"
+    over = (capture_time_limit_message(where, name) if deadline is not None and end == deadline
+            else stage_time_limit_message(where, name))
+    if isinstance(result, PrefectFuture):
+        done, _ = concurrent.futures.wait([result.wrapped_future],
+                                          timeout=max(0.0, end - time.monotonic()))
+        if not done:
+            raise FacecapError(over)
+        value = tuple(result.result())
+    else:
+        try:
             value = tuple(result())
-    except (TaskRunTimeoutError, FlowRunTimeoutError, TimeoutError) as exc:
-        waited = isinstance(result, PrefectFuture) and not result.state.is_final()
-        if not (waited or isinstance(exc, TaskRunTimeoutError | FlowRunTimeoutError)):
-            raise  # the stage's own TimeoutError (a network call): not a time limit
-        where = label or "the capture"
-        if isinstance(exc, FlowRunTimeoutError) or (deadline is not None and end == deadline):
-            raise FacecapError(capture_time_limit_message(where, name)) from None
-        raise FacecapError(stage_time_limit_message(where, name)) from None
+        except TaskRunTimeoutError:
+            raise FacecapError(over) from None
     # Prefect interrupts a stage by raising in its thread, which a native call holds off and
-    # a logging or cleanup handler can swallow: the limit holds at the latest here, with
+    # a logging or cleanup handler can swallow: the limits hold at the latest here, with
     # the stage's artifact stored (a rerun with a higher limit reuses it).
     if deadline is not None and time.monotonic() > deadline:
-        raise FacecapError(capture_time_limit_message(label or "the capture", name))
+        raise FacecapError(capture_time_limit_message(where, name))
     if time.monotonic() - started > settings().stage_timeout_s:
-        raise FacecapError(stage_time_limit_message(label or "the capture", name))
+        raise FacecapError(stage_time_limit_message(where, name))
     return value
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -104,6 +106,18 @@ def test_a_scored_capture_that_lost_its_mesh_is_a_regression():
     flagged = regressions({}, previous, 0.05, 0.05, without_mesh=["a/1", "new/1"])
     assert flagged == [{"capture": "a/1", "measure": "mesh missing", "previous_mm": 1.0,
                         "now_mm": None}]
+
+
+def test_a_capture_without_a_mesh_keeps_its_last_score_as_the_baseline(tmp_path):
+    """The night after "mesh missing", the capture is compared with its last score again
+    (carried forward), so neither its absence nor a worse mesh on its return goes unseen."""
+    from flows.evaluate import previous_evaluation
+
+    (tmp_path / "20261101T020000000000Z.json").write_text(json.dumps(
+        {"captures": {"b/1": _score(0.5, 0.5)}, "carried": {"a/1": _score(1.0, 1.0)}}))
+    previous = previous_evaluation(tmp_path, "20261102T020000000000Z")
+    assert set(previous) == {"a/1", "b/1"}
+    assert regressions({"a/1": _score(1.5, 1.0)}, previous, 0.05, 0.05)[0]["capture"] == "a/1"
 
 
 def test_scale_error_is_the_meshs_size_against_the_scans():

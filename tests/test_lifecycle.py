@@ -49,6 +49,7 @@ def world(tmp_path):
     (out / "evaluations").mkdir()
     (out / "evaluations" / "20261101T020000000000Z.json").write_text(json.dumps(
         {"captures": {"alice/take1": {}, "bob/take1": {}},
+         "carried": {"alice/take2": {}, "bob/take2": {}},
          "regressions": [{"capture": "alice/take1"}]}))
     return {"root": root, "out": out, "store": store_url, "keys": keys}
 
@@ -71,7 +72,8 @@ def test_forget_removes_the_subject_and_nothing_else(world):
     assert not (world["out"] / "alice").exists() and (world["out"] / "bob").is_dir()
     history = json.loads((world["out"] / "evaluations" / "20261101T020000000000Z.json")
                          .read_text())
-    assert history == {"captures": {"bob/take1": {}}, "regressions": []}
+    assert history == {"captures": {"bob/take1": {}}, "carried": {"bob/take2": {}},
+                       "regressions": []}
     assert removal.history_entries == 1
 
 
