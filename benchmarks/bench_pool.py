@@ -116,7 +116,11 @@ def main() -> Path:
     finally:
         for process in workers + [server]:
             process.terminate()
-            process.wait(60)
+            try:
+                process.wait(30)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(30)
     report = {"captures": len(CAPTURES), "workers": a.workers, "until": a.until,
               "pool_state": dataset.state.name, "pool_wall_s": round(pool_s, 1),
               "captures_at_once": at_once, "in_process_exit": serial.returncode,

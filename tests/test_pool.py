@@ -78,7 +78,11 @@ def pool(live_server, tmp_path_factory):
         for worker in workers:
             worker.terminate()
         for worker, log in zip(workers, logs):
-            worker.wait(60)
+            try:
+                worker.wait(30)
+            except subprocess.TimeoutExpired:  # a worker still winding down its runs' processes
+                worker.kill()
+                worker.wait(30)
             log.close()
 
 
