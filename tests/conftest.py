@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
-import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 
 from facecap_core.assets import ICT_MODEL_ENV, default_ict_model
+from tests.servers import free_port, stop, wait_until_healthy
 
 
 @pytest.fixture(scope="session")
@@ -27,18 +25,12 @@ def ict_model() -> Path:
     return path
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="session")
 def live_server(tmp_path_factory) -> str:
     """A real ``prefect server start`` (its scheduler, triggers and actions services running,
     as on a facecap host) with its own database; yields its API URL. One server for the
     session: each test names its own deployments, pools and automations."""
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "PREFECT_HOME": str(tmp_path_factory.mktemp("prefect")),
            "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "PREFECT_UI_ENABLED": "false",
            "PREFECT_SERVER_SERVICES_SCHEDULER_LOOP_SECONDS": "2"}
@@ -48,17 +40,7 @@ def live_server(tmp_path_factory) -> str:
                             stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}/api"
     try:
-        for _ in range(240):
-            try:
-                urllib.request.urlopen(f"{url}/health", timeout=1)
-                break
-            except OSError:
-                if proc.poll() is not None:
-                    pytest.fail("prefect server exited at start")
-                time.sleep(0.5)
-        else:
-            pytest.fail("prefect server did not become healthy in 120 s")
+        wait_until_healthy(url, proc)
         yield url
     finally:
-        proc.terminate()
-        proc.wait(30)
+        stop(proc, grace_s=30)

@@ -17,6 +17,7 @@ import pytest
 
 from flows.dataset import most_at_once
 from tests.media import write_video
+from tests.servers import stop
 from tests.test_bad_inputs import orbit_frames
 
 pytestmark = pytest.mark.slow
@@ -78,11 +79,7 @@ def pool(live_server, tmp_path_factory):
         for worker in workers:
             worker.terminate()
         for worker, log in zip(workers, logs):
-            try:
-                worker.wait(30)
-            except subprocess.TimeoutExpired:  # a worker still winding down its runs' processes
-                worker.kill()
-                worker.wait(30)
+            stop(worker, grace_s=30)
             log.close()
 
 
