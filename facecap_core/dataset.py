@@ -36,6 +36,11 @@ class CaptureEntry:
     scan: Path | None
     scan_landmarks: Path | None
 
+    @property
+    def name(self) -> str:
+        """``subject/capture``: how reports, summaries and the UI name the capture."""
+        return f"{self.subject}/{self.capture}"
+
     def out_dir(self, out_root: str | Path) -> Path:
         return inside(Path(out_root), Path(out_root) / self.subject / self.capture)
 

@@ -106,7 +106,7 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
     else:
         failed, at_once = _in_process(entries, out_root, config, store, until), 1
     done = {(e.subject, e.capture): e.out_dir(out_root) for e in entries
-            if f"{e.subject}/{e.capture}" not in failed}
+            if e.name not in failed}
     rows = consistency_report(out_root, done)
     if rows:
         create_table_artifact(rows, key="cross-capture-consistency",
@@ -139,11 +139,11 @@ def _in_process(entries: list[CaptureEntry], out_root: Path, config: ConfigParam
             reconstruct_capture(**_capture_parameters(entry, out_root, config, until),
                                 store=store)
         except FacecapError as exc:
-            failed[f"{entry.subject}/{entry.capture}"] = as_user_sees_it(str(exc), entry.video)
+            failed[entry.name] = as_user_sees_it(str(exc), entry.video)
             # exc_info marks it as bad input: the CLI prints it once, in its summary line.
-            logger.error(f"{entry.subject}/{entry.capture}: {exc}", exc_info=exc)
+            logger.error(f"{entry.name}: {exc}", exc_info=exc)
         except FlowRunTimeoutError:  # Prefect's own limit, past the stages' own: go on
-            failed[f"{entry.subject}/{entry.capture}"] = capture_time_limit_message(
+            failed[entry.name] = capture_time_limit_message(
                 "the capture")
     return failed
 
@@ -205,7 +205,7 @@ def _through_deployment(entries: list[CaptureEntry], out_root: Path, config: Con
                     ran.append((run.start_time, run.end_time))
                 entry = by_id[run.id]
                 if not run.state.is_completed():
-                    failed[f"{entry.subject}/{entry.capture}"] = as_user_sees_it(
+                    failed[entry.name] = as_user_sees_it(
                         _reason(run.state), entry.video)
     return dict(sorted(failed.items())), most_at_once(ran)
 

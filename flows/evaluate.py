@@ -102,7 +102,7 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
     current, skipped, without_mesh = {}, [], []
     for entry in entries:
         mesh = entry.out_dir(out_root) / "mesh.ply"
-        name = f"{entry.subject}/{entry.capture}"
+        name = entry.name
         if entry.scan is None or entry.scan_landmarks is None or not mesh.is_file():
             skipped.append(name)
             if entry.scan is not None and not mesh.is_file():

@@ -129,10 +129,11 @@ def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: 
     # Prefect interrupts a stage by raising in its thread, which a native call holds off and
     # a logging or cleanup handler can swallow: the limits hold at the latest here, with
     # the stage's artifact stored (a rerun with a higher limit reuses it).
-    if deadline is not None and time.monotonic() > deadline:
-        raise FacecapError(capture_time_limit_message(where, name))
-    if time.monotonic() - started > settings().stage_timeout_s:
-        raise FacecapError(stage_time_limit_message(where, name))
+    now = time.monotonic()
+    if now > end:  # past the first of the two limits: the capture's, if it is past too
+        raise FacecapError(capture_time_limit_message(where, name)
+                           if deadline is not None and now > deadline
+                           else stage_time_limit_message(where, name))
     return value
 
 
