@@ -124,8 +124,14 @@ def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: 
     else:
         try:
             value = tuple(result())
-        except TaskRunTimeoutError:
-            raise FacecapError(over) from None
+        except Exception as exc:
+            # Prefect stops a stage by raising in its thread, and code that catches and
+            # rewraps errors (pycolmap's import does) can turn that into another one: an
+            # error other than facecap's own, once the limit has passed, is the limit.
+            if isinstance(exc, TaskRunTimeoutError) or (
+                    not isinstance(exc, FacecapError) and time.monotonic() >= end):
+                raise FacecapError(over) from None
+            raise
     # Prefect interrupts a stage by raising in its thread, which a native call holds off and
     # a logging or cleanup handler can swallow: the limits hold at the latest here, with
     # the stage's artifact stored (a rerun with a higher limit reuses it).
