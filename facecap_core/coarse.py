@@ -46,6 +46,7 @@ from facecap_core.camera import CAMERAS_JSON
 from facecap_core.config import CoarseConfig
 from facecap_core.errors import InputError
 from facecap_core.geometry import robust_similarity
+from facecap_core.landmarks.ear_check import reliability
 from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_3D
 from facecap_core.template import INNER_LANDMARKS, Template
 
@@ -194,13 +195,16 @@ def rbf_deform(vertices: np.ndarray, anchors: np.ndarray, displacements: np.ndar
 
 
 def coarse_mesh(template: Template, landmarks_mm: np.ndarray, ear_ids: np.ndarray,
-                ear_points_mm: np.ndarray, config: CoarseConfig) -> tuple[np.ndarray, dict]:
-    """Coarse vertices (template topology, mm) and a report of the fit."""
+                ear_points_mm: np.ndarray, config: CoarseConfig,
+                ear_weights: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """Coarse vertices (template topology, mm) and a report of the fit. ``ear_weights``
+    (k,): each ear point's reliability (1 when None)."""
     inner = INNER_LANDMARKS
     ok = np.all(np.isfinite(landmarks_mm[inner]), axis=1)
     ids = np.r_[template.landmarks[inner][ok], ear_ids].astype(np.int64)
     targets = np.r_[landmarks_mm[inner][ok], ear_points_mm]
-    base_w = np.r_[np.ones(int(ok.sum())), np.full(len(ear_ids), config.ear_weight)]
+    ear_w = np.ones(len(ear_ids)) if ear_weights is None else np.asarray(ear_weights, float)
+    base_w = np.r_[np.ones(int(ok.sum())), config.ear_weight * ear_w]
     src = template.vertices[ids]
     s, R, t, w = robust_similarity(src, targets, base_w, config.robust_iterations,
                                    config.robust_scale_mm)
@@ -210,7 +214,8 @@ def coarse_mesh(template: Template, landmarks_mm: np.ndarray, ear_ids: np.ndarra
         V = rbf_deform(placed, placed[ids], targets - placed[ids], config.rbf_kernel_mm,
                        config.rbf_smoothing, w / np.maximum(base_w, 1e-12))
     elif config.deformation == "nicp":
-        V = _nicp(template.with_vertices(placed), landmarks_mm, ear_ids, ear_points_mm, config)
+        V = _nicp(template.with_vertices(placed), landmarks_mm, ear_ids, ear_points_mm, config,
+                  ear_w)
     else:
         V = placed
     after = np.linalg.norm(V[ids] - targets, axis=1)
@@ -220,7 +225,8 @@ def coarse_mesh(template: Template, landmarks_mm: np.ndarray, ear_ids: np.ndarra
     return V, report
 
 
-def _nicp(placed: Template, landmarks_mm, ear_ids, ear_points_mm, config: CoarseConfig):
+def _nicp(placed: Template, landmarks_mm, ear_ids, ear_points_mm, config: CoarseConfig,
+          ear_weights):
     from facecap_core.config import FittingConfig
     from facecap_core.fitting.nicp import fit
 
@@ -231,7 +237,7 @@ def _nicp(placed: Template, landmarks_mm, ear_ids, ear_points_mm, config: Coarse
                                landmark_weight=list(config.nicp_stiffness),
                                use_cloud=False, use_edges=False, texture=False,
                                initial_similarity=False)
-    ears = (ear_ids, ear_points_mm) if len(ear_ids) else None
+    ears = (ear_ids, ear_points_mm, ear_weights) if len(ear_ids) else None
     return fit(placed, None, L, ear_points=ears, config=fit_config).vertices
 
 
@@ -278,7 +284,9 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
                              landmarks_doc.get("irises"))
     m = float(scale_doc["metric_scale"])
     L_mm, ears_mm = L * m, ear_pts * m
-    V, fit_doc = coarse_mesh(template, L_mm, ear_ids, ears_mm, config)
+    sigma = np.asarray(ear_doc.get("sigma", []), float)
+    ear_w = reliability(sigma * m) if len(sigma) == len(ear_ids) else np.ones(len(ear_ids))
+    V, fit_doc = coarse_mesh(template, L_mm, ear_ids, ears_mm, config, ear_w)
     L_out = L_mm.copy()
     missing = ~np.all(np.isfinite(L_out), axis=1)
     L_out[missing] = V[template.landmarks[missing]]  # the jaw contour from the coarse mesh
@@ -304,9 +312,12 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     _write(out / EARS_3D, {"template": template.name, "units": "mm",
                                  "vertex_ids": ear_ids.tolist(),
                                  "points": np.round(ears_mm, 6).tolist(),
-                                 "sides": ear_sides.tolist()})
+                                 "sides": ear_sides.tolist(),
+                                 "weights": np.round(ear_w, 4).tolist(),
+                                 "checks": ear_doc.get("checks", {})})
     _write(out / COARSE_JSON, {
         "scale": scale_doc, "fit": fit_doc, "ears_used": int(len(ear_ids)),
+        "ears": ear_doc.get("checks", {}),
         "ears_ignored_other_template": ears_ignored, "template": template.name,
         "config": config.model_dump(mode="json"),
         "seconds": {"wall": round(time.perf_counter() - t_wall, 3),
@@ -321,6 +332,13 @@ def _write(path: Path, doc: dict) -> Path:
     return path
 
 
+def ears_summary(checks: dict) -> str:
+    """One line on the ear points the scale and the fit used: per side, its points or why
+    it was dropped."""
+    return "; ".join(f"{side} {c['points']} points" if c["used"] else
+                     f"{side} dropped: {c['reason']}" for side, c in checks.items())
+
+
 def figures(folder: str | Path) -> dict:
     """Headline figures of a coarse artifact: the metric scale, its cues and uncertainty,
     and the angular coverage of the landmarks."""
@@ -328,9 +346,12 @@ def figures(folder: str | Path) -> dict:
     if (folder / CAMERAS_JSON).is_file():
         fig["metric_scale"] = json.loads((folder / CAMERAS_JSON).read_text()).get("metric_scale")
     if (folder / COARSE_JSON).is_file():
-        scale = json.loads((folder / COARSE_JSON).read_text())["scale"]
+        doc = json.loads((folder / COARSE_JSON).read_text())
+        scale = doc["scale"]
         fig["scale"] = {k: scale.get(k) for k in ("metric_scale", "sigma_pct", "used", "cues",
                                                    "dropped", "how")}
+        if doc.get("ears"):
+            fig["ears"] = doc["ears"]
     if (folder / LANDMARKS_3D).is_file():
         coverage = json.loads((folder / LANDMARKS_3D).read_text()).get("coverage")
         if coverage:

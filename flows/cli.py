@@ -108,6 +108,11 @@ def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
                              if "disagreement_sigmas" in d else "") for d in scale["dropped"])
         print(f"  scale      {scale['metric_scale']:.4g} mm per camera unit, "
               f"±{scale['sigma_pct']:.1f} % (1 sigma) from {' + '.join(scale['used'])}{dropped}")
+    ears = report.get("figures", {}).get("ears")
+    if ears:
+        from facecap_core.coarse import ears_summary
+
+        print(f"  ears       {ears_summary(ears)}")
     evaluation = report.get("figures", {}).get("evaluation")
     if evaluation:
         rows = [(f"facecap ({p})", [s]) for p, s in evaluation.items()]

@@ -93,6 +93,10 @@ def capture_markdown(report: dict, out: Path, images: list[tuple[str, Path]]) ->
                      f"{' + '.join(scale['used'])}"
                      + "".join(f"; {d['name']} dropped ({markdown_text(d['reason'])})"
                                for d in scale["dropped"]))
+    if fig.get("ears"):
+        from facecap_core.coarse import ears_summary
+
+        lines.append(f"- ear points: {markdown_text(ears_summary(fig['ears']))}")
     for protocol, sc in fig.get("evaluation", {}).items():
         a, c = sc["accuracy"], sc["completion"]
         lines.append(f"- {protocol}: accuracy mean {a['mean']:.3f} / median {a['median']:.3f} mm,"

@@ -204,6 +204,14 @@ def test_ear_points_pull_their_vertices(setup):
     err_with = np.linalg.norm(with_ears.vertices[ids] - goal, axis=1).mean()
     err_without = np.linalg.norm(without.vertices[ids] - goal, axis=1).mean()
     assert err_with < 0.5 * err_without
+    # Reliability weights: weight 0 is no ear point at all, a half weight pulls half as hard
+    # (its vertices end between the two fits).
+    zero = fit(template, None, noisy, ear_points=(ids, goal, np.zeros(len(ids))), config=config)
+    np.testing.assert_allclose(zero.vertices, without.vertices, atol=1e-9)
+    half = fit(template, None, noisy, ear_points=(ids, goal, np.full(len(ids), 0.5)),
+               config=config)
+    err_half = np.linalg.norm(half.vertices[ids] - goal, axis=1).mean()
+    assert err_with < err_half < err_without
 
 
 def test_edges_bring_the_jaw_line_closer_where_the_cloud_misses_it(setup):

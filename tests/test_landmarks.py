@@ -112,6 +112,12 @@ def test_ears_are_triangulated_from_projected_points():
     assert doc["views"] == {"left": 8, "right": 2}
     err = np.linalg.norm(np.array(doc["points"]) - left, axis=1)
     assert np.max(err) < 1.0
+    # The false view's 12 observations are the only outliers of the left ear.
+    assert doc["observations"]["left"] == 96 and doc["inliers"]["left"] == 84
+    # Each point's stated uncertainty is what 1 px of noise makes of its views' geometry:
+    # the same order as its actual error, and never zero.
+    sigma = np.array(doc["sigma"])
+    assert np.all(sigma > 0.01) and np.all(sigma < 2.0) and np.median(err / sigma) < 3
 
 
 # --------------------------------------------------------------------------- the stage

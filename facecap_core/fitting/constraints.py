@@ -139,14 +139,16 @@ def cloud_targets(vertices: np.ndarray, normals: np.ndarray, grid: CloudGrid, ra
 # --------------------------------------------------------------------------- landmarks
 
 
-def landmark_targets(n: int, vertex_ids: np.ndarray, points: np.ndarray, weight: float
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-vertex (weights, weighted target sums) for vertex-id → point constraints."""
+def landmark_targets(n: int, vertex_ids: np.ndarray, points: np.ndarray,
+                     weight: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex (weights, weighted target sums) for vertex-id → point constraints;
+    ``weight`` one for all or one per point."""
     w = np.zeros(n)
     wu = np.zeros((n, 3))
     ids = np.asarray(vertex_ids, np.int64)
+    weight = np.broadcast_to(np.asarray(weight, float), ids.shape)
     np.add.at(w, ids, weight)
-    np.add.at(wu, ids, weight * np.asarray(points, float))
+    np.add.at(wu, ids, weight[:, None] * np.asarray(points, float))
     return w, wu
 
 

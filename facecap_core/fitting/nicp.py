@@ -67,7 +67,7 @@ class FitResult:
 
 
 def check_inputs(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray | None,
-                 ear_points: tuple[np.ndarray, np.ndarray] | None,
+                 ear_points: tuple[np.ndarray, ...] | None,
                  cloud_normals: np.ndarray | None, config: FittingConfig):
     """Validate shapes; raises :class:`InputError` with one line naming the problem."""
     if landmarks is None:
@@ -104,6 +104,10 @@ def check_inputs(template: Template, cloud: np.ndarray | None, landmarks: np.nda
                              f"{ids.shape} and {pts.shape}")
         if len(ids) and (ids.min() < 0 or ids.max() >= len(template.vertices)):
             raise InputError(f"ear point vertex ids must be in [0, {len(template.vertices)})")
+        if len(ear_points) > 2 and (np.shape(ear_points[2]) != ids.shape
+                                    or not np.all(np.asarray(ear_points[2], float) >= 0)):
+            raise InputError(f"ear point weights must be (k,) = {ids.shape} non-negative "
+                             f"numbers; got shape {np.shape(ear_points[2])}")
 
 
 def initial_similarity(template: Template, landmarks: np.ndarray) -> np.ndarray:
@@ -114,14 +118,15 @@ def initial_similarity(template: Template, landmarks: np.ndarray) -> np.ndarray:
 
 def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
         keyframes: list[Keyframe] | tuple = (),
-        ear_points: tuple[np.ndarray, np.ndarray] | None = None,
+        ear_points: tuple[np.ndarray, ...] | None = None,
         cloud_normals: np.ndarray | None = None,
         config: FittingConfig | None = None) -> FitResult:
     """Deform ``template`` onto the constraints; returns a :class:`FitResult`.
 
     ``cloud`` (N, 3) mm (with optional ``cloud_normals``), ``landmarks`` the subject's 68 3D
     landmarks (only 17-67 are used), ``keyframes`` images with cameras for the silhouettes,
-    ``ear_points`` ``(vertex ids (k,), targets (k, 3))``. The template is used as given
+    ``ear_points`` ``(vertex ids (k,), targets (k, 3)[, weights (k,)])``, the weights each
+    point's reliability (1 without them). The template is used as given
     (in the subject's frame) unless ``config.initial_similarity``.
     """
     config = config or FittingConfig()
@@ -144,7 +149,9 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
     lm_pts = L[INNER_LANDMARKS]
     ears = None
     if ear_points is not None and config.use_ear_landmarks and len(ear_points[0]):
-        ears = (np.asarray(ear_points[0], np.int64), np.asarray(ear_points[1], float))
+        ears = (np.asarray(ear_points[0], np.int64), np.asarray(ear_points[1], float),
+                np.asarray(ear_points[2], float) if len(ear_points) > 2
+                else np.ones(len(ear_points[0])))
     use_edges = config.use_edges and len(keyframes) > 0 and config.edge_weight > 0
     edge_exclude = boundary_distance(n, faces, config.edge_boundary_rings) if use_edges else None
     nearest = [nearest_edge_pixels(edge_map(kf.image, config.edge_blur_sigma,
@@ -180,7 +187,7 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
             lw, lwu = landmark_targets(n, lm_ids, lm_pts, beta)
             w, wu = w + lw, wu + lwu
             if ears is not None:
-                ew, ewu = landmark_targets(n, ears[0], ears[1], beta * config.ear_weight)
+                ew, ewu = landmark_targets(n, ears[0], ears[1], beta * config.ear_weight * ears[2])
                 w, wu = w + ew, wu + ewu
             w, wu = w + edge_w, wu + edge_wu
             targets = wu / np.maximum(w, 1e-300)[:, None]

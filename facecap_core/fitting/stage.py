@@ -15,6 +15,7 @@ import numpy as np
 
 from facecap_core.camera import CAMERAS_JSON, read_cameras_json
 from facecap_core.config import FittingConfig
+from facecap_core.errors import InputError
 from facecap_core.fitting.constraints import Keyframe
 from facecap_core.fitting.run import FIT_JSON, fit_and_write
 from facecap_core.frames import load_frame
@@ -23,8 +24,9 @@ from facecap_core.meshio import load_landmarks
 from facecap_core.template import Template
 
 
-def read_ear_points(path: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(vertex ids, points)`` from an ``ears3d.json``, or None if it holds none."""
+def read_ear_points(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``(vertex ids, points, weights)`` from an ``ears3d.json`` (weights 1 where it has
+    none), or None if it holds none."""
     path = Path(path)
     if not path.is_file():
         return None
@@ -32,7 +34,10 @@ def read_ear_points(path: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
     ids = np.asarray(doc.get("vertex_ids", []), np.int64)
     if len(ids) == 0:
         return None
-    return ids, np.asarray(doc["points"], float).reshape(-1, 3)
+    weights = np.asarray(doc.get("weights") or np.ones(len(ids)), float)
+    if weights.shape != ids.shape:
+        raise InputError(f"{path}: {len(weights)} weights for {len(ids)} ear points")
+    return ids, np.asarray(doc["points"], float).reshape(-1, 3), weights
 
 
 def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str | Path,

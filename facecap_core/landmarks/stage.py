@@ -18,7 +18,9 @@
 5. **Ears**, when :mod:`facecap_core.landmarks.ears` and its model are installed: each
    profile-side keyframe (``ear_min_yaw_deg`` ≤ |yaw| ≤ ``ear_max_yaw_deg``) looks for the
    ear that faces its camera (+yaw: the subject's left), and each ear's contour points are
-   triangulated over the keyframes that found it.
+   triangulated over the keyframes that found it. A side whose points fail the checks of
+   :mod:`.ear_check` (too few points, views that disagree, an ear where no ear can be
+   relative to the face, an ear-to-ear width no head has) is dropped with its reason.
 6. **Irises**, when ``mediapipe`` is installed (:mod:`.iris`): each detected keyframe's pupil
    centres and horizontal iris diameters (``landmarks2d.json``, per keyframe); over the gated
    keyframes within ``iris_max_yaw_deg`` of frontal, the pupils triangulated and the iris
@@ -50,6 +52,7 @@ from facecap_core.landmarks.convention import (
     load_offsets,
     robust_head_frame,
 )
+from facecap_core.landmarks.ear_check import check_ears
 from facecap_core.landmarks.triangulate import Triangulation, box_size, triangulate
 from facecap_core.template import INNER_LANDMARKS
 
@@ -241,8 +244,12 @@ def _detect_ears(video, cams: CameraSet, records: list[dict], ears, config: Land
 
 def triangulate_ears(found: dict[str, list], cams: CameraSet, vertex_ids: dict[str, np.ndarray],
                      config: LandmarkConfig) -> dict:
-    """Triangulate each ear's contour points; returns the ears3d.json document."""
-    ids, points, sides, views = [], [], [], {}
+    """Triangulate each ear's contour points; returns the ears3d.json document (before
+    :func:`~facecap_core.landmarks.ear_check.check_ears`): per point its ``sigma``, the
+    standard deviation of its least certain direction (camera units) for the reprojection
+    error its views leave, and per side the ``observations`` and ``inliers`` counted."""
+    ids, points, sides, sigmas, views = [], [], [], [], {}
+    observations, inliers = {}, {}
     for side, obs in found.items():
         views[side] = len(obs)
         if len(obs) < config.ear_min_views:
@@ -254,11 +261,19 @@ def triangulate_ears(found: dict[str, list], cams: CameraSet, vertex_ids: dict[s
                           config.ear_outlier_threshold * diag, config.ear_huber * diag, 2,
                           config.min_parallax_deg)
         ok = np.all(np.isfinite(tri.points), axis=1)
+        observations[side] = int(np.all(np.isfinite(uv), axis=-1).sum())
+        inliers[side] = int(tri.inliers.sum())
+        # The residual's unbiased estimate of the image noise (3 unknowns per point).
+        n = tri.inliers.sum(0)
+        sq = np.where(tri.inliers, np.nan_to_num(tri.errors) ** 2, 0.0).sum(0)
+        noise_px = np.sqrt(sq / np.maximum(2 * n - 3, 1))
         ids += np.asarray(vertex_ids[side])[ok].astype(int).tolist()
         points += tri.points[ok].tolist()
         sides += [side] * int(ok.sum())
+        sigmas += (tri.spread(1.0) * noise_px)[ok].tolist()
     return {"template": EAR_TEMPLATE, "units": cams.units, "vertex_ids": ids,
-            "points": points, "sides": sides, "views": views}
+            "points": points, "sides": sides, "sigma": sigmas, "views": views,
+            "observations": observations, "inliers": inliers}
 
 
 def yaw_coverage(records: list[dict]) -> dict:
@@ -356,7 +371,11 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
     ears = _ear_module()
     if ears is not None:
         found = _detect_ears(video, cams, records, ears, config)
-        ears_doc = triangulate_ears(found, cams, ears.EAR_VERTEX_IDS, config)
+        ears_doc = check_ears(triangulate_ears(found, cams, ears.EAR_VERTEX_IDS, config),
+                              landmarks)
+        for side, c in ears_doc["checks"].items():
+            log.info("%s ear: %s", side, f"{c['points']} points used" if c["used"]
+                     else f"dropped, {c['reason']}")
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,78 @@
+"""Calibration of the ear-point checks (``facecap_core.landmarks.ear_check``).
+
+    python benchmarks/calibrate_ear_check.py [--ict-model PATH] [--seeds 1000 1200]
+
+On ICT Face Model identities that no benchmark evaluates (seeds 1000-1199 by default, every
+mode drawn at 1 sigma as the synthetic subjects are), the exact ear contour (the shipped
+ICT transfer of ``ear_contour.json``) is compared with the template's contour placed on the
+identity's exact 68 landmarks, as the check compares a triangulated contour. Prints the mean
+and spread of the offset per side, the width ratio's spread, and how many heads the shipped
+bounds would drop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from facecap_core.ear_training.contour import load_contour_file  # noqa: E402
+from facecap_core.landmarks import ear_check  # noqa: E402
+from facecap_core.landmarks.ears import MODELS_DIR  # noqa: E402
+from facecap_core.template import (  # noqa: E402
+    Template,
+    ict_identity_vertices,
+    load_ict_model,
+)
+
+DEFAULT_ICT = Path(__file__).resolve().parents[2] / "shared/data/ict_face_model/ict_face_model.npz"
+
+
+def main() -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ict-model", default=str(DEFAULT_ICT))
+    ap.add_argument("--seeds", nargs=2, type=int, default=(1000, 1200))
+    args = ap.parse_args()
+    template = Template.default()
+    contour = load_contour_file(MODELS_DIR / "ear_contour.json")
+    model = load_ict_model(args.ict_model)
+    ids = np.r_[contour["vertex_ids"]["left"], contour["vertex_ids"]["right"]]
+    sides = np.array(["left"] * len(contour["vertex_ids"]["left"])
+                     + ["right"] * len(contour["vertex_ids"]["right"]))
+    offsets, ratios = {"left": [], "right": []}, []
+    for seed in range(*args.seeds):
+        V = ict_identity_vertices(model, np.random.default_rng([seed, 1]).standard_normal(100))
+        points = np.r_[contour["ict"]["left"].on(V), contour["ict"]["right"].on(V)]
+        off, ratio = ear_check.contour_offsets(template, V[model["landmarks68"]], ids, points,
+                                               sides)
+        for side in offsets:
+            offsets[side].append(off[side])
+        ratios.append(ratio)
+    result = {}
+    for side, rows in offsets.items():
+        O = np.array(rows)
+        mean, sd = O.mean(0), O.std(0)
+        z = np.linalg.norm((O - ear_check.EAR_OFFSET_MEAN_MM[side])
+                           / np.hypot(ear_check.EAR_OFFSET_SPREAD_MM[side],
+                                      ear_check.EAR_NOISE_MM), axis=1)
+        result[side] = {"mean_mm": mean.round(2).tolist(), "spread_mm": sd.round(2).tolist(),
+                        "largest_sigmas": round(float(z.max()), 2),
+                        "dropped": int(np.sum(z > ear_check.EAR_OFFSET_BOUND))}
+    W = np.array(ratios)
+    lo, hi = ear_check.EAR_WIDTH_RATIO_BOUNDS
+    result["width_ratio"] = {"mean": round(float(W.mean()), 4), "std": round(float(W.std()), 4),
+                             "min": round(float(W.min()), 4), "max": round(float(W.max()), 4),
+                             "outside_bounds": int(np.sum((W < lo) | (W > hi)))}
+    print(f"{args.seeds[1] - args.seeds[0]} identities (seeds {args.seeds[0]}-"
+          f"{args.seeds[1] - 1})")
+    for key, value in result.items():
+        print(f"  {key}: {value}")
+    return result
+
+
+if __name__ == "__main__":
+    main()
