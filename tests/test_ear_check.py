@@ -84,9 +84,9 @@ def test_views_that_disagree_or_too_few_points_drop_a_side(head):
 
 
 def test_reliability_is_the_inverse_variance_against_a_landmark():
-    w = ear_check.reliability([0.0, ear_check.EAR_RELIABLE_MM, 3 * ear_check.EAR_RELIABLE_MM,
-                               np.nan])
-    np.testing.assert_allclose(w, [1.0, 0.5, 0.1, 0.0])
+    r = ear_check.EAR_RELIABLE_MM
+    w = ear_check.reliability([0.0, 0.5 * r, r, 2 * r, 10 * r, np.nan])
+    np.testing.assert_allclose(w, [1.0, 1.0, 1.0, 0.25, 0.01, 0.0])
 
 
 def test_shipped_bounds_keep_every_calibration_head_of_the_packaged_model(ict_model):
