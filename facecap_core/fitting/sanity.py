@@ -223,22 +223,29 @@ def relax_folds(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.n
 
     steps = snapped = 0
     last = INTERSECTION_ROUNDS if check_intersections else 0
-    for attempt in range(last + 1):
-        for r in range(rounds):
-            bad = _bad_faces(V, moved, faces, edges, max_stretch)
-            if not bad.any():
+    for sweep in range(2):
+        if sweep:
+            # The template's similarity onto the relaxed fit has moved a little, so an edge
+            # relaxed to just under the bound may be just over it now: another sweep.
+            moved = _moved_template(T, V)
+            if not _bad_faces(V, moved, faces, edges, max_stretch).any():
                 break
-            relax(bad, min(r + 1, 12))
+        for attempt in range(last + 1):
+            for r in range(rounds):
+                bad = _bad_faces(V, moved, faces, edges, max_stretch)
+                if not bad.any():
+                    break
+                relax(bad, min(r + 1, 12))
+                steps += 1
+            snapped += snap()
+            if attempt == last:
+                break
+            pairs = new_intersecting_pairs(V, faces, T)
+            if not len(pairs):
+                break
+            bad = np.zeros(len(faces), bool)
+            bad[np.unique(pairs)] = True
+            relax(bad, 2 + 2 * attempt)
             steps += 1
-        snapped += snap()
-        if attempt == last:
-            break
-        pairs = new_intersecting_pairs(V, faces, T)
-        if not len(pairs):
-            break
-        bad = np.zeros(len(faces), bool)
-        bad[np.unique(pairs)] = True
-        relax(bad, 2 + 2 * attempt)
-        steps += 1
     return V, {"relaxed_vertices": int(region.sum()), "relax_steps": steps,
                "snapped_triangles": snapped}
