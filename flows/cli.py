@@ -280,10 +280,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=tools.synth)
 
-    e = sub.add_parser("evaluate", help="score a mesh against a scan (accuracy/completion, mm)")
+    e = sub.add_parser("evaluate", help="score a mesh against a scan (accuracy/completion, mm, "
+                                        "in the face and the ear region)")
     e.add_argument("mesh", help="reconstructed mesh (PLY/OBJ, mm)")
     e.add_argument("--scan", required=True, help="ground-truth scan mesh (mm)")
-    e.add_argument("--scan-landmarks", help="68 3D landmarks of the scan (defines the region)")
+    e.add_argument("--scan-landmarks", help="68 3D landmarks of the scan (define the regions)")
     e.add_argument("--mesh-landmarks", help="68 3D landmarks of the mesh (initial alignment)")
     e.add_argument("--protocol", choices=["similarity", "metric", "both"], default="both")
     e.add_argument("--json", action="store_true", help="print one JSON object")

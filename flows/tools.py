@@ -65,10 +65,16 @@ def evaluate(args) -> int:
         print(json.dumps(records[protocols[0]] if len(protocols) == 1 else records))
         return 0
     rows = [(f"{Path(args.mesh).name} ({p})", [ev.score_json(s)]) for p, s in scores.items()]
+    print("Face region\n")
     print(ev.paper_table(rows))
+    print("\nEar region\n")
+    print(ev.paper_table(rows, region="ears"))
+    print()
     for p, s in scores.items():
         print(f"{p}: scale {s.scale:.4f}, accuracy under 1 mm {s.accuracy.under_1mm:.1%}, "
-              f"completion under 1 mm {s.completion.under_1mm:.1%}")
+              f"completion under 1 mm {s.completion.under_1mm:.1%}; ears: accuracy under 1 mm "
+              f"{s.ears.accuracy.under_1mm:.1%}, completion under 1 mm "
+              f"{s.ears.completion.under_1mm:.1%}")
     return 0
 
 

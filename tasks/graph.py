@@ -238,7 +238,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("fitting", "fitting", "4", ("fusion", "coarse", "frames"), "fitting",
           compute_fitting, (MESH_PLY, MESH_OBJ, MESH_LANDMARKS, FIT_JSON),
           exported=(MESH_PLY, MESH_OBJ, FIT_JSON), figures=_figures("fitting.stage")),
-    Stage("evaluation", "evaluation", "1", ("mesh", "scan"), None, compute_evaluation,
+    Stage("evaluation", "evaluation", "2", ("mesh", "scan"), None, compute_evaluation,
           (EVALUATION_JSON, *(f"heatmap_{p}.png" for p in PROTOCOLS)),
           exported=(EVALUATION_JSON, *(f"heatmap_{p}.png" for p in PROTOCOLS)),
           optional=("scan_landmarks",), figures=_figures("evaluation.stage")),

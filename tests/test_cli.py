@@ -41,6 +41,20 @@ def test_evaluate_json(scan):
     assert set(sim["accuracy"]) == {"mean", "std", "median", "under_1mm", "under_2mm"}
     assert abs(sim["scale"] - 1 / 1.02) < 1e-3 and sim["accuracy"]["mean"] < 0.05
     assert met["scale"] == 1.0 and met["accuracy"]["mean"] > 0.3  # 2 % too big is seen
+    assert set(sim["ears"]) == {"accuracy", "completion"}
+    assert sim["ears"]["accuracy"]["mean"] < 0.05 and met["ears"]["accuracy"]["mean"] > 0.3
+
+
+def test_evaluate_prints_the_face_and_the_ear_table(scan):
+    code, out, err = facecap("evaluate", scan / "big.ply", "--scan", scan / "scan.ply",
+                             "--scan-landmarks", scan / "scan_landmarks.json",
+                             "--mesh-landmarks", scan / "big_landmarks.json")
+    assert code == 0, err
+    face, ears = out.split("\nEar region\n")
+    for table in (face, ears):
+        assert "| Method | Captures | Accuracy mean |" in table
+        assert "| big.ply (similarity) | 1 |" in table and "| big.ply (metric) | 1 |" in table
+    assert "ears: accuracy under 1 mm" in ears
 
 
 def test_evaluate_one_protocol_prints_one_object(scan, tmp_path):

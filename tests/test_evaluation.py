@@ -4,6 +4,7 @@ The ground truth is a smooth synthetic "head": an ellipsoid (75, 100, 90) mm wit
 brows and chin raised on its front (+z), so that alignment has a unique answer, and 68
 landmarks placed on it by casting rays along -z from a frontal layout (iBUG order: 30 nose
 tip, 36/45 outer eye corners at x = -45/+45, 27 nasion and 33 nose base on the midline).
+The ear region is tested on ICT Face Model heads, which have ears.
 """
 
 from __future__ import annotations
@@ -19,22 +20,30 @@ import trimesh
 from pydantic import ValidationError
 
 from facecap_core.camera import rotation_matrix
+from facecap_core.ear_training.contour import SIDES, load_contour_file
 from facecap_core.errors import InputError
 from facecap_core.evaluation import (
     COLORBAR_HEIGHT,
+    EAR_CENTRE_OFFSET,
+    EAR_RADIUS_FACTOR,
     EvaluationConfig,
     align,
     distances,
+    ear_region,
+    ear_spheres,
     error_heatmap,
     evaluate,
     face_region,
+    face_size,
     paper_table,
     region_sphere,
     score,
     score_json,
 )
+from facecap_core.landmarks.ears import CONTOUR_FILE, MODELS_DIR
 from facecap_core.meshio import save_landmarks
 from facecap_core.render import vertex_normals
+from facecap_core.template import Template
 
 
 def _landmark_layout() -> np.ndarray:
@@ -273,10 +282,12 @@ def test_bad_files_are_input_errors(head_files, tmp_path):
 def test_score_json_has_the_reported_keys(head):
     v, f, lm = head
     doc = score_json(score(v, f, v, f, lm, lm, protocol="metric"))
-    assert set(doc) - {"protocol"} == {"accuracy", "completion", "scale"}
-    for side in ("accuracy", "completion"):
-        assert set(doc[side]) == {"mean", "std", "median", "under_1mm", "under_2mm"}
-        assert all(isinstance(x, float) for x in doc[side].values())
+    assert set(doc) - {"protocol"} == {"accuracy", "completion", "scale", "ears"}
+    assert set(doc["ears"]) == {"accuracy", "completion"}
+    for side in (doc["accuracy"], doc["completion"], doc["ears"]["accuracy"],
+                 doc["ears"]["completion"]):
+        assert set(side) == {"mean", "std", "median", "under_1mm", "under_2mm"}
+        assert all(isinstance(x, float) for x in side.values())
     assert doc["scale"] == 1.0
     json.dumps(doc)
 
@@ -339,6 +350,124 @@ def test_paper_table_conventions():
     assert "| Ours | 2 | 1.50 | 0.50 | 1.20 | 3.00 | 1.00 | 2.00 |" in lines
     assert "| Single | 1 | 1.23 | 0.00 | 1.11 | 3.00 | 0.00 | 2.00 |" in lines
     assert "median: mean over captures of the per-capture median" in table
+
+
+def test_paper_table_of_the_ear_region_leaves_out_captures_without_figures():
+    def side(m, md):
+        return {"mean": m, "std": 0.5, "median": md, "under_1mm": 0.5, "under_2mm": 0.8}
+
+    def rec(ears_acc, ears_comp):
+        return {"accuracy": side(9.0, 9.0), "completion": side(9.0, 9.0), "scale": 1.0,
+                "ears": {"accuracy": side(*ears_acc), "completion": side(*ears_comp)}}
+
+    nan = float("nan")
+    without_ears = {"accuracy": side(9.0, 9.0), "completion": side(9.0, 9.0), "scale": 1.0}
+    table = paper_table([("Ours", [rec((1.0, 0.8), (2.0, 1.5)), rec((nan, nan), (4.0, 2.5)),
+                                   without_ears]),
+                         ("Cropped", [rec((nan, nan), (6.0, 5.0))])], region="ears")
+    lines = table.splitlines()
+    # accuracy: the one capture with ear vertices; completion: the two with figures
+    assert "| Ours | 3 | 1.00 | 0.00 | 0.80 | 3.00 | 1.00 | 2.00 |" in lines
+    assert "| Cropped | 1 | – | – | – | 6.00 | 0.00 | 5.00 |" in lines
+    assert "Ear region" in table and "per-capture median" in table
+    assert "| Ours | 3 | 9.00 |" in paper_table([("Ours", [rec((1, 1), (1, 1))] * 3)])
+    with pytest.raises(InputError, match="region"):
+        paper_table([], region="neck")
+
+
+# --------------------------------------------------------------------------- ear region
+
+
+def ict_head(model, seed: int | None) -> Template:
+    """The skin of ``ict:SEED`` (the coefficients ict_subject draws; None: the mean face)."""
+    coefficients = None if seed is None else np.random.default_rng([seed, 1]).standard_normal(100)
+    return Template.from_ict(model, coefficients)
+
+
+@pytest.fixture(scope="module")
+def ict_mean(ict_model) -> Template:
+    return ict_head(ict_model, None)
+
+
+def test_ear_spheres_sit_at_the_offset_in_the_landmark_frame_and_scale_with_the_head():
+    lm = np.zeros((68, 3))
+    lm[36:42], lm[42:48] = [-45.0, 30, 0], [45.0, 30, 0]  # eye centres: x is the subject's left
+    lm[27], lm[33], lm[8] = [0.0, 35, 0], [0.0, -15, 0], [0.0, -80, 0]  # y up
+    lm[16], lm[0] = [70.0, 0, -10], [-70.0, 0, -10]
+    size = face_size(lm)
+    assert size == pytest.approx(70.0)
+    centres, radius = ear_spheres(lm)
+    out, up, forwards = EAR_CENTRE_OFFSET * size
+    np.testing.assert_allclose(centres, [[70.0 + out, up, -10 + forwards],
+                                         [-70.0 - out, up, -10 + forwards]], atol=1e-12)
+    assert radius == pytest.approx(EAR_RADIUS_FACTOR * size)
+    assert 50.0 < radius < 60.0  # about 55 mm on an adult face
+    # A rotated, moved and 1.3 times larger head carries its spheres along.
+    T, _, _, _ = similarity(3, max_deg=60.0, scales=(1.3, 1.3))
+    moved_centres, moved_radius = ear_spheres(T(lm))
+    np.testing.assert_allclose(moved_centres, T(centres), atol=1e-9)
+    assert moved_radius == pytest.approx(1.3 * radius)
+    outwards = np.array([[1.0, 0, 0], [-1.0, 0, 0]])
+    pts = np.concatenate([centres + 0.99 * radius * outwards, centres + 1.01 * radius * outwards])
+    assert ear_region(pts, lm).tolist() == [True, True, False, False]
+    assert ear_region(T(pts), T(lm)).tolist() == [True, True, False, False]
+
+
+@pytest.mark.parametrize("seed", [None, 1200, 1201, 1202])  # not calibration, not benchmark heads
+def test_ear_region_holds_the_ears_of_ict_heads_and_misses_the_face(ict_model, seed):
+    head = ict_head(ict_model, seed)
+    v, lm = head.vertices, head.landmark_points
+    contour = load_contour_file(MODELS_DIR / CONTOUR_FILE)["ict"]
+    centres, radius = ear_spheres(lm)
+    lateral = np.sign(v[:, 0] - (lm[0, 0] + lm[16, 0]) / 2)  # the ICT head looks along +z
+    for side, centre, outwards in zip(SIDES, centres, (1, -1)):
+        ear = np.concatenate([contour[side].on(v),  # the outer rim, helix to lobe
+                              v[head.regions["ears"] & (lateral == outwards)]])
+        assert len(ear) > 300
+        # Each ear lies in its own sphere with room to spare, and outside the face sphere.
+        assert np.linalg.norm(ear - centre, axis=1).max() < radius - 5.0
+        assert ear_region(ear, lm).all() and not face_region(ear, lm).any()
+    in_ears, in_face = ear_region(v, lm), face_region(v, lm)
+    assert not (in_ears & in_face).any()  # disjoint regions
+    assert 1500 < in_ears.sum() < 3500 and in_face.sum() > 4000
+
+
+@pytest.mark.parametrize("protocol", ["similarity", "metric"])
+def test_error_on_the_ears_shows_in_the_ear_region_only(ict_mean, protocol):
+    """The scan's ears pushed 1 mm out along their normals: 1 mm in the ear region, 0 in the
+    face sphere, and an alignment that the ears did not move."""
+    v, f, lm = ict_mean.vertices, ict_mean.faces, ict_mean.landmark_points
+    ears = ict_mean.regions["ears"]
+    mesh = v + 1.0 * ears[:, None] * vertex_normals(v, f)
+    sc = score(mesh, f, v, f, lm, lm, protocol=protocol)
+    np.testing.assert_allclose(sc.matrix, np.eye(4), atol=1e-6)
+    for side in (sc.accuracy, sc.completion):
+        assert side.mean < 1e-6 and side.count == face_region(v, lm).sum()
+    in_ears = ear_region(v, lm)
+    for side, per_vertex in ((sc.ears.accuracy, sc.ears.accuracy_per_vertex),
+                             (sc.ears.completion, sc.ears.completion_per_vertex)):
+        assert side.count == in_ears.sum()
+        assert np.isnan(per_vertex[~in_ears]).all()
+        # A pushed vertex is at most 1 mm from the other surface, and about 1 mm off
+        # (less only in the ear's folds); the rest of the region is untouched.
+        assert per_vertex[ears].max() < 1.0 + 1e-6 and np.median(per_vertex[ears]) > 0.95
+        assert per_vertex[in_ears & ~ears].max() < 1e-6
+        assert side.mean == pytest.approx(np.nanmean(per_vertex))
+    assert 0.3 < sc.ears.accuracy.mean < 0.5  # 905 of 2,208 region vertices pushed
+
+
+def test_a_mesh_without_ears_scores_nan_accuracy_and_poor_completion_there(ict_mean):
+    v, f, lm = ict_mean.vertices, ict_mean.faces, ict_mean.landmark_points
+    cv, cf = crop(v, f, face_region(v, lm, 1.2))
+    sc = score(cv, cf, v, f, lm, lm, protocol="metric")
+    assert sc.accuracy.mean < 1e-3
+    assert sc.ears.accuracy.count == 0 and math.isnan(sc.ears.accuracy.mean)
+    assert np.isnan(sc.ears.accuracy_per_vertex).all()
+    assert sc.ears.completion.count == ear_region(v, lm).sum() and sc.ears.completion.mean > 20.0
+    doc = score_json(sc)
+    assert math.isnan(doc["ears"]["accuracy"]["mean"])
+    line = paper_table([("cropped", [doc])], region="ears").splitlines()[2]
+    assert line.startswith("| cropped | 1 | – | – | – | ")
 
 
 def test_config_is_validated_and_documented():

@@ -17,13 +17,13 @@ from facecap_core.evaluation.alignment import (
     Surface,
     align_to_surface,
 )
-from facecap_core.evaluation.region import check_landmarks, region_sphere
+from facecap_core.evaluation.region import check_landmarks, ear_region, face_region
 from facecap_core.meshio import load_landmarks, load_mesh
 
 
 @dataclass
 class Stats:
-    """Summary of one side's distances (mm) inside the face region."""
+    """Summary of one side's distances (mm) inside a region."""
 
     mean: float
     std: float
@@ -49,12 +49,28 @@ class Stats:
 
 
 @dataclass
+class RegionScore:
+    """Accuracy and completion inside one region; the per-vertex distances (mm) are nan
+    outside it (one per mesh vertex, one per scan vertex)."""
+
+    accuracy: Stats
+    completion: Stats
+    accuracy_per_vertex: np.ndarray = field(repr=False)
+    completion_per_vertex: np.ndarray = field(repr=False)
+
+    def to_dict(self) -> dict:
+        return {"accuracy": self.accuracy.to_dict(), "completion": self.completion.to_dict()}
+
+
+@dataclass
 class Score:
     """Result of :func:`score` for one protocol.
 
-    ``accuracy_per_vertex`` has one entry per mesh vertex and ``completion_per_vertex`` one
-    per scan vertex: the distance in mm, nan outside the face region — ready for
-    :func:`error_heatmap` (accuracy on the *aligned* mesh: ``alignment.apply(vertices)``).
+    ``accuracy`` and ``completion`` are the face sphere's, ``ears`` the ear region's (after
+    the same alignment). ``accuracy_per_vertex`` has one entry per mesh vertex and
+    ``completion_per_vertex`` one per scan vertex: the distance in mm, nan outside the face
+    region — ready for :func:`error_heatmap` (accuracy on the *aligned* mesh:
+    ``alignment.apply(vertices)``).
     """
 
     protocol: str
@@ -64,6 +80,7 @@ class Score:
     alignment: Alignment
     accuracy_per_vertex: np.ndarray = field(repr=False)
     completion_per_vertex: np.ndarray = field(repr=False)
+    ears: RegionScore
 
     @property
     def matrix(self) -> np.ndarray:
@@ -73,9 +90,9 @@ class Score:
     def to_dict(self) -> dict:
         """JSON-ready summary (no per-vertex arrays)."""
         return {"protocol": self.protocol, "accuracy": self.accuracy.to_dict(),
-                "completion": self.completion.to_dict(), "scale": self.scale,
-                "matrix": self.matrix.tolist(), "icp_iterations": self.alignment.iterations,
-                "icp_rms": self.alignment.rms}
+                "completion": self.completion.to_dict(), "ears": self.ears.to_dict(),
+                "scale": self.scale, "matrix": self.matrix.tolist(),
+                "icp_iterations": self.alignment.iterations, "icp_rms": self.alignment.rms}
 
 
 def score(mesh_vertices: np.ndarray, mesh_faces: np.ndarray, scan_vertices: np.ndarray,
@@ -85,7 +102,8 @@ def score(mesh_vertices: np.ndarray, mesh_faces: np.ndarray, scan_vertices: np.n
     """Align the mesh to the scan under ``protocol`` and measure accuracy and completion.
 
     ``"similarity"`` fits a scale, ``"metric"`` does not (the score's ``scale`` is then 1).
-    Distances are in the scan's units (mm), inside the scan's face sphere.
+    Distances are in the scan's units (mm), inside the scan's face sphere and, for
+    ``Score.ears``, its ear region; the alignment uses the face sphere only.
     """
     config = config or EvaluationConfig()
     if protocol not in PROTOCOLS:
@@ -94,19 +112,26 @@ def score(mesh_vertices: np.ndarray, mesh_faces: np.ndarray, scan_vertices: np.n
     scan = Surface(scan_vertices, scan_faces)
     al = align_to_surface(mesh_vertices, scan, scan_lm, mesh_landmarks, protocol == "similarity", config)
 
-    centre, radius = region_sphere(scan_lm, config.radius_factor)
     moved = al.apply(mesh_vertices)
-    acc = np.full(len(moved), np.nan)
-    in_mesh = np.linalg.norm(moved - centre, axis=1) <= radius
-    acc[in_mesh] = scan.closest(moved[in_mesh])[1]
-
     sv = np.asarray(scan_vertices, float)
-    comp = np.full(len(sv), np.nan)
-    in_scan = np.linalg.norm(sv - centre, axis=1) <= radius
-    comp[in_scan] = Surface(moved, mesh_faces).closest(sv[in_scan])[1]
+    mesh_surface = Surface(moved, mesh_faces)
 
-    return Score(protocol=protocol, accuracy=Stats.of(acc), completion=Stats.of(comp),
-                 scale=al.s, alignment=al, accuracy_per_vertex=acc, completion_per_vertex=comp)
+    def region_score(in_region) -> RegionScore:
+        """Distances of the mesh and scan vertices that ``in_region`` keeps (both regions
+        are cut on the scan's landmarks, so they are the same place on mesh and scan)."""
+        acc = np.full(len(moved), np.nan)
+        in_mesh = in_region(moved)
+        acc[in_mesh] = scan.closest(moved[in_mesh])[1]
+        comp = np.full(len(sv), np.nan)
+        in_scan = in_region(sv)
+        comp[in_scan] = mesh_surface.closest(sv[in_scan])[1]
+        return RegionScore(Stats.of(acc), Stats.of(comp), acc, comp)
+
+    face = region_score(lambda v: face_region(v, scan_lm, config.radius_factor))
+    ears = region_score(lambda v: ear_region(v, scan_lm, config.radius_factor))
+    return Score(protocol=protocol, accuracy=face.accuracy, completion=face.completion,
+                 scale=al.s, alignment=al, accuracy_per_vertex=face.accuracy_per_vertex,
+                 completion_per_vertex=face.completion_per_vertex, ears=ears)
 
 
 _JSON_STATS = ("mean", "std", "median", "under_1mm", "under_2mm")
@@ -116,13 +141,17 @@ def score_json(score: Score) -> dict:
     """The per-capture record used by reports and :func:`paper_table`.
 
     ``{"protocol", "accuracy": {mean, std, median, under_1mm, under_2mm}, "completion": {...},
-    "scale"}``: distances in mm, fractions in [0, 1], ``scale`` the fitted mesh→scan scale.
+    "scale", "ears": {"accuracy": {...}, "completion": {...}}}``: distances in mm, fractions in
+    [0, 1], ``scale`` the fitted mesh→scan scale; ``accuracy`` and ``completion`` are the face
+    sphere's, ``ears`` holds the ear region's (nan where a region holds no vertex).
     """
     def side(st: Stats) -> dict:
         return {k: float(getattr(st, k)) for k in _JSON_STATS}
 
     return {"protocol": score.protocol, "accuracy": side(score.accuracy),
-            "completion": side(score.completion), "scale": float(score.scale)}
+            "completion": side(score.completion), "scale": float(score.scale),
+            "ears": {"accuracy": side(score.ears.accuracy),
+                     "completion": side(score.ears.completion)}}
 
 
 def evaluate(mesh_path: str | Path, scan_path: str | Path,
@@ -160,28 +189,43 @@ def evaluate(mesh_path: str | Path, scan_path: str | Path,
             for p in dict.fromkeys(protocols)}
 
 
-def paper_table(rows: Sequence[tuple[str, Sequence[dict]]]) -> str:
-    """A Markdown table in the layout of Agrawal et al. 2020, Table 1.
+REGIONS = ("face", "ears")
+"""The regions :func:`paper_table` can tabulate: the face sphere and the ear region."""
 
-    ``rows`` are ``(method name, [per-capture record from score_json, ...])``. Per method and
-    side, *mean* is the mean over captures of the per-capture mean, *std* the (population)
+
+def paper_table(rows: Sequence[tuple[str, Sequence[dict]]], region: str = "face") -> str:
+    """A Markdown table in the layout of Agrawal et al. 2020, Table 1, for one region.
+
+    ``rows`` are ``(method name, [per-capture record from score_json, ...])``; ``region`` is
+    ``"face"`` (the face sphere) or ``"ears"`` (the ear region, ``record["ears"]``). Per method
+    and side, *mean* is the mean over captures of the per-capture mean, *std* the (population)
     standard deviation over captures of the per-capture mean (0 for one capture), and *median*
     the mean over captures of the per-capture median — the paper averages per-subject figures
-    over subjects. Values in mm with two decimals; the convention is repeated as a footnote.
+    over subjects. A capture whose region holds no vertex on a side (nan; or a record from
+    before the ear region) is left out of that side's figures, "–" when none is left. Values
+    in mm with two decimals; the convention is repeated as a footnote.
     """
+    if region not in REGIONS:
+        raise InputError(f"unknown evaluation region {region!r}; use one of {', '.join(REGIONS)}")
+    nan_side = {"mean": float("nan"), "median": float("nan")}
     lines = ["| Method | Captures | Accuracy mean | std | median | Completion mean | std | median |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for name, records in rows:
         cells = [str(name).replace("|", "\\|"), str(len(records))]
+        figures = [r if region == "face" else r.get("ears", {}) for r in records]
         for side in ("accuracy", "completion"):
-            means = np.array([r[side]["mean"] for r in records], float)
-            medians = np.array([r[side]["median"] for r in records], float)
-            if len(records) == 0:
+            means = np.array([f.get(side, nan_side)["mean"] for f in figures], float)
+            medians = np.array([f.get(side, nan_side)["median"] for f in figures], float)
+            kept = np.isfinite(means) & np.isfinite(medians)
+            if not kept.any():
                 cells += ["–"] * 3
             else:
+                means, medians = means[kept], medians[kept]
                 cells += [f"{means.mean():.2f}", f"{means.std():.2f}", f"{medians.mean():.2f}"]
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "Distances in mm. Mean: mean over captures of the per-capture mean; std: "
-              "standard deviation over captures of the per-capture mean (0 for one capture); "
-              "median: mean over captures of the per-capture median."]
+    where = ("" if region == "face" else
+             "Ear region: inside either ear sphere, outside the face sphere. ")
+    lines += ["", f"{where}Distances in mm. Mean: mean over captures of the per-capture mean; "
+              "std: standard deviation over captures of the per-capture mean (0 for one "
+              "capture); median: mean over captures of the per-capture median."]
     return "\n".join(lines)
