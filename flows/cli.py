@@ -115,8 +115,9 @@ def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
         print(f"  ears       {ears_summary(ears)}")
     evaluation = report.get("figures", {}).get("evaluation")
     if evaluation:
-        rows = [(f"facecap ({p})", [s]) for p, s in evaluation.items()]
-        print(paper_table(list(baseline_rows) + rows))
+        rows = list(baseline_rows) + [(f"facecap ({p})", [s]) for p, s in evaluation.items()]
+        print(f"Face region\n\n{paper_table(rows)}\n\nEar region\n\n"
+              f"{paper_table(rows, region='ears')}")
     for name, what in (("mesh.ply", "mesh"), ("report.json", "report"),
                        ("preview.png", "preview")):
         if (out / name).is_file():

@@ -16,7 +16,7 @@ A side's points are kept only when
 
 The offsets' mean and spread and the width ratio's bounds were calibrated on 200 ICT Face
 Model identities (seeds 1000-1199, each drawn with every mode at 1 sigma), none of which a
-benchmark evaluates (``python benchmarks/calibrate_ear_check.py`` prints them again). The
+benchmark evaluates (``python tools/calibrate_ear_check.py`` prints them again). The
 spread is widened by ``EAR_NOISE_MM``, the error of a contour centroid triangulated from
 three or more views of a predictor that errs by about 0.05 of the ear box's diagonal (4 mm
 on a 60 mm ear, a third of it averaged out): all 200 calibration heads pass with it (largest

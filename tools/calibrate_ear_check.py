@@ -1,6 +1,6 @@
 """Calibration of the ear-point checks (``facecap_core.landmarks.ear_check``).
 
-    python benchmarks/calibrate_ear_check.py [--ict-model PATH] [--seeds 1000 1200]
+    python tools/calibrate_ear_check.py [--ict-model PATH] [--seeds 1000 1200]
 
 On ICT Face Model identities that no benchmark evaluates (seeds 1000-1199 by default, every
 mode drawn at 1 sigma as the synthetic subjects are), the exact ear contour (the shipped
