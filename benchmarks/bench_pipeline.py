@@ -1,7 +1,7 @@
 """End to end through the service: video in, metric mesh out, scored against ground truth.
 
     python benchmarks/bench_pipeline.py [--subjects ict:0 ict:1 james] [--out out/bench_pipeline]
-        [--captures out/captures] [--store DIR] [--speedup-maps 6]
+        [--captures out/captures] [--store DIR] [--speedup-maps 6] [--fps 60] [--seconds 8]
 
 Per subject the 8 s, 60 fps, 1280×720 capture (rendered once under CAPTURES, shared with the
 stage benchmarks) runs through ``reconstruct-capture`` with its ground-truth scan. The Table 1
@@ -32,15 +32,16 @@ ROWS = (("Mean template", None), ("Coarse (landmarks)", None),
 BAR_S, GOAL_S = 600, 300
 
 
-def capture_for(subject: str, captures: Path, ict_model: str | None) -> Path:
+def capture_for(subject: str, captures: Path, ict_model: str | None, fps: int = 60,
+                seconds: float = 8) -> Path:
     from facecap_core.config import SynthConfig
     from facecap_core.synthetic import synthesize
 
-    folder = captures / f"{subject.replace(':', '_')}_1280x720_60fps_8s"
+    folder = captures / f"{subject.replace(':', '_')}_1280x720_{fps}fps_{seconds:g}s"
     if not (folder / "gt" / "render.json").is_file():
         print(f"rendering {subject} into {folder} ...", flush=True)
-        synthesize(SynthConfig(subject=subject, fps=60, duration_s=8, ict_model=ict_model),
-                   folder, progress=False)
+        synthesize(SynthConfig(subject=subject, fps=fps, duration_s=seconds,
+                               ict_model=ict_model), folder, progress=False)
     return folder
 
 
@@ -104,7 +105,8 @@ def depth_speedup(store: str, report: dict, maps: int, scratch: Path) -> dict:
             "speedup": round(serial / parallel, 2)}
 
 
-def run(subjects, out: Path, captures: Path, store: str, ict_model, speedup_maps: int) -> str:
+def run(subjects, out: Path, captures: Path, store: str, ict_model, speedup_maps: int,
+        fps: int = 60, seconds: float = 8) -> str:
     from facecap_core.baselines import mean_template
     from facecap_core.evaluation import paper_table, score_json
     from facecap_core.template import Template
@@ -113,7 +115,7 @@ def run(subjects, out: Path, captures: Path, store: str, ict_model, speedup_maps
     rows = {name: {"similarity": [], "metric": []} for name, _ in ROWS}
     lines, speed = [], None
     for subject in subjects:
-        folder = capture_for(subject, captures, ict_model)
+        folder = capture_for(subject, captures, ict_model, fps, seconds)
         gt = folder / "gt"
         result = out / subject.replace(":", "_")
         t0 = time.perf_counter()
@@ -149,6 +151,20 @@ def run(subjects, out: Path, captures: Path, store: str, ict_model, speedup_maps
                 rep = report
             for protocol, s in rep["figures"]["evaluation"].items():
                 rows[name][protocol].append(s)
+            fit = json.loads((result / (name if overrides else "full") / "fit.json").read_text())
+            sanity = fit["sanity"]
+            lines.append(f"  - {name}: mesh sanity {sanity['flipped']} flipped, "
+                         f"{sanity['stretched_edges']} stretched, "
+                         f"{sanity['self_intersecting_pairs']} intersecting"
+                         + (f" (before relaxing: {fit['relaxed']['before']['flipped']} / "
+                            f"{fit['relaxed']['before']['stretched_edges']} / "
+                            f"{fit['relaxed']['before']['self_intersecting_pairs']})"
+                            if fit.get("relaxed") else ""))
+        ears = report.get("figures", {}).get("ears")
+        if ears:
+            from facecap_core.coarse import ears_summary
+
+            lines.append(f"  - ear points: {ears_summary(ears)}")
         if speed is None and speedup_maps:
             speed = depth_speedup(store, report, speedup_maps, out / "speedup")
     # The ear region beside the face sphere: "w/o ear landmarks" against "full" there is what
@@ -174,13 +190,15 @@ def main() -> Path:
     ap.add_argument("--store", help="artifact store (default OUT/store)")
     ap.add_argument("--ict-model", default=os.environ.get("FACECAP_ICT_MODEL"))
     ap.add_argument("--speedup-maps", type=int, default=6)
+    ap.add_argument("--fps", type=int, default=60, help="frame rate of the rendered captures")
+    ap.add_argument("--seconds", type=float, default=8, help="length of the rendered captures")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
     text = run(args.subjects, out, Path(args.captures), args.store or str(out / "store"),
-               args.ict_model, args.speedup_maps)
+               args.ict_model, args.speedup_maps, args.fps, args.seconds)
     print(text)
     (out / "report.md").write_text(text + "\n")
     return out / "report.md"
