@@ -728,12 +728,6 @@ class EarTrainingConfig(StrictModel):
     """A view is kept when at least this fraction of its contour points is visible."""
     hair_probability: float = Field(0.6, ge=0, le=1)
     """Fraction of views with hair painted around the ears (random hairline, colour)."""
-    ear_scale: tuple[float, float] = (0.95, 1.3)
-    """Range of a per-ear scale of the ear in the head's side plane (1, 1: the ICT ears as
-    they are). ICT ears are about 50 mm from the helix to the lobe; adults' are 55-70 mm."""
-    lobe_stretch: tuple[float, float] = (0.0, 0.4)
-    """Range of the extra stretch, downwards, of the part of each ear below its centre (0: as
-    it is): the ICT ears' lobes are short and attached, many real lobes hang lower."""
     rooms: int = Field(6, ge=1, le=100)
     """Random textured rooms (backgrounds) shared among the identities."""
     box_aspect: float = Field(0.75, gt=0.2, le=2)
@@ -770,8 +764,7 @@ class EarTrainingConfig(StrictModel):
 
     @model_validator(mode="after")
     def _check_ranges(self):
-        for name in ("yaw_deg", "elevation_deg", "distance_mm", "ear_height_px", "ear_scale",
-                     "lobe_stretch"):
+        for name in ("yaw_deg", "elevation_deg", "distance_mm", "ear_height_px"):
             lo, hi = getattr(self, name)
             if lo > hi:
                 raise ValueError(f"{name}: lower bound {lo} exceeds upper bound {hi}")

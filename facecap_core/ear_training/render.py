@@ -244,43 +244,13 @@ class EarRenderer:
         return img
 
 
-def vary_ears(vertices: np.ndarray, contours: dict[str, np.ndarray],
-              scale: dict[str, float], lobe: dict[str, float]) -> np.ndarray:
-    """Head-frame ``vertices`` (mm) with each ear scaled by ``scale[side]`` in the side plane
-    (y up, z forwards) about its contour's centre, and the part below the centre stretched
-    down by a further ``lobe[side]``. The change fades out smoothly from 0.55 to 1.0 of the
-    ear's height around its centre, so the ear stays attached to the skin around it."""
-    out = np.array(vertices, float)
-    for side, contour in contours.items():
-        centre = contour.mean(0)
-        height = np.ptp(contour[:, 1])
-        d = vertices - centre
-        fade = 1.0 - smoothstep(np.linalg.norm(d, axis=1) / height, 0.55, 1.0)
-        moved = d.copy()
-        moved[:, 1:] *= scale[side]
-        below = np.minimum(d[:, 1], 0.0)
-        moved[:, 1] += lobe[side] * scale[side] * below
-        # One side's change only where that ear is (the other ear is far beyond the fade).
-        out += fade[:, None] * (moved - d)
-    return out
-
-
 def ict_ear_renderer(ict_model: str | Path, seed: int, transfer: dict[str, SurfacePoints],
-                     sigma: float = 1.0, room=None, ear_scale=(1.0, 1.0),
-                     lobe_stretch=(0.0, 0.0), rng: np.random.Generator | None = None
-                     ) -> EarRenderer:
-    """An :class:`EarRenderer` for the ICT identity ``seed`` (contours from ``transfer``),
-    each ear's shape varied (:func:`vary_ears`) by a scale and a lobe stretch drawn with
-    ``rng`` from the given ranges (none without ``rng``)."""
+                     sigma: float = 1.0, room=None) -> EarRenderer:
+    """An :class:`EarRenderer` for the ICT identity ``seed`` (contours from ``transfer``)."""
     from facecap_core.synthetic import ict_subject
 
     subject = ict_subject(ict_model, seed, sigma)
     contours = {side: sp.on(subject.vertices) for side, sp in transfer.items()}
-    if rng is not None and (ear_scale != (1.0, 1.0) or lobe_stretch != (0.0, 0.0)):
-        subject.vertices = vary_ears(subject.vertices, contours,
-                                     {side: rng.uniform(*ear_scale) for side in contours},
-                                     {side: rng.uniform(*lobe_stretch) for side in contours})
-        contours = {side: sp.on(subject.vertices) for side, sp in transfer.items()}
     return EarRenderer(subject, contours, room)
 
 
@@ -319,9 +289,7 @@ def render_dataset(config: EarTrainingConfig, ict_model: str | Path,
     for n, seed in enumerate(tqdm(seeds, desc="render ears", unit="head", disable=not progress)):
         rng = np.random.default_rng([config.seed, seed])
         renderer = ict_ear_renderer(ict_model, seed, transfer, config.identity_sigma,
-                                    rooms[n % len(rooms)], tuple(config.ear_scale),
-                                    tuple(config.lobe_stretch),
-                                    np.random.default_rng([config.seed, seed, 5]))
+                                    rooms[n % len(rooms)])
         kept = 0
         for _ in range(config.views_per_identity * 10):
             if kept == config.views_per_identity:
