@@ -275,6 +275,7 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
         # Ear vertex ids belong to one template's topology.
         ear_ids, ear_pts, ear_sides, ears_ignored = (np.zeros(0, np.int64), np.zeros((0, 3)),
                                                      np.zeros(0, str), True)
+        ear_doc = {**ear_doc, "sigma": []}
     if len(ear_ids) and ear_ids.max() >= len(template.vertices):
         raise InputError(f"ears3d.json names vertex {ear_ids.max()} of a "
                          f"{len(template.vertices)}-vertex template")
@@ -284,8 +285,12 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
                              landmarks_doc.get("irises"))
     m = float(scale_doc["metric_scale"])
     L_mm, ears_mm = L * m, ear_pts * m
-    sigma = np.asarray(ear_doc.get("sigma", []), float)
-    ear_w = reliability(sigma * m) if len(sigma) == len(ear_ids) else np.ones(len(ear_ids))
+    # Ear points of a document without uncertainties (written by hand) weigh as landmarks.
+    sigma = np.asarray(ear_doc.get("sigma", np.zeros(len(ear_ids))), float).reshape(-1)
+    if len(sigma) != len(ear_ids):
+        raise InputError(f"{landmarks_dir / EARS_3D} holds {len(sigma)} sigmas for "
+                         f"{len(ear_ids)} ear points: recompute the landmark stage")
+    ear_w = reliability(sigma * m)
     V, fit_doc = coarse_mesh(template, L_mm, ear_ids, ears_mm, config, ear_w)
     L_out = L_mm.copy()
     missing = ~np.all(np.isfinite(L_out), axis=1)

@@ -235,7 +235,7 @@ STAGES: tuple[Stage, ...] = (
           per_keyframe=_reference_keyframes),
     Stage("fusion", "mvs", "1", ("frames", "coarse", "depth"), "mvs.fusion", compute_fusion,
           (CLOUD, FUSION), exported=(CLOUD,)),
-    Stage("fitting", "fitting", "4", ("fusion", "coarse", "frames"), "fitting",
+    Stage("fitting", "fitting", "5", ("fusion", "coarse", "frames"), "fitting",
           compute_fitting, (MESH_PLY, MESH_OBJ, MESH_LANDMARKS, FIT_JSON),
           exported=(MESH_PLY, MESH_OBJ, FIT_JSON), figures=_figures("fitting.stage")),
     Stage("evaluation", "evaluation", "2", ("mesh", "scan"), None, compute_evaluation,

@@ -231,3 +231,42 @@ def test_iris_cue_recovers_the_scale_and_a_wrong_one_is_dropped(template):
     ipd_cue = next(c for c in doc["cues"] if c["name"] == "ipd")
     assert ipd_cue["mm_per_unit"] == pytest.approx(truth, rel=1e-9)
     assert ipd_cue["sigma"] == ipd.pupil_ipd_spread and "pupils" in ipd_cue["how"]
+
+
+def test_coarse_stage_weighs_the_checked_ear_points_and_reports_the_checks(template, subject,
+                                                                          tmp_path):
+    """The landmark stage's checked ears (one side dropped): the kept points weigh by their
+    uncertainty in mm, the checks reach coarse.json and the stage's figures; a document whose
+    uncertainties do not match its points is refused in one line."""
+    from facecap_core.landmarks.ear_check import EAR_RELIABLE_MM, placed_template
+    from facecap_core.landmarks.ears import EAR_VERTEX_IDS
+
+    V, F, Lmm = subject
+    mm_per_unit = 40.0
+    L = Lmm / mm_per_unit
+    L[:17] = np.nan
+    cams = _write_inputs(tmp_path / "lm", L, mm_per_unit)
+    ids = EAR_VERTEX_IDS["right"]
+    points = placed_template(template, L)[2][ids]
+    sigma_mm = np.r_[np.full(6, 0.5), np.full(6, 2.0)] * EAR_RELIABLE_MM
+    checks = {"left": {"points": 0, "used": False, "reason": "found in 2 keyframes (needs 3)"},
+              "right": {"points": 12, "used": True}}
+    doc = {"template": template.name, "units": "arbitrary", "vertex_ids": ids.tolist(),
+           "points": points.tolist(), "sides": ["right"] * 12,
+           "sigma": (sigma_mm / mm_per_unit).tolist(), "checks": checks}
+    (tmp_path / "lm" / "ears3d.json").write_text(json.dumps(doc))
+    coarse.main(tmp_path / "lm", cams, tmp_path / "coarse", template)
+    out = json.loads((tmp_path / "coarse" / "ears3d.json").read_text())
+    m = json.loads((tmp_path / "coarse" / "coarse.json").read_text())["scale"]["metric_scale"]
+    expected = np.minimum(1.0, (EAR_RELIABLE_MM / (sigma_mm * m / mm_per_unit)) ** 2)
+    np.testing.assert_allclose(out["weights"], expected, atol=1e-4)
+    assert out["weights"][0] == 1.0 and out["weights"][-1] < 0.5
+    assert out["checks"] == checks
+    figures = coarse.figures(tmp_path / "coarse")
+    assert figures["ears"] == checks
+    assert coarse.ears_summary(checks) == ("left dropped: found in 2 keyframes (needs 3); "
+                                           "right 12 points")
+    doc["sigma"] = doc["sigma"][:5]
+    (tmp_path / "lm" / "ears3d.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="5 sigmas for 12 ear points"):
+        coarse.main(tmp_path / "lm", cams, tmp_path / "coarse2", template)

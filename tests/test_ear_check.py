@@ -89,14 +89,14 @@ def test_reliability_is_the_inverse_variance_against_a_landmark():
     np.testing.assert_allclose(w, [1.0, 1.0, 1.0, 0.25, 0.01, 0.0])
 
 
-def test_shipped_bounds_keep_every_calibration_head_of_the_packaged_model(ict_model):
-    """The packaged (trimmed) model's heads are drawn like the calibration's: none is dropped."""
+def test_heads_outside_the_calibration_keep_their_ears(ict_model):
+    """Heads drawn like the calibration's (seeds 1000-1199) but not among them keep both ears."""
     model = load_ict_model(ict_model)
     template = Template.default()
     contour = load_contour_file(MODELS_DIR / "ear_contour.json")
     ids = np.r_[contour["vertex_ids"]["left"], contour["vertex_ids"]["right"]]
     sides = np.array(["left"] * 12 + ["right"] * 12)
-    for seed in range(1000, 1010):
+    for seed in range(1200, 1210):
         V = ict_identity_vertices(model, np.random.default_rng([seed, 1]).standard_normal(100))
         points = np.r_[contour["ict"]["left"].on(V), contour["ict"]["right"].on(V)]
         doc = ear_check.check_ears({"vertex_ids": ids.tolist(), "sides": sides.tolist(),
@@ -105,3 +105,32 @@ def test_shipped_bounds_keep_every_calibration_head_of_the_packaged_model(ict_mo
                                     "inliers": {"left": 12, "right": 12}},
                                    V[model["landmarks68"]], template)
         assert all(c["used"] for c in doc["checks"].values()), (seed, doc["checks"])
+
+
+def test_what_cannot_be_judged_is_said(head):
+    """A side found in too few keyframes is reported; a document without the observation
+    counts is not judged on them; too few face landmarks drop the ears with that reason;
+    each kept point keeps its own uncertainty."""
+    doc = _doc(head)
+    keep = np.arange(12, 24)
+    doc.update(vertex_ids=head["ids"][keep].tolist(), sides=["right"] * 12,
+               points=head["points"][keep].tolist(), views={"left": 2, "right": 9},
+               min_views=3, observations={"right": 60}, sigma=np.arange(12.0).tolist())
+    out = ear_check.check_ears(doc, head["landmarks"])
+    assert out["checks"]["left"] == {"points": 0, "used": False,
+                                     "reason": "found in 2 keyframes (needs 3)"}
+    assert out["checks"]["right"]["used"] and out["sigma"] == list(np.arange(12.0))
+    bare = {k: v for k, v in _doc(head).items() if k not in ("observations", "inliers")}
+    out = ear_check.check_ears(bare, head["landmarks"])
+    assert all(c["used"] and "inlier_share" not in c for c in out["checks"].values())
+    few = head["landmarks"].copy()
+    few[20:] = np.nan
+    out = ear_check.check_ears(_doc(head), few)
+    assert out["vertex_ids"] == []
+    assert all("too few face landmarks" in c["reason"] for c in out["checks"].values())
+    # A dropped side takes its uncertainties with it.
+    moved = head["points"].copy()
+    moved[:12] += 40 * head["R"][:, 1] / 80.0
+    out = ear_check.check_ears({**_doc(head, moved), "sigma": np.arange(24.0).tolist()},
+                               head["landmarks"])
+    assert out["sides"] == ["right"] * 12 and out["sigma"] == list(np.arange(12.0, 24.0))

@@ -305,3 +305,32 @@ def test_texture_sampling_of_no_pixel_is_empty():
     image = np.zeros((4, 4, 3), np.uint8)
     assert _bilinear(image, np.zeros((0, 2))).shape == (0, 3)
     assert _bilinear(image + 7, np.array([[1.5, 2.0]])).tolist() == [[7.0, 7.0, 7.0]]
+
+
+def test_ear_points_off_the_cloud_are_not_fitted():
+    """Ear points on the reconstructed surface are fitted; a side 15 mm out beside the head
+    (ears 20 % too far apart) is left out and reported; where the cloud has nothing near an
+    ear, it cannot judge it and keeps it."""
+    from facecap_core.fitting.run import EAR_OFF_CLOUD_MM, ears_off_the_cloud
+    from facecap_core.landmarks.ears import EAR_VERTEX_IDS
+    from facecap_core.template import head_frame
+
+    template = Template.default()
+    cloud = template.vertices
+    ids = np.r_[EAR_VERTEX_IDS["left"], EAR_VERTEX_IDS["right"]]
+    points = template.vertices[ids].copy()
+    weights = np.ones(len(ids))
+    kept, report = ears_off_the_cloud((ids, points, weights), cloud)
+    assert len(kept[0]) == 24 and all(r["used"] for r in report.values())
+    assert report["left"]["median_cloud_distance_mm"] < 1.0
+    R, _ = head_frame(template.landmark_points)
+    out = points.copy()
+    out[:12] += 15.0 * R[0]  # the subject's left ear, outwards
+    kept, report = ears_off_the_cloud((ids, out, weights), cloud)
+    assert kept[0].tolist() == EAR_VERTEX_IDS["right"].tolist() and len(kept[2]) == 12
+    assert not report["left"]["used"] and report["right"]["used"]
+    assert report["left"]["median_cloud_distance_mm"] > EAR_OFF_CLOUD_MM
+    assert "from the reconstructed surface" in report["left"]["reason"]
+    face_only = cloud[np.abs((cloud - template.landmark_points[30]) @ R[0]) < 50]
+    kept, report = ears_off_the_cloud((ids, out, weights), face_only)
+    assert len(kept[0]) == 24 and report["left"]["cloud_points_near"] < 200

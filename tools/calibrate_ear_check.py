@@ -7,7 +7,9 @@ mode drawn at 1 sigma as the synthetic subjects are), the exact ear contour (the
 ICT transfer of ``ear_contour.json``) is compared with the template's contour placed on the
 identity's exact 68 landmarks, as the check compares a triangulated contour. Prints the mean
 and spread of the offset per side, the width ratio's spread, and how many heads the shipped
-bounds would drop.
+bounds would drop. Then, on as many heads after them (seeds 1200-1399 by default), what the
+shipped check does: how many keep both ears, and how many lose both when the ears are put
+20 % too far apart (the failure of a wrong detection scale).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from facecap_core.landmarks import ear_check  # noqa: E402
 from facecap_core.landmarks.ears import MODELS_DIR  # noqa: E402
 from facecap_core.template import (  # noqa: E402
     Template,
+    head_frame,
     ict_identity_vertices,
     load_ict_model,
 )
@@ -71,6 +74,22 @@ def main() -> dict:
           f"{args.seeds[1] - 1})")
     for key, value in result.items():
         print(f"  {key}: {value}")
+    held_out = range(args.seeds[1], 2 * args.seeds[1] - args.seeds[0])
+    kept = caught = 0
+    for seed in held_out:
+        V = ict_identity_vertices(model, np.random.default_rng([seed, 1]).standard_normal(100))
+        L = V[model["landmarks68"]]
+        points = np.r_[contour["ict"]["left"].on(V), contour["ict"]["right"].on(V)]
+        doc = {"vertex_ids": ids.tolist(), "sides": sides.tolist(), "points": points.tolist()}
+        kept += all(c["used"] for c in ear_check.check_ears(doc, L, template)["checks"].values())
+        R, origin = head_frame(L)
+        wide = (points - origin) @ R.T
+        wide[:, 0] *= 1.2
+        doc["points"] = (wide @ R + origin).tolist()
+        caught += not ear_check.check_ears(doc, L, template)["vertex_ids"]
+    result["held_out"] = {"heads": len(held_out), "both_ears_kept": kept,
+                          "ears_20pct_apart_both_dropped": caught}
+    print(f"held out (seeds {held_out.start}-{held_out.stop - 1}): {result['held_out']}")
     return result
 
 

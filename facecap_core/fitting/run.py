@@ -92,6 +92,45 @@ def _export(mesh: trimesh.Trimesh, kind: str, kwargs: dict) -> bytes:
     return data if isinstance(data, bytes) else data.encode()
 
 
+EAR_OFF_CLOUD_MM = 8.0
+"""A side's ear points whose median distance to the cloud exceeds this are not used: twice
+the error of a triangulated ear point along a profile view (about 4 mm, docs/ears.md), while
+ears 20 % too far apart lie some 15 mm out in the air beside the head."""
+EAR_CLOUD_COVER = 200
+"""Cloud points within 30 mm of an ear's points needed to judge it (a cloud with a hole
+there, hair or a side never seen, says nothing about the ear)."""
+
+
+def ears_off_the_cloud(ear_points, cloud: np.ndarray) -> tuple[tuple | None, dict]:
+    """``ear_points`` (ids, points[, weights]) without the sides (by
+    :data:`~facecap_core.landmarks.ears.EAR_VERTEX_IDS`) that lie off the fused ``cloud``, and
+    per side judged: the median distance (mm), the cloud points near it, ``used``."""
+    from scipy.spatial import cKDTree
+
+    from facecap_core.landmarks.ears import EAR_VERTEX_IDS
+
+    if ear_points is None or not len(ear_points[0]) or len(cloud) < EAR_CLOUD_COVER:
+        return ear_points, {}
+    ids, pts = np.asarray(ear_points[0]), np.asarray(ear_points[1], float)
+    tree = cKDTree(np.asarray(cloud, float))
+    keep, report = np.ones(len(ids), bool), {}
+    for side, side_ids in EAR_VERTEX_IDS.items():
+        mine = np.isin(ids, side_ids)
+        if not mine.any():
+            continue
+        near = len(tree.query_ball_point(pts[mine].mean(0), 30.0))
+        d = float(np.median(tree.query(pts[mine])[0]))
+        used = near < EAR_CLOUD_COVER or d <= EAR_OFF_CLOUD_MM
+        report[side] = {"median_cloud_distance_mm": round(d, 2), "cloud_points_near": near,
+                        "used": used}
+        if not used:
+            keep[mine] = False
+            report[side]["reason"] = (f"its points lie {d:.0f} mm from the reconstructed "
+                                      f"surface (bound {EAR_OFF_CLOUD_MM:g} mm)")
+            log.info("%s ear not fitted: %s", side, report[side]["reason"])
+    return tuple(np.asarray(a)[keep] for a in ear_points), report
+
+
 def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | None = None,
          keyframes: list[Keyframe] | tuple = (), ear_points=None, cloud_normals=None,
          config: FittingConfig | None = None) -> Path:
@@ -107,6 +146,9 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
     if isinstance(landmarks, (str, Path)):
         landmarks = load_landmarks(landmarks)
     template = template or Template.default()
+    ears_report = {}
+    if config.use_cloud and config.use_ear_landmarks:
+        ear_points, ears_report = ears_off_the_cloud(ear_points, cloud)
     result = fit(template, cloud, landmarks, keyframes, ear_points, cloud_normals, config)
     sanity, relaxed = check_mesh(result.vertices, result.faces, template.vertices), None
     if not sanity.ok and config.relax_folds:
@@ -133,7 +175,7 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
     ply, _ = write_mesh(out, result.vertices, result.faces, colours)
     save_landmarks(out / MESH_LANDMARKS, result.template.landmark_points,
                    template=template.name)
-    write_report(out / FIT_JSON, result, config, sanity, relaxed)
+    write_report(out / FIT_JSON, result, config, sanity, relaxed, ears_report)
     last = result.log[-1] if result.log else {}
     log.info("fitted %d vertices in %d steps (%.1f s): landmark RMS %.2f mm, %d cloud targets, "
              "last step moved %.3f mm", len(result.vertices), result.iterations, result.wall_s,
@@ -143,9 +185,11 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
 
 
 def write_report(path: Path, result: FitResult, config: FittingConfig,
-                 sanity: MeshSanity | None = None, relaxed: dict | None = None) -> Path:
+                 sanity: MeshSanity | None = None, relaxed: dict | None = None,
+                 ears: dict | None = None) -> Path:
     doc = {"config": config.model_dump(mode="json"), "timing": result.timing(),
            "vertices": len(result.vertices), "faces": len(result.faces), "steps": result.log,
-           "sanity": sanity.to_json() if sanity is not None else None, "relaxed": relaxed}
+           "sanity": sanity.to_json() if sanity is not None else None, "relaxed": relaxed,
+           "ears_on_cloud": ears or {}}
     path.write_text(json.dumps(doc, indent=1))
     return path

@@ -11,14 +11,14 @@ A side's points are kept only when
    template's contour (mean over the points, template millimetres, head frame) lies within
    ``EAR_OFFSET_BOUND`` of the offsets real head shapes have;
 4. with both sides, **the ear-to-ear width** over the template's lies within
-   ``EAR_WIDTH_RATIO_BOUNDS`` (a width outside them drops both sides: which ear is wrong is
-   not known).
+   ``EAR_WIDTH_RATIO_BOUNDS`` (a width outside them drops both sides: a wrong ear does more
+   harm than a missing one).
 
 The offsets' mean and spread and the width ratio's bounds were calibrated on 200 ICT Face
 Model identities (seeds 1000-1199, each drawn with every mode at 1 sigma), none of which a
 benchmark evaluates (``python tools/calibrate_ear_check.py`` prints them again). The
-spread is widened by ``EAR_NOISE_MM``, the error of a triangulated contour's centroid (see
-there): all 200 calibration heads pass (largest normalised offset 3.9 without the widening).
+spread is widened (in quadrature) by ``EAR_NOISE_MM``, the error of a triangulated contour's
+centroid (see there): all 200 calibration heads pass (largest normalised offset 3.2).
 A side that fails is dropped, and the reason is reported in ``ears3d.json``, ``coarse.json``
 and the run's report.
 """
@@ -46,6 +46,8 @@ of it."""
 EAR_OFFSET_BOUND = 4.0
 """Largest normalised offset (the offset's distance from the mean, per axis over the widened
 spread): the 99.9 % point of a 3-D normal distribution is 4.03."""
+MIN_FACE_LANDMARKS = 6
+"""Fewest finite inner face landmarks to place the template against the ears."""
 EAR_WIDTH_RATIO_BOUNDS = (0.78, 1.13)
 """Ear-to-ear width over the template's: the calibration heads' mean 0.956 ± 4 standard
 deviations (0.043); the heads themselves span 0.85-1.08."""
@@ -84,55 +86,76 @@ def contour_offsets(template: Template, landmarks: np.ndarray, ids: np.ndarray,
 
 def check_ears(doc: dict, landmarks: np.ndarray, template: Template | None = None,
                min_points: int = 6, min_inlier_share: float = 0.5) -> dict:
-    """``doc`` (an ``ears3d.json`` document with per-side ``observations`` and
-    ``inliers`` counts) with the sides that fail removed and a ``checks`` entry per side:
-    its figures, ``used`` and, for a dropped side, ``reason``. ``landmarks`` are the 68
-    triangulated landmarks in the ear points' units (inner ones finite enough to place the
-    template)."""
-    template = template or Template.default()
+    """``doc`` (an ``ears3d.json`` document of :func:`~facecap_core.landmarks.stage.
+    triangulate_ears`) with the sides that fail removed and a ``checks`` entry per side that
+    was looked for: its figures, ``used`` and, for a dropped side, ``reason``. ``landmarks``
+    are the 68 triangulated landmarks in the ear points' units."""
     ids = np.asarray(doc.get("vertex_ids", []), np.int64)
     pts = np.asarray(doc.get("points", []), float).reshape(-1, 3)
     sides = np.asarray(doc.get("sides", []), dtype=object).astype(str)
     checks, reasons = {}, {}
-    offsets, ratio = contour_offsets(template, landmarks, ids, pts, sides)
+    for side, views in doc.get("views", {}).items():
+        if 0 < views < doc.get("min_views", 0):
+            checks[side] = {"points": 0}
+            reasons[side] = (f"found in {views} keyframe{'s' * (views != 1)} (needs "
+                             f"{doc['min_views']})")
     for side in ("left", "right"):
         mine = sides == side
-        seen = doc.get("observations", {}).get(side, 0)
-        if seen == 0 and not mine.any():
+        if not mine.any() and side not in doc.get("observations", {}):
             continue
-        share = doc.get("inliers", {}).get(side, 0) / max(seen, 1)
-        checks[side] = {"points": int(mine.sum()), "inlier_share": round(float(share), 3)}
+        checks[side] = c = {"points": int(mine.sum())}
+        seen = doc.get("observations", {}).get(side)
+        if seen:  # documents without the counts are not judged on them
+            c["inlier_share"] = round(doc.get("inliers", {}).get(side, 0) / seen, 3)
         if mine.sum() < min_points:
             reasons[side] = (f"{int(mine.sum())} of its contour points triangulated "
                              f"(needs {min_points})")
-        elif share < min_inlier_share:
-            reasons[side] = (f"the views disagree: {100 * share:.0f} % of its detections "
-                             f"reproject onto one contour (needs {100 * min_inlier_share:.0f} %)")
-    measured = [side for side in checks if side not in reasons]
-    if len(measured) == 2:
-        # The width fails both sides: which ear is wrong is not known.
-        lo, hi = EAR_WIDTH_RATIO_BOUNDS
+        elif c.get("inlier_share", 1.0) < min_inlier_share:
+            reasons[side] = (f"the views disagree: {100 * c['inlier_share']:.0f} % of its "
+                             "detections reproject onto one contour (needs "
+                             f"{100 * min_inlier_share:.0f} %)")
+    measured = [side for side in ("left", "right") if side in checks and side not in reasons]
+    L = np.asarray(landmarks, float)
+    if measured and np.all(np.isfinite(L[INNER_LANDMARKS]), axis=1).sum() < MIN_FACE_LANDMARKS:
         for side in measured:
-            checks[side]["width_ratio"] = round(ratio, 4)
+            reasons[side] = "too few face landmarks triangulated to place the ears against"
+        measured = []
+    if measured:
+        offsets, ratio = contour_offsets(template or Template.default(), L, ids, pts, sides)
+        for side in measured:
+            offset = offsets[side]
+            z = float(np.linalg.norm((offset - EAR_OFFSET_MEAN_MM[side])
+                                     / np.hypot(EAR_OFFSET_SPREAD_MM[side], EAR_NOISE_MM)))
+            checks[side].update(offset_mm=np.round(offset, 2).tolist(), offset_sigmas=round(z, 2))
+            if z > EAR_OFFSET_BOUND:
+                off = np.linalg.norm(offset - EAR_OFFSET_MEAN_MM[side])
+                reasons[side] = (f"it lies {off:.0f} mm from where the face puts that ear "
+                                 f"({z:.1f} sigma, bound {EAR_OFFSET_BOUND:g})")
+        if len(measured) == 2:
+            lo, hi = EAR_WIDTH_RATIO_BOUNDS
+            for side in measured:
+                checks[side]["width_ratio"] = round(ratio, 4)
             if not lo <= ratio <= hi:
-                reasons[side] = (f"the ears are {ratio:.2f} times the template's width apart "
-                                 f"(bounds {lo:g}-{hi:g})")
-    for side in measured:
-        offset = offsets[side]
-        z = float(np.linalg.norm((offset - EAR_OFFSET_MEAN_MM[side])
-                                 / np.hypot(EAR_OFFSET_SPREAD_MM[side], EAR_NOISE_MM)))
-        checks[side].update(offset_mm=np.round(offset, 2).tolist(), offset_sigmas=round(z, 2))
-        if z > EAR_OFFSET_BOUND and side not in reasons:
-            off = np.linalg.norm(offset - EAR_OFFSET_MEAN_MM[side])
-            reasons[side] = (f"it lies {off:.0f} mm from where the face puts that ear "
-                             f"({z:.1f} sigma, bound {EAR_OFFSET_BOUND:g})")
+                # Not a width a head has. Even when one ear is clearly out of place, the other
+                # may be off too (ears 20 % too far apart are each only 15 mm out, within
+                # their own bound): a wrong ear does more harm than a missing one, so neither
+                # is used.
+                for side in measured:
+                    reasons.setdefault(side, f"the ears are {ratio:.2f} times the template's "
+                                             f"width apart (bounds {lo:g}-{hi:g})")
     for side, c in checks.items():
         c["used"] = side not in reasons
         if side in reasons:
             c["reason"] = reasons[side]
     keep = np.isin(sides, [side for side, c in checks.items() if c["used"]])
-    return {**doc, "vertex_ids": ids[keep].tolist(), "points": pts[keep].tolist(),
-            "sides": sides[keep].tolist(), "checks": checks}
+    sigma = np.asarray(doc.get("sigma", np.zeros(len(ids))), float)
+    if sigma.shape != ids.shape:
+        raise ValueError(f"ears document holds {len(sigma)} sigmas for {len(ids)} points")
+    out = {**doc, "vertex_ids": ids[keep].tolist(), "points": pts[keep].tolist(),
+           "sides": sides[keep].tolist(), "checks": checks}
+    if "sigma" in doc:
+        out["sigma"] = sigma[keep].tolist()
+    return out
 
 
 EAR_RELIABLE_MM = 1.0

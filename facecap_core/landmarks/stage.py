@@ -247,7 +247,7 @@ def triangulate_ears(found: dict[str, list], cams: CameraSet, vertex_ids: dict[s
     """Triangulate each ear's contour points; returns the ears3d.json document (before
     :func:`~facecap_core.landmarks.ear_check.check_ears`): per point its ``sigma``, the
     standard deviation of its least certain direction (camera units) for the reprojection
-    error its views leave, and per side the ``observations`` and ``inliers`` counted."""
+    error its side's views leave, and per side the ``observations`` and ``inliers`` counted."""
     ids, points, sides, sigmas, views = [], [], [], [], {}
     observations, inliers = {}, {}
     for side, obs in found.items():
@@ -263,17 +263,19 @@ def triangulate_ears(found: dict[str, list], cams: CameraSet, vertex_ids: dict[s
         ok = np.all(np.isfinite(tri.points), axis=1)
         observations[side] = int(np.all(np.isfinite(uv), axis=-1).sum())
         inliers[side] = int(tri.inliers.sum())
-        # The residual's unbiased estimate of the image noise (3 unknowns per point).
-        n = tri.inliers.sum(0)
-        sq = np.where(tri.inliers, np.nan_to_num(tri.errors) ** 2, 0.0).sum(0)
-        noise_px = np.sqrt(sq / np.maximum(2 * n - 3, 1))
+        # The image noise the side's inlier views leave, pooled over its points (3 unknowns
+        # per point): one estimate per point would rest on a degree of freedom or two.
+        n = tri.inliers.sum(0)[ok]
+        sq = np.where(tri.inliers, np.nan_to_num(tri.errors) ** 2, 0.0).sum(0)[ok]
+        noise_px = np.sqrt(sq.sum() / max(int(np.sum(2 * n - 3)), 1))
         ids += np.asarray(vertex_ids[side])[ok].astype(int).tolist()
         points += tri.points[ok].tolist()
         sides += [side] * int(ok.sum())
-        sigmas += (tri.spread(1.0) * noise_px)[ok].tolist()
+        sigmas += (tri.spread(1.0)[ok] * noise_px).tolist()
     return {"template": EAR_TEMPLATE, "units": cams.units, "vertex_ids": ids,
             "points": points, "sides": sides, "sigma": sigmas, "views": views,
-            "observations": observations, "inliers": inliers}
+            "min_views": config.ear_min_views, "observations": observations,
+            "inliers": inliers}
 
 
 def yaw_coverage(records: list[dict]) -> dict:
