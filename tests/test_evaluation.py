@@ -465,7 +465,8 @@ def test_a_mesh_without_ears_scores_nan_accuracy_and_poor_completion_there(ict_m
     assert np.isnan(sc.ears.accuracy_per_vertex).all()
     assert sc.ears.completion.count == ear_region(v, lm).sum() and sc.ears.completion.mean > 20.0
     doc = score_json(sc)
-    assert math.isnan(doc["ears"]["accuracy"]["mean"])
+    assert doc["ears"]["accuracy"]["mean"] is None  # strict JSON: no nan
+    json.loads(json.dumps(doc, allow_nan=False))
     line = paper_table([("cropped", [doc])], region="ears").splitlines()[2]
     assert line.startswith("| cropped | 1 | – | – | – | ")
 

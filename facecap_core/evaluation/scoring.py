@@ -143,10 +143,11 @@ def score_json(score: Score) -> dict:
     ``{"protocol", "accuracy": {mean, std, median, under_1mm, under_2mm}, "completion": {...},
     "scale", "ears": {"accuracy": {...}, "completion": {...}}}``: distances in mm, fractions in
     [0, 1], ``scale`` the fitted mesh→scan scale; ``accuracy`` and ``completion`` are the face
-    sphere's, ``ears`` holds the ear region's (nan where a region holds no vertex).
+    sphere's, ``ears`` holds the ear region's (None where a region holds no vertex: strict
+    JSON has no nan).
     """
     def side(st: Stats) -> dict:
-        return {k: float(getattr(st, k)) for k in _JSON_STATS}
+        return {k: float(v) if np.isfinite(v := getattr(st, k)) else None for k in _JSON_STATS}
 
     return {"protocol": score.protocol, "accuracy": side(score.accuracy),
             "completion": side(score.completion), "scale": float(score.scale),

@@ -106,8 +106,8 @@ def check_inputs(template: Template, cloud: np.ndarray | None, landmarks: np.nda
             raise InputError(f"ear point vertex ids must be in [0, {len(template.vertices)})")
         if len(ear_points) > 2 and (np.shape(ear_points[2]) != ids.shape
                                     or not np.all(np.asarray(ear_points[2], float) >= 0)):
-            raise InputError(f"ear point weights must be (k,) = {ids.shape} non-negative "
-                             f"numbers; got shape {np.shape(ear_points[2])}")
+            raise InputError(f"ear point weights must be {len(ids)} non-negative numbers, one "
+                             "per ear point")
 
 
 def initial_similarity(template: Template, landmarks: np.ndarray) -> np.ndarray:

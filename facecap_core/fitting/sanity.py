@@ -223,7 +223,7 @@ def relax_folds(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.n
 
     steps = snapped = 0
     last = INTERSECTION_ROUNDS if check_intersections else 0
-    for sweep in range(2):
+    for sweep in range(3):
         if sweep:
             # The template's similarity onto the relaxed fit has moved a little, so an edge
             # relaxed to just under the bound may be just over it now: another sweep.

@@ -36,7 +36,8 @@ def read_ear_points(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
         return None
     weights = np.asarray(doc.get("weights") or np.ones(len(ids)), float)
     if weights.shape != ids.shape:
-        raise InputError(f"{path}: {len(weights)} weights for {len(ids)} ear points")
+        raise InputError(f"{path}: {len(weights)} weights for {len(ids)} ear points: recompute "
+                         "the coarse stage")
     return ids, np.asarray(doc["points"], float).reshape(-1, 3), weights
 
 
