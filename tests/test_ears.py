@@ -90,3 +90,33 @@ def test_bad_inputs_raise_one_line(image, side, words):
     with pytest.raises(InputError) as err:
         ears.detect_ears(image, side)
     assert words in str(err.value) and "\n" not in str(err.value)
+
+
+def test_james_hand_labelled_contour_is_reproducible_and_on_his_scan():
+    """benchmarks/data/james_ear_contour.json: 12 points per side on the scan's surface, and
+    tools/james_ear_contour.py rebuilds them from the stored hand traces."""
+    import copy
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    import trimesh
+
+    from facecap_core.config import SynthConfig
+    from facecap_core.synthetic import make_subject
+
+    root = Path(__file__).resolve().parents[1]
+    doc = json.loads((root / "benchmarks/data/james_ear_contour.json").read_text())
+    spec = importlib.util.spec_from_file_location("james_ear_contour",
+                                                  root / "tools/james_ear_contour.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    subject = make_subject(SynthConfig(subject="james"))
+    mesh = trimesh.Trimesh(subject.vertices, subject.faces, process=False)
+    rebuilt = tool.build(copy.deepcopy(doc), subject)
+    for side, sign in (("left", 1), ("right", -1)):
+        points = np.asarray(doc["contour"][side])
+        assert points.shape == (12, 3) and np.all(np.sign(points[:, 0]) == sign)
+        assert trimesh.proximity.closest_point(mesh, points)[1].max() < 0.05
+        np.testing.assert_allclose(rebuilt["contour"][side], points, atol=0.01)
+        assert doc["summary"][side]["reprojection_rms_px_all"] < 8
