@@ -30,7 +30,7 @@ def check_landmarks(landmarks: np.ndarray, what: str) -> np.ndarray:
 
 def face_size(landmarks68: np.ndarray) -> float:
     """The length both regions scale with (mm): the mean of the outer-eye-corner distance
-    |L36 - L45| and the nasion–nose-base length |L27 - L33| (≈ 68 mm on an adult)."""
+    |L36 - L45| and the nasion–nose-base length |L27 - L33| (≈ 70 mm on an adult)."""
     lm = check_landmarks(landmarks68, "face-region")
     return float((np.linalg.norm(lm[36] - lm[45]) + np.linalg.norm(lm[27] - lm[33])) / 2.0)
 
