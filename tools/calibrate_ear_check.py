@@ -35,6 +35,14 @@ from facecap_core.template import (  # noqa: E402
 DEFAULT_ICT = Path(__file__).resolve().parents[2] / "shared/data/ict_face_model/ict_face_model.npz"
 
 
+def ict_ears(model: dict, contour: dict, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The exact 68 landmarks and left-then-right ear contour points of ICT identity ``seed``
+    (every mode drawn at 1 sigma, as the synthetic subjects are)."""
+    V = ict_identity_vertices(model, np.random.default_rng([seed, 1]).standard_normal(100))
+    return V[model["landmarks68"]], np.r_[contour["ict"]["left"].on(V),
+                                          contour["ict"]["right"].on(V)]
+
+
 def main() -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ict-model", default=str(DEFAULT_ICT))
@@ -48,10 +56,8 @@ def main() -> dict:
                      + ["right"] * len(contour["vertex_ids"]["right"]))
     offsets, ratios = {"left": [], "right": []}, []
     for seed in range(*args.seeds):
-        V = ict_identity_vertices(model, np.random.default_rng([seed, 1]).standard_normal(100))
-        points = np.r_[contour["ict"]["left"].on(V), contour["ict"]["right"].on(V)]
-        off, ratio = ear_check.contour_offsets(template, V[model["landmarks68"]], ids, points,
-                                               sides)
+        L, points = ict_ears(model, contour, seed)
+        off, ratio = ear_check.contour_offsets(template, L, ids, points, sides)
         for side in offsets:
             offsets[side].append(off[side])
         ratios.append(ratio)
@@ -59,9 +65,7 @@ def main() -> dict:
     for side, rows in offsets.items():
         O = np.array(rows)
         mean, sd = O.mean(0), O.std(0)
-        z = np.linalg.norm((O - ear_check.EAR_OFFSET_MEAN_MM[side])
-                           / np.hypot(ear_check.EAR_OFFSET_SPREAD_MM[side],
-                                      ear_check.EAR_NOISE_MM), axis=1)
+        z = ear_check.offset_sigmas(O, side)
         result[side] = {"mean_mm": mean.round(2).tolist(), "spread_mm": sd.round(2).tolist(),
                         "largest_sigmas": round(float(z.max()), 2),
                         "dropped": int(np.sum(z > ear_check.EAR_OFFSET_BOUND))}
@@ -77,9 +81,7 @@ def main() -> dict:
     held_out = range(args.seeds[1], 2 * args.seeds[1] - args.seeds[0])
     kept = caught = 0
     for seed in held_out:
-        V = ict_identity_vertices(model, np.random.default_rng([seed, 1]).standard_normal(100))
-        L = V[model["landmarks68"]]
-        points = np.r_[contour["ict"]["left"].on(V), contour["ict"]["right"].on(V)]
+        L, points = ict_ears(model, contour, seed)
         doc = {"vertex_ids": ids.tolist(), "sides": sides.tolist(), "points": points.tolist()}
         kept += all(c["used"] for c in ear_check.check_ears(doc, L, template)["checks"].values())
         R, origin = head_frame(L)

@@ -84,6 +84,13 @@ def contour_offsets(template: Template, landmarks: np.ndarray, ids: np.ndarray,
     return offsets, ratio
 
 
+def offset_sigmas(offset: np.ndarray, side: str) -> np.ndarray:
+    """How far ``offset`` (..., 3) lies from the mean offset of ``side``'s ear: per axis over
+    the spread widened by the measurement error, then the length (the check's statistic)."""
+    return np.linalg.norm((np.asarray(offset, float) - EAR_OFFSET_MEAN_MM[side])
+                          / np.hypot(EAR_OFFSET_SPREAD_MM[side], EAR_NOISE_MM), axis=-1)
+
+
 def check_ears(doc: dict, landmarks: np.ndarray, template: Template | None = None,
                min_points: int = 6, min_inlier_share: float = 0.5) -> dict:
     """``doc`` (an ``ears3d.json`` document of :func:`~facecap_core.landmarks.stage.
@@ -124,8 +131,7 @@ def check_ears(doc: dict, landmarks: np.ndarray, template: Template | None = Non
         offsets, ratio = contour_offsets(template or Template.default(), L, ids, pts, sides)
         for side in measured:
             offset = offsets[side]
-            z = float(np.linalg.norm((offset - EAR_OFFSET_MEAN_MM[side])
-                                     / np.hypot(EAR_OFFSET_SPREAD_MM[side], EAR_NOISE_MM)))
+            z = float(offset_sigmas(offset, side))
             checks[side].update(offset_mm=np.round(offset, 2).tolist(), offset_sigmas=round(z, 2))
             if z > EAR_OFFSET_BOUND:
                 off = np.linalg.norm(offset - EAR_OFFSET_MEAN_MM[side])
@@ -148,13 +154,10 @@ def check_ears(doc: dict, landmarks: np.ndarray, template: Template | None = Non
         if side in reasons:
             c["reason"] = reasons[side]
     keep = np.isin(sides, [side for side, c in checks.items() if c["used"]])
-    sigma = np.asarray(doc.get("sigma", np.zeros(len(ids))), float)
-    if sigma.shape != ids.shape:
-        raise ValueError(f"ears document holds {len(sigma)} sigmas for {len(ids)} points")
     out = {**doc, "vertex_ids": ids[keep].tolist(), "points": pts[keep].tolist(),
            "sides": sides[keep].tolist(), "checks": checks}
-    if "sigma" in doc:
-        out["sigma"] = sigma[keep].tolist()
+    if "sigma" in doc:  # one per point: a mismatch fails the indexing
+        out["sigma"] = np.asarray(doc["sigma"], float)[keep].tolist()
     return out
 
 
