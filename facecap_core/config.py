@@ -285,28 +285,51 @@ class PBAConfig(StrictModel):
     """Levenberg–Marquardt iterations per pyramid level."""
     depth_only_iterations: int = Field(2, ge=0, le=200)
     """The first iterations of each level move only the inverse depths."""
-    huber: float = Field(9.0, gt=0)
-    """Huber threshold of the photometric residual (grey levels)."""
+    huber: float = Field(1.5, gt=0)
+    """Huber threshold of the photometric residual, in units of the residuals' robust
+    standard deviation (1.4826 x their median magnitude at the level's starting cameras)."""
     gradient_weight: float = Field(50.0, gt=0)
     """DSO's gradient weight c²/(c² + |∇I|²): strong edges count less (sub-pixel noise)."""
-    max_residual: float = Field(40.0, gt=0)
-    """Residuals above this (grey levels) are dropped: occlusions and highlights."""
+    max_residual: float = Field(3.0, gt=0)
+    """A point's pattern in one target is an outlier (occluded, a highlight) when its root
+    mean square residual exceeds this many robust standard deviations; it then costs a
+    constant."""
     initial_lambda: float = Field(1e-3, gt=0)
     """Initial Levenberg–Marquardt damping."""
-    refine_intrinsics: bool = False
-    """Refine focal length, principal point and k1, k2 with the poses (off: motion blur
-    biases the photometric focal length; the geometric solution's intrinsics are better)."""
+    refine_intrinsics: bool = True
+    """Refine focal length, principal point and k1, k2 with the poses, when the tracked points
+    are in the solve (``track_weight``): photometric residuals over neighbouring keyframes
+    alone leave the principal point free against a tilt of every camera."""
     scale_prior: float = Field(1e8, gt=0)
     """Weight of the prior that fixes the length of the first baseline (the scale gauge)."""
     points_from_sparse: bool = True
     """Use the initial reconstruction's points (at their depths) instead of an epipolar
     search for strong-gradient pixels."""
-    centre_prior_pct: float = Field(0.05, ge=0)
-    """Camera centres are held near the geometric solution's with this standard deviation
-    (% of the mean camera distance from their centroid; 0: free)."""
+    centre_prior_pct: float = Field(0.0, ge=0)
+    """Camera centres are held near the start's with this standard deviation (% of the mean
+    camera distance from their centroid; 0: free, the gauge is then the first keyframe and
+    the first baseline's length)."""
     intrinsics_level: int = Field(0, ge=0, le=5)
     """Intrinsics are held fixed at pyramid levels coarser than this one (coarse levels bias
     the focal length)."""
+    motion_blur: bool = True
+    """Model each keyframe's motion blur: the streak the camera's motion (a constant velocity
+    through the neighbouring keyframes) draws over the exposure. Each residual compares the
+    host and the target each blurred by the other's streak. Videos only (photos have no
+    times)."""
+    exposure_fraction: float | None = Field(None, ge=0, le=1)
+    """Exposure as a fraction of the frame interval; None: the one of
+    ``exposure_candidates`` whose blur model fits the starting cameras best."""
+    exposure_candidates: tuple[float, ...] = (0.0, 0.125, 0.25, 0.375, 0.5, 0.75, 1.0)
+    """Exposures (fractions of the frame interval) tried when ``exposure_fraction`` is None."""
+    track_weight: float = Field(30.0, ge=0)
+    """The tracked points' reprojection errors join the photometric residuals in one solve:
+    one pixel of reprojection error costs as much as this many grey levels of photometric
+    residual (0: photometric only)."""
+    track_huber_px: float = Field(1.0, gt=0)
+    """Huber threshold of the reprojection errors (pixels)."""
+    blur_samples: int = Field(9, ge=1, le=64)
+    """Most samples along one streak (one per pixel of its length)."""
     max_width: int | None = Field(1920, ge=160, le=8192)
     """Keyframes wider than this (pixels) are adjusted at this width (area filter, aspect kept;
     the intrinsics scaled to it and the result's scaled back; poses are metric and do not

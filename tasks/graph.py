@@ -216,7 +216,7 @@ def _landmark_models() -> str:
 STAGES: tuple[Stage, ...] = (
     Stage("keyframes", "keyframes", "2", ("video",), "keyframes", compute_keyframes,
           (KEYFRAMES_JSON, TRACKS_NPZ)),
-    Stage("poses", "poses", "2", ("video", "keyframes"), "poses", compute_poses,
+    Stage("poses", "poses", "3", ("video", "keyframes"), "poses", compute_poses,
           (CAMERAS_JSON, POINTS, SPARSE, *COLMAP_MODEL),
           exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=_figures("pose.stage")),
     Stage("frames", "landmarks", "1", ("video", "poses"), None, compute_frames,

@@ -58,6 +58,7 @@ class PBAResult:
     rms_after: float
     seconds: float
     log: list[str]
+    exposure_fraction: float | None = None  # the exposure the blur model used (of a frame)
 
 
 # -- numba kernels ---------------------------------------------------------------------------
@@ -95,16 +96,68 @@ def _undistort(xd, yd, k1, k2):
     return x, y, r2, fac + x * x * dfac, x * y * dfac, fac + y * y * dfac
 
 
+@nb.njit(cache=True, inline="always")
+def _pixel(X0, X1, X2, f, cx, cy, k1, k2):
+    yx = X0 / X2
+    yy = X1 / X2
+    s2 = yx * yx + yy * yy
+    fac = 1 + k1 * s2 + k2 * s2 * s2
+    return f * yx * fac + cx, f * yy * fac + cy
+
+
+@nb.njit(cache=True, inline="always")
+def _blur(X0, X1, X2, m, f, cx, cy, k1, k2):
+    """The image streak (pixels) of the camera point X over one exposure: ``m`` holds the
+    angular and linear displacement over half the exposure (w, v), X moves by w x X + v."""
+    d0 = m[1] * X2 - m[2] * X1 + m[3]
+    d1 = m[2] * X0 - m[0] * X2 + m[4]
+    d2 = m[0] * X1 - m[1] * X0 + m[5]
+    ua, va = _pixel(X0 + d0, X1 + d1, X2 + d2, f, cx, cy, k1, k2)
+    ub, vb = _pixel(X0 - d0, X1 - d1, X2 - d2, f, cx, cy, k1, k2)
+    return ua - ub, va - vb
+
+
+@nb.njit(cache=True, inline="always")
+def _streak(img, x, y, dx, dy, n):
+    """Mean of ``img`` over ``n`` samples of the segment centred on (x, y) with extent
+    (dx, dy): an image seen through a box blur along that segment."""
+    if n == 1:
+        return _bilinear(img, x, y)
+    acc = 0.0
+    for i in range(n):
+        s = i / (n - 1) - 0.5
+        v = _bilinear(img, x + s * dx, y + s * dy)
+        if np.isnan(v):
+            return np.nan
+        acc += v
+    return acc / n
+
+
+@nb.njit(cache=True, inline="always")
+def _samples(dx, dy, most):
+    """Samples of a streak: one per pixel of its length, at least one, at most ``most``."""
+    return min(most, 1 + int(np.ceil(np.sqrt(dx * dx + dy * dy))))
+
+
 @nb.njit(cache=True)
-def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, host_values,
-                host_weights, R_rel, t_rel, affine, intr, huber, max_residual, with_cameras,
-                H, b, Hpp, bpp, Hcp_store, idx_store, stats):
+def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, host_weights,
+                motion, max_samples, R_rel, t_rel, affine, intr, huber, max_residual,
+                with_cameras, H, b, Hpp, bpp, Hcp_store, idx_store, stats, res_out):
     """Residuals, weights and Jacobians of every point; Schur-reduced normal equations.
 
     Camera unknowns are [intrinsics (5), keyframes 1..K-1 (8 each)]; keyframe 0 is fixed.
     Per point, its camera columns (intrinsics, host, targets) are gathered locally, and
-    H_cc - h_cp h_cp^T / h_pp is scattered into H when ``with_cameras``. Residuals larger
-    than ``max_residual`` are dropped (occlusions, specularities).
+    H_cc - h_cp h_cp^T / h_pp is scattered into H when ``with_cameras``. A point's residuals
+    in one target are dropped together when their root mean square exceeds ``max_residual``
+    (the point occluded there, or a highlight): each then costs a constant. ``res_out``, when
+    not empty, receives every residual's magnitude (the robust scale).
+
+    Motion blur (``motion``: per keyframe the camera's displacement over half its exposure,
+    (w, v), zero for none): each keyframe saw the scene averaged along its own streak, so
+    the host is sampled along the target's streak (mapped into the host) and the target
+    along the host's (mapped into the target). Both sides are then the scene blurred by
+    both streaks, equal at the true poses whatever the blur (a box blur along a segment
+    commutes with the locally affine warp). The Jacobian treats the host's side as fixed.
     """
     f, cx, cy, k1, k2 = intr[0], intr[1], intr[2], intr[3], intr[4]
     max_local = Hcp_store.shape[1]
@@ -126,10 +179,93 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
         J = np.zeros(n_loc)
         hpp = 0.0
         bp = 0.0
+        # Per target: the host's streak mapped into it and its own mapped into the host,
+        # through the warp's Jacobian at the point (pattern pixels at the point's depth).
+        streaks = np.zeros((t1 - t0, 4))
+        xc, yc, _, _, _, _ = _undistort((uv[p, 0] - cx) / f, (uv[p, 1] - cy) / f, k1, k2)
+        xx, yx_, _, _, _, _ = _undistort((uv[p, 0] + 1 - cx) / f, (uv[p, 1] - cy) / f, k1, k2)
+        xy_, yy_, _, _, _, _ = _undistort((uv[p, 0] - cx) / f, (uv[p, 1] + 1 - cy) / f, k1, k2)
+        hb0, hb1 = _blur(xc / rho[p], yc / rho[p], 1.0 / rho[p], motion[h], f, cx, cy, k1, k2)
+        for k in range(t0, t1):
+            tg = targets[k]
+            Rr = R_rel[h, tg]
+            tr = t_rel[h, tg]
+            pts = np.empty((3, 2))
+            Xc = np.empty(3)
+            ok = True
+            for j in range(3):
+                ax, ay = (xc, yc) if j == 0 else ((xx, yx_) if j == 1 else (xy_, yy_))
+                Y0 = (Rr[0, 0] * ax + Rr[0, 1] * ay + Rr[0, 2]) / rho[p] + tr[0]
+                Y1 = (Rr[1, 0] * ax + Rr[1, 1] * ay + Rr[1, 2]) / rho[p] + tr[1]
+                Y2 = (Rr[2, 0] * ax + Rr[2, 1] * ay + Rr[2, 2]) / rho[p] + tr[2]
+                if Y2 <= 1e-9:
+                    ok = False
+                    break
+                if j == 0:
+                    Xc[0], Xc[1], Xc[2] = Y0, Y1, Y2
+                pts[j, 0], pts[j, 1] = _pixel(Y0, Y1, Y2, f, cx, cy, k1, k2)
+            if not ok:
+                continue
+            a00 = pts[1, 0] - pts[0, 0]
+            a10 = pts[1, 1] - pts[0, 1]
+            a01 = pts[2, 0] - pts[0, 0]
+            a11 = pts[2, 1] - pts[0, 1]
+            tb0, tb1 = _blur(Xc[0], Xc[1], Xc[2], motion[tg], f, cx, cy, k1, k2)
+            det = a00 * a11 - a01 * a10
+            streaks[k - t0, 0] = a00 * hb0 + a01 * hb1
+            streaks[k - t0, 1] = a10 * hb0 + a11 * hb1
+            if abs(det) > 1e-9:
+                streaks[k - t0, 2] = (a11 * tb0 - a01 * tb1) / det
+                streaks[k - t0, 3] = (-a10 * tb0 + a00 * tb1) / det
+        # The samples of every (pattern pixel, target): host and target values, the target's
+        # gradient; NaN where either leaves its image. A target whose residuals are too large
+        # together is an outlier for the whole pattern.
+        nt_ = t1 - t0
+        cache = np.full((nt_, 8, 4), np.nan)
+        pair_ok = np.zeros(nt_, np.bool_)
         for q in range(8):
             uh = uv[p, 0] + PATTERN[q, 0]
             vh = uv[p, 1] + PATTERN[q, 1]
-            Ih = host_values[p, q]
+            xn, yn, _, _, _, _ = _undistort((uh - cx) / f, (vh - cy) / f, k1, k2)
+            for k in range(t0, t1):
+                tg = targets[k]
+                Rr = R_rel[h, tg]
+                tr = t_rel[h, tg]
+                X0 = (Rr[0, 0] * xn + Rr[0, 1] * yn + Rr[0, 2]) / rho[p] + tr[0]
+                X1 = (Rr[1, 0] * xn + Rr[1, 1] * yn + Rr[1, 2]) / rho[p] + tr[1]
+                X2 = (Rr[2, 0] * xn + Rr[2, 1] * yn + Rr[2, 2]) / rho[p] + tr[2]
+                if X2 <= 1e-9:
+                    continue
+                ut, vt = _pixel(X0, X1, X2, f, cx, cy, k1, k2)
+                sx, sy = streaks[k - t0, 0], streaks[k - t0, 1]
+                nt = _samples(sx, sy, max_samples)
+                It = _streak(images[tg], ut, vt, sx, sy, nt)
+                nh = _samples(streaks[k - t0, 2], streaks[k - t0, 3], max_samples)
+                Ih = _streak(images[h], uh, vh, streaks[k - t0, 2], streaks[k - t0, 3], nh)
+                if np.isnan(It) or np.isnan(Ih):
+                    continue
+                cache[k - t0, q, 0] = It
+                cache[k - t0, q, 1] = Ih
+                cache[k - t0, q, 2] = _streak(grad_x[tg], ut, vt, sx, sy, nt)
+                cache[k - t0, q, 3] = _streak(grad_y[tg], ut, vt, sx, sy, nt)
+        for k in range(t0, t1):
+            tg = targets[k]
+            ea = np.exp(affine[tg, 0] - ah)
+            ss = 0.0
+            inside = True
+            for q in range(8):
+                if np.isnan(cache[k - t0, q, 0]):
+                    inside = False
+                    break
+                r = cache[k - t0, q, 0] - affine[tg, 1] - ea * (cache[k - t0, q, 1] - bh)
+                ss += r * r
+                if res_out.shape[0] > 0 and stats[2] < res_out.shape[0]:
+                    res_out[int(stats[2])] = abs(r)
+                    stats[2] += 1
+            pair_ok[k - t0] = inside and ss <= 8 * max_residual * max_residual
+        for q in range(8):
+            uh = uv[p, 0] + PATTERN[q, 0]
+            vh = uv[p, 1] + PATTERN[q, 1]
             xd = (uh - cx) / f
             yd = (vh - cy) / f
             xn, yn, rn2, g00, g01, g11 = _undistort(xd, yd, k1, k2)
@@ -166,23 +302,20 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
                 s2 = yx * yx + yy * yy
                 fac = 1 + k1 * s2 + k2 * s2 * s2
                 dfac = 2 * k1 + 4 * k2 * s2
-                It = _bilinear(images[tg], f * yx * fac + cx, f * yy * fac + cy)
-                if np.isnan(It):
+                gw = host_weights[p, q]
+                if not pair_ok[k - t0]:
                     # Leaving the image costs as much as an outlier, so that no step can
                     # lower the cost by pushing residuals out of view.
-                    cost += 2 * huber * max_residual - huber * huber
+                    cost += gw * (2 * huber * max_residual - huber * huber)
                     count += 1
                     continue
-                gx = _bilinear(grad_x[tg], f * yx * fac + cx, f * yy * fac + cy)
-                gy = _bilinear(grad_y[tg], f * yx * fac + cx, f * yy * fac + cy)
+                It = cache[k - t0, q, 0]
+                Ih = cache[k - t0, q, 1]
+                gx = cache[k - t0, q, 2]
+                gy = cache[k - t0, q, 3]
                 ea = np.exp(affine[tg, 0] - ah)
                 r = It - affine[tg, 1] - ea * (Ih - bh)
                 ar = abs(r)
-                gw = host_weights[p, q]
-                if ar > max_residual:
-                    cost += gw * (2 * huber * max_residual - huber * huber)  # truncated
-                    count += 1
-                    continue
                 if ar < huber:
                     w = gw
                     cost += gw * r * r
@@ -273,6 +406,133 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
                     H[g2, g1] += v
     stats[0] = cost
     stats[1] = count
+
+
+@nb.njit(cache=True)
+def _accumulate_tracks(X, obs_start, obs_frame, obs_xy, R, t, intr, weight, huber_px,
+                       with_cameras, H, b, Hpp, bpp, Hpc, stats):
+    """Reprojection residuals of the tracked points (world points X, 3 unknowns each, their
+    observations in CSR order) added to the same normal equations as the photometric ones,
+    the points eliminated by their own 3x3 Schur blocks. ``weight`` is the cost of one pixel
+    in squared grey levels; Huber beyond ``huber_px``. Keyframe 0 is fixed (the gauge).
+    ``Hpc`` keeps each observation's 3x6 pose block and each point's 3x5 intrinsics block
+    (stored after the observations) for the back-substitution."""
+    f, cx, cy, k1, k2 = intr[0], intr[1], intr[2], intr[3], intr[4]
+    n_obs_total = obs_frame.shape[0]
+    cost = 0.0
+    for p in range(X.shape[0]):
+        o0 = obs_start[p]
+        o1 = obs_start[p + 1]
+        n = o1 - o0
+        # local unknowns: intrinsics (5), then 6 pose unknowns per observation
+        n_loc = N_INTR + 6 * n
+        Hcc = np.zeros((n_loc, n_loc))
+        Wc = np.zeros((3, n_loc))
+        bc = np.zeros(n_loc)
+        Hp = np.zeros((3, 3))
+        bp = np.zeros(3)
+        for o in range(o0, o1):
+            k = obs_frame[o]
+            Rk = R[k]
+            Xc0 = Rk[0, 0] * X[p, 0] + Rk[0, 1] * X[p, 1] + Rk[0, 2] * X[p, 2] + t[k, 0]
+            Xc1 = Rk[1, 0] * X[p, 0] + Rk[1, 1] * X[p, 1] + Rk[1, 2] * X[p, 2] + t[k, 1]
+            Xc2 = Rk[2, 0] * X[p, 0] + Rk[2, 1] * X[p, 1] + Rk[2, 2] * X[p, 2] + t[k, 2]
+            if Xc2 <= 1e-9:
+                continue
+            yx = Xc0 / Xc2
+            yy = Xc1 / Xc2
+            s2 = yx * yx + yy * yy
+            fac = 1 + k1 * s2 + k2 * s2 * s2
+            dfac = 2 * k1 + 4 * k2 * s2
+            e = np.empty(2)
+            e[0] = f * yx * fac + cx - obs_xy[o, 0]
+            e[1] = f * yy * fac + cy - obs_xy[o, 1]
+            norm = np.sqrt(e[0] * e[0] + e[1] * e[1])
+            w = weight if norm <= huber_px else weight * huber_px / norm
+            cost += (weight * norm * norm if norm <= huber_px
+                     else weight * (2 * huber_px * norm - huber_px * huber_px))
+            stats[1] += 1
+            slot = N_INTR + 6 * (o - o0)
+            for row in range(2):
+                gx = 1.0 if row == 0 else 0.0
+                gy = 1.0 - gx
+                a0 = f * (gx * (fac + dfac * yx * yx) + gy * dfac * yx * yy)
+                a1 = f * (gx * dfac * yx * yy + gy * (fac + dfac * yy * yy))
+                dX0 = a0 / Xc2
+                dX1 = a1 / Xc2
+                dX2 = -(a0 * Xc0 + a1 * Xc1) / (Xc2 * Xc2)
+                J = np.zeros(N_INTR + 6)
+                y = yx if row == 0 else yy
+                J[0] = y * fac
+                J[1] = gx
+                J[2] = gy
+                J[3] = f * y * s2
+                J[4] = f * y * s2 * s2
+                J[5] = dX0
+                J[6] = dX1
+                J[7] = dX2
+                J[8] = Xc1 * dX2 - Xc2 * dX1
+                J[9] = Xc2 * dX0 - Xc0 * dX2
+                J[10] = Xc0 * dX1 - Xc1 * dX0
+                jp = np.empty(3)
+                for c in range(3):
+                    jp[c] = dX0 * Rk[0, c] + dX1 * Rk[1, c] + dX2 * Rk[2, c]
+                r = e[row]
+                for c1 in range(3):
+                    bp[c1] += w * jp[c1] * r
+                    for c2 in range(3):
+                        Hp[c1, c2] += w * jp[c1] * jp[c2]
+                if not with_cameras:
+                    continue
+                cols = np.empty(N_INTR + 6, np.int64)
+                for c in range(N_INTR):
+                    cols[c] = c
+                for c in range(6):
+                    cols[N_INTR + c] = slot + c
+                for i1 in range(N_INTR + 6):
+                    c1 = cols[i1]
+                    bc[c1] += w * J[i1] * r
+                    for c in range(3):
+                        Wc[c, c1] += w * J[i1] * jp[c]
+                    for i2 in range(N_INTR + 6):
+                        Hcc[c1, cols[i2]] += w * J[i1] * J[i2]
+        Hpp[p] = Hp
+        bpp[p] = bp
+        if not with_cameras:
+            continue
+        det = np.linalg.det(Hp)
+        if abs(det) < 1e-18:
+            continue
+        inv = np.linalg.inv(Hp)
+        # global columns of the local unknowns (-1: keyframe 0, fixed)
+        glob = np.empty(n_loc, np.int64)
+        for c in range(N_INTR):
+            glob[c] = c
+        for o in range(o0, o1):
+            k = obs_frame[o]
+            for c in range(6):
+                glob[N_INTR + 6 * (o - o0) + c] = -1 if k == 0 else N_INTR + N_FRAME * (k - 1) + c
+            for c in range(3):
+                for c2 in range(6):
+                    Hpc[o, c, c2] = Wc[c, N_INTR + 6 * (o - o0) + c2]
+        for c in range(3):
+            for c2 in range(N_INTR):
+                Hpc[n_obs_total + p, c, c2] = Wc[c, c2]
+        IW = inv @ Wc
+        for c1 in range(n_loc):
+            g1 = glob[c1]
+            if g1 < 0:
+                continue
+            b[g1] += bc[c1] - (Wc[0, c1] * (inv[0, 0] * bp[0] + inv[0, 1] * bp[1] + inv[0, 2] * bp[2])
+                               + Wc[1, c1] * (inv[1, 0] * bp[0] + inv[1, 1] * bp[1] + inv[1, 2] * bp[2])
+                               + Wc[2, c1] * (inv[2, 0] * bp[0] + inv[2, 1] * bp[1] + inv[2, 2] * bp[2]))
+            for c2 in range(n_loc):
+                g2 = glob[c2]
+                if g2 < 0:
+                    continue
+                H[g1, g2] += Hcc[c1, c2] - (Wc[0, c1] * IW[0, c2] + Wc[1, c1] * IW[1, c2]
+                                            + Wc[2, c1] * IW[2, c2])
+    stats[0] += cost
 
 
 @nb.njit(cache=True)
@@ -373,6 +633,43 @@ def _select_points(img: np.ndarray, cell: int, min_grad: float, margin: int) -> 
     return np.stack([xs[keep], ys[keep]], 1).astype(np.float64)
 
 
+class _Normal:
+    """The normal equations of one evaluation: the Schur-reduced camera system, and what
+    the back-substitution of the photometric inverse depths and the tracked points needs."""
+
+    def __init__(self, n_cam: int, n_points: int, max_local: int, n_tracks: int,
+                 n_obs: int):
+        self.H = np.zeros((n_cam, n_cam))
+        self.b = np.zeros(n_cam)
+        self.Hpp, self.bpp = np.zeros(n_points), np.zeros(n_points)
+        self.Hcp = np.zeros((n_points, max_local))
+        self.idx = np.full((n_points, max_local), -1, np.int64)
+        self.Hpp3, self.bpp3 = np.zeros((n_tracks, 3, 3)), np.zeros((n_tracks, 3))
+        self.Hpc = np.zeros((n_obs + n_tracks, 3, 6))
+        self.stats = np.zeros(3)
+
+
+def _track_steps(e: _Normal, dc: np.ndarray, obs_start, obs_frame, lam: float) -> np.ndarray:
+    """The tracked points' steps for the camera step ``dc`` (back-substitution)."""
+    n = len(e.bpp3)
+    if n == 0:
+        return np.zeros((0, 3))
+    n_obs = len(obs_frame)
+    pose = np.zeros((n_obs, 6))
+    moving = obs_frame > 0
+    cols = N_INTR + N_FRAME * (obs_frame[moving] - 1)
+    pose[moving] = dc[cols[:, None] + np.arange(6)]
+    rhs = e.bpp3 + np.einsum("ncj,j->nc", e.Hpc[n_obs:, :, :N_INTR], dc[:N_INTR])
+    per_obs = np.einsum("ocj,oj->oc", e.Hpc[:n_obs], pose)
+    point = np.repeat(np.arange(n), np.diff(obs_start))
+    np.add.at(rhs, point, per_obs)
+    Hd = e.Hpp3 + lam * np.einsum("nii->ni", e.Hpp3)[:, :, None] * np.eye(3)[None]
+    ok = np.abs(np.linalg.det(Hd)) > 1e-18
+    step = np.zeros((n, 3))
+    step[ok] = -np.linalg.solve(Hd[ok], rhs[ok][:, :, None])[:, :, 0]
+    return step
+
+
 def _update_frames(R, t, affine, delta):
     """Left-multiplied pose increments (v, w) and brightness increments for keyframes 1..K-1."""
     R, t, affine = [r.copy() for r in R], [x.copy() for x in t], affine.copy()
@@ -395,6 +692,30 @@ def _relative(R, t):
             R_rel[h, k] = R[k] @ R[h].T
             t_rel[h, k] = t[k] - R_rel[h, k] @ t[h]
     return R_rel, t_rel
+
+
+def camera_motion(R: list[np.ndarray], t: list[np.ndarray], times: np.ndarray,
+                  seconds: float) -> np.ndarray:
+    """Per keyframe, the camera's displacement over ``seconds`` centred on its time, as
+    (w, v) in its own frame (a point X of the camera frame moves by w x X + v), from the
+    velocity of a constant-velocity model through its neighbouring keyframes (K, 6)."""
+    K = len(R)
+    out = np.zeros((K, 6))
+    if K < 2 or seconds <= 0:
+        return out
+    for k in range(K):
+        rates = []
+        for j in (k - 1, k + 1):
+            if not 0 <= j < K or times[j] == times[k]:
+                continue
+            # Camera k's frame to j's: X_j = R_kj X_k + t_kj = X_k + phi x X_k + t_kj (small).
+            R_kj = R[j] @ R[k].T
+            phi = cv2.Rodrigues(R_kj)[0][:, 0]
+            t_kj = t[j] - R_kj @ t[k]
+            rates.append(np.r_[phi, t_kj] / (times[j] - times[k]))
+        if rates:
+            out[k] = np.mean(rates, 0) * seconds
+    return out
 
 
 def _level_intrinsics(x: np.ndarray, s: float) -> np.ndarray:
@@ -504,7 +825,11 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                                   sparse_points: np.ndarray, config: PBAConfig | None = None,
                                   progress: bool = False,
                                   sparse_hosts: np.ndarray | None = None,
-                                  centre_prior: bool = False) -> PBAResult:
+                                  centre_prior: bool = False,
+                                  times: list[float] | None = None,
+                                  frame_interval_s: float | None = None,
+                                  tracks: tuple[np.ndarray, np.ndarray] | None = None
+                                  ) -> PBAResult:
     """Refine keyframe poses, intrinsics and distortion photometrically.
 
     ``images``: the keyframes (grey or RGB) in video order, at the intrinsics' resolution or
@@ -537,8 +862,9 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
     centres0 = np.array([-r.T @ x for r, x in zip(R, t)])
     spread = np.linalg.norm(centres0 - centres0.mean(0), axis=1).mean()
     # One standard deviation of a centre costs as much as one residual at the Huber threshold.
-    w_centre = (config.huber ** 2 / (config.centre_prior_pct / 100 * spread) ** 2
-                if centre_prior and config.centre_prior_pct > 0 else 0.0)
+    w_centre_unit = (1 / (config.centre_prior_pct / 100 * spread) ** 2
+                     if centre_prior and config.centre_prior_pct > 0 else 0.0)
+    w_centre = 0.0
 
     def prior_cost(R_, t_):
         if w_centre == 0:
@@ -561,7 +887,36 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
     targets = np.fromiter((k for x in tgt for k in x), np.int64)
     n_cam = N_INTR + N_FRAME * (K - 1)
     max_local = N_INTR + N_FRAME * (2 * config.neighbours + 1)
+    blur = config.motion_blur and times is not None and frame_interval_s
+    key_times = np.asarray(times if times is not None else np.zeros(K), float)
+    exposure_s = (config.exposure_fraction or 0.0) * (frame_interval_s or 0.0) if blur else 0.0
 
+    def motion(R_, t_):
+        return camera_motion(R_, t_, key_times, exposure_s / 2)
+
+    # The tracked points (the geometric solution's, with their observations) in the same
+    # solve: long tracks pin what the photometric residuals over neighbouring keyframes
+    # leave loose (the principal point against a tilt of every camera, the chain of
+    # centres).
+    if tracks is not None and config.track_weight > 0:
+        X = np.asarray(tracks[0], float).copy()
+        obs = np.asarray(tracks[1], float)
+        obs = obs[np.argsort(obs[:, 0], kind="stable")]
+        pid = obs[:, 0].astype(np.int64)
+        obs_start = np.searchsorted(pid, np.arange(len(X) + 1)).astype(np.int64)
+        obs_frame = obs[:, 1].astype(np.int64)
+        scale_px = intrinsics.width / full.width
+        obs_xy = (obs[:, 2:4] + 0.5) * scale_px - 0.5
+        track_w = config.track_weight ** 2
+    else:
+        X = np.zeros((0, 3))
+        obs_start = np.zeros(1, np.int64)
+        obs_frame = np.zeros(0, np.int64)
+        obs_xy = np.zeros((0, 2))
+        track_w = 0.0
+    # Without the tracks the intrinsics stay put: the photometric residuals over neighbouring
+    # keyframes leave the principal point free against a tilt of every camera.
+    free_intrinsics = config.refine_intrinsics and len(X) > 0
     rms_first = None
     for level in reversed(range(levels)):
         s = 2.0 ** level
@@ -573,36 +928,78 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
             gxs.append(gx)
             gys.append(gy)
         uv_l = uv0 / s
-        host_values = np.empty((len(host), 8))
         host_weights = np.empty((len(host), 8))
         c2 = config.gradient_weight ** 2
         for k in range(K):
             sel = host == k
             for q, d in enumerate(PATTERN):
-                host_values[sel, q] = _sample(pyr[k][level], uv_l[sel] + d)
                 # DSO's weight from the host's gradient: fixed while the poses move, so the
                 # cost cannot fall by sliding residuals onto strong edges.
                 g2 = _sample(gxs[k], uv_l[sel] + d) ** 2 + _sample(gys[k], uv_l[sel] + d) ** 2
                 host_weights[sel, q] = c2 / (c2 + g2)
 
-        def evaluate(R_, t_, aff_, intr_, rho_, with_cameras):
+        def evaluate(R_, t_, aff_, intr_, rho_, X_, with_cameras, with_tracks=True,
+                     residuals=None):
             R_rel, t_rel = _relative(R_, t_)
-            H = np.zeros((n_cam, n_cam))
-            b = np.zeros(n_cam)
-            Hpp, bpp = np.zeros(len(host)), np.zeros(len(host))
-            Hcp = np.zeros((len(host), max_local))
-            idx = np.full((len(host), max_local), -1, np.int64)
-            stats = np.zeros(2)
-            _accumulate(host, uv_l, rho_, target_start, targets, imgs, gxs, gys, host_values,
-                        host_weights, R_rel, t_rel, aff_, _level_intrinsics(intr_, s),
-                        config.huber, config.max_residual, with_cameras,
-                        H, b, Hpp, bpp, Hcp, idx, stats)
-            return H, b, Hpp, bpp, Hcp, idx, stats[0], int(stats[1])
+            e = _Normal(n_cam, len(host), max_local, len(X_), len(obs_frame))
+            intr_l = _level_intrinsics(intr_, s)
+            _accumulate(host, uv_l, rho_, target_start, targets, imgs, gxs, gys, host_weights,
+                        motion(R_, t_), config.blur_samples, R_rel, t_rel, aff_, intr_l,
+                        huber, max_residual, with_cameras,
+                        e.H, e.b, e.Hpp, e.bpp, e.Hcp, e.idx, e.stats,
+                        residuals if residuals is not None else np.zeros(0))
+            e.photometric = e.stats.copy()
+            if with_tracks and len(X_):
+                _accumulate_tracks(X_, obs_start, obs_frame, obs_xy / s, np.asarray(R_),
+                                   np.asarray(t_), intr_l, track_w * s * s, config.track_huber_px / s,
+                                   with_cameras, e.H, e.b, e.Hpp3, e.bpp3, e.Hpc, e.stats)
+            e.cost, e.count = float(e.stats[0]), int(e.stats[1])
+            return e
 
+        def robust_scale():
+            """1.4826 x the median residual magnitude at the current cameras (grey levels):
+            the residuals' standard deviation, whatever the outliers."""
+            buf = np.empty(8 * len(targets))
+            e = evaluate(R, t, affine, intr, rho, X, False, with_tracks=False, residuals=buf)
+            n = int(e.stats[2])
+            # At least the noise of 8-bit quantisation (1/sqrt(12) grey levels): exact
+            # renders would otherwise make every residual an outlier.
+            return max(1.4826 * float(np.median(buf[:n])) if n else 1.0, 12 ** -0.5)
+
+        # The robust loss in units of the residuals' own spread (noise, codec, blur differ
+        # from capture to capture): Huber, and the outlier bound of a pattern in one target.
+        huber, max_residual = 1e9, 1e9
+        sigma = robust_scale()
+        huber, max_residual = config.huber * sigma, config.max_residual * sigma
+        if blur and config.exposure_fraction is None:
+            # The exposure is rarely known for a video: the candidate whose blur model makes
+            # the residuals smallest (an over- or under-estimate leaves the two sides of every
+            # residual differently blurred). Again at each level: misaligned cameras favour
+            # a longer exposure (blurring both sides hides misalignment), the finer level
+            # starts from better ones.
+            costs = []
+            for fraction in config.exposure_candidates:
+                exposure_s = fraction * frame_interval_s
+                e = evaluate(R, t, affine, intr, rho, X, False, with_tracks=False)
+                costs.append(e.cost / max(e.count, 1))
+            fraction = config.exposure_candidates[int(np.argmin(costs))]
+            exposure_s = fraction * frame_interval_s
+            log.append("exposure " + ", ".join(
+                f"{f:g}: rms {np.sqrt(c):.3f}" for f, c in zip(config.exposure_candidates,
+                                                               costs))
+                       + f"; chose {fraction:g} of a frame at level {level}")
+            if progress:
+                print(log[-1])
+            sigma = robust_scale()
+            huber, max_residual = config.huber * sigma, config.max_residual * sigma
+        log.append(f"level {level}: residual scale {sigma:.2f} grey levels")
+        if w_centre_unit:
+            w_centre = huber ** 2 * w_centre_unit
         lam = config.initial_lambda
         for it in range(config.iterations):
             cams = it >= config.depth_only_iterations
-            H, b, Hpp, bpp, Hcp, idx, cost, count = evaluate(R, t, affine, intr, rho, cams)
+            e = evaluate(R, t, affine, intr, rho, X, cams)
+            H, b, cost, count = e.H, e.b, e.cost, e.count
             cost_prior = prior_cost(R, t)
             if rms_first is None:
                 rms_first = np.sqrt(cost / max(count, 1))
@@ -621,21 +1018,23 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                         c = -R[k].T @ t[k]
                         H[sl, sl] += w_centre * np.eye(3)
                         b[sl] += -w_centre * R[k] @ (c - centres0[k])
-                if not config.refine_intrinsics or level > config.intrinsics_level:
+                if not free_intrinsics or level > config.intrinsics_level:
                     H[:N_INTR, :N_INTR] += 1e12 * np.eye(N_INTR)
                 dc = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), b)
-                dcl = np.where(idx >= 0, dc[np.maximum(idx, 0)], 0.0)
-                drho = -(bpp + np.sum(Hcp * dcl, 1)) / (Hpp * (1 + lam) + 1e-12)
+                dcl = np.where(e.idx >= 0, dc[np.maximum(e.idx, 0)], 0.0)
+                drho = -(e.bpp + np.sum(e.Hcp * dcl, 1)) / (e.Hpp * (1 + lam) + 1e-12)
                 R2, t2, aff2 = _update_frames(R, t, affine, dc[N_INTR:])
                 intr2 = _full_intrinsics(_level_intrinsics(intr, s) + dc[:N_INTR], s)
+                X2 = X + _track_steps(e, dc, obs_start, obs_frame, lam)
             else:
-                drho = -bpp / (Hpp * (1 + lam) + 1e-12)
-                R2, t2, aff2, intr2 = R, t, affine, intr
+                drho = -e.bpp / (e.Hpp * (1 + lam) + 1e-12)
+                R2, t2, aff2, intr2, X2 = R, t, affine, intr, X
             rho2 = np.clip(rho + drho, rho * 0.5, rho * 2.0)
-            cost2, count2 = evaluate(R2, t2, aff2, intr2, rho2, False)[6:]
+            e2 = evaluate(R2, t2, aff2, intr2, rho2, X2, False)
+            cost2, count2 = e2.cost, e2.count
             accept = cost2 + prior_cost(R2, t2) <= cost + cost_prior
             if accept:
-                R, t, affine, intr, rho = R2, t2, aff2, intr2, rho2
+                R, t, affine, intr, rho, X = R2, t2, aff2, intr2, rho2, X2
                 lam = max(lam / 4, 1e-7)
             else:
                 lam *= 4
@@ -646,11 +1045,13 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                        f"lambda {lam:.1e}, |drho|/rho {np.median(np.abs(drho) / rho):.1e}")
             if progress:
                 print(log[-1])
-    cost, count = evaluate(R, t, affine, intr, rho, False)[6:]
+    e = evaluate(R, t, affine, intr, rho, X, False)
+    cost, count = e.cost, e.count
     out = Intrinsics(intrinsics.width, intrinsics.height, float(intr[0]), float(intr[0]),
                      float(intr[1]), float(intr[2]), float(intr[3]), float(intr[4]))
     if (out.width, out.height) != (full.width, full.height):
         out = out.scaled(full.width, full.height)
     return PBAResult(out, R, t, affine, len(host), count, float(rms_first),
                      float(np.sqrt(cost / max(count, 1))),
-                     time.perf_counter() - start, log)
+                     time.perf_counter() - start, log,
+                     exposure_s / frame_interval_s if blur else None)

@@ -47,16 +47,27 @@ def track_hosts(observations: np.ndarray, n_points: int) -> np.ndarray:
 
 
 def photometric_refinement(poses: Poses, grey_keyframes: list[np.ndarray], config: PoseConfig,
-                           progress: bool = False) -> Poses:
+                           progress: bool = False, keyframes=None) -> Poses:
     """PBA of ``poses`` over the keyframes (grey, in poses' order, at full resolution or
     already at most ``config.pba.max_width`` wide); the sparse points are re-triangulated
-    from their observations with the refined cameras (full-resolution intrinsics)."""
+    from their observations with the refined cameras (full-resolution intrinsics).
+    ``keyframes``: the video's keyframes, whose times let PBA model motion blur (None, or
+    photos: not modelled)."""
     from facecap_core.pose.pba import photometric_bundle_adjustment
 
+    times = interval = None
+    if keyframes is not None and keyframes.ordered and len(keyframes.indices) > 1:
+        at = dict(zip(keyframes.indices, keyframes.times))
+        times = [at[i] for i in poses.frame_indices]
+        interval = float(np.median(np.diff(keyframes.times) / np.diff(keyframes.indices)))
     result = photometric_bundle_adjustment(
         grey_keyframes, poses.intrinsics, poses.R, poses.t, poses.points, config.pba,
         progress=progress, sparse_hosts=track_hosts(poses.observations, len(poses.points)),
-        centre_prior=True)
+        centre_prior=True, times=times, frame_interval_s=interval,
+        tracks=(poses.points, poses.observations))
+    if result.exposure_fraction is not None:
+        log.info("motion blur modelled with an exposure of %.3g of a frame",
+                 result.exposure_fraction)
     points, rows = triangulate(poses.observations, result.R, result.t, result.intrinsics,
                                min_views=2, min_angle_deg=1.0)
     return Poses(result.intrinsics, list(poses.frame_indices), result.R, result.t, points,
@@ -154,7 +165,7 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
         # Decoded straight to PBA's processing width: PBA holds every keyframe at once.
         greys = read_frames(video, keyframes.indices, width=config.pba.max_width, grey=True)
         grey_list = [greys[i] for i in current.frame_indices]
-        refined = photometric_refinement(current, grey_list, config, progress)
+        refined = photometric_refinement(current, grey_list, config, progress, keyframes)
         refined.seconds = current.seconds + time.perf_counter() - start
         current = steps["pba"] = refined
     return steps
