@@ -328,6 +328,17 @@ class PBAConfig(StrictModel):
     residual (0: photometric only)."""
     track_huber_px: float = Field(1.0, gt=0)
     """Huber threshold of the reprojection errors (pixels)."""
+    rolling_shutter: bool = False
+    """Model a rolling shutter: each image row exposed at its own time, the camera moving at
+    a constant velocity (through the neighbouring keyframes) over the readout; with the
+    readout chosen from the tracks, their adjustment under it is PBA's start. Videos only.
+    Off by default: SfM and the geometric solution model no rolling shutter, and from their
+    start it did not help on the benchmark's rolling-shutter capture (docs/poses.md)."""
+    readout_s: float | None = Field(None, ge=0, le=0.1)
+    """Readout time from the first row to the last (seconds; 0: global shutter); None: the
+    one of ``readout_candidates`` whose model fits the keyframes best."""
+    readout_candidates: tuple[float, ...] = (0.0, 0.01, 0.02, 0.03, 0.04)
+    """Readouts (seconds) tried when ``readout_s`` is None (phones: about 10-35 ms)."""
     blur_samples: int = Field(9, ge=1, le=64)
     """Most samples along one streak (one per pixel of its length)."""
     max_width: int | None = Field(1920, ge=160, le=8192)

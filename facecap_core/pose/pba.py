@@ -59,6 +59,7 @@ class PBAResult:
     seconds: float
     log: list[str]
     exposure_fraction: float | None = None  # the exposure the blur model used (of a frame)
+    readout_s: float | None = None  # the rolling shutter's readout the model used
 
 
 # -- numba kernels ---------------------------------------------------------------------------
@@ -118,6 +119,14 @@ def _blur(X0, X1, X2, m, f, cx, cy, k1, k2):
 
 
 @nb.njit(cache=True, inline="always")
+def _moved(X0, X1, X2, m, tau):
+    """A camera point after the camera moved for ``tau`` seconds at velocity ``m`` (w, v)."""
+    return (X0 + tau * (m[1] * X2 - m[2] * X1 + m[3]),
+            X1 + tau * (m[2] * X0 - m[0] * X2 + m[4]),
+            X2 + tau * (m[0] * X1 - m[1] * X0 + m[5]))
+
+
+@nb.njit(cache=True, inline="always")
 def _streak(img, x, y, dx, dy, n):
     """Mean of ``img`` over ``n`` samples of the segment centred on (x, y) with extent
     (dx, dy): an image seen through a box blur along that segment."""
@@ -141,8 +150,9 @@ def _samples(dx, dy, most):
 
 @nb.njit(cache=True)
 def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, host_weights,
-                motion, max_samples, R_rel, t_rel, affine, intr, huber, max_residual,
-                with_cameras, H, b, Hpp, bpp, Hcp_store, idx_store, stats, res_out):
+                motion, max_samples, velocity, readout, rows, R_rel, t_rel, affine, intr,
+                huber, max_residual, with_cameras, H, b, Hpp, bpp, Hcp_store, idx_store, stats,
+                res_out):
     """Residuals, weights and Jacobians of every point; Schur-reduced normal equations.
 
     Camera unknowns are [intrinsics (5), keyframes 1..K-1 (8 each)]; keyframe 0 is fixed.
@@ -158,6 +168,12 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
     along the host's (mapped into the target). Both sides are then the scene blurred by
     both streaks, equal at the true poses whatever the blur (a box blur along a segment
     commutes with the locally affine warp). The Jacobian treats the host's side as fixed.
+
+    Rolling shutter (``readout``: seconds from the first of ``rows`` image rows to the last;
+    0 for a global shutter): row y was exposed ``readout (y / rows - 1/2)`` after the frame's
+    middle, by the camera moved by its ``velocity`` (per keyframe (w, v) per second, a
+    constant velocity) for that long. A host pixel's ray is cast from its row's camera; the
+    point is found in the target's row that sees it (two fixed-point steps).
     """
     f, cx, cy, k1, k2 = intr[0], intr[1], intr[2], intr[3], intr[4]
     max_local = Hcp_store.shape[1]
@@ -223,19 +239,35 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
         nt_ = t1 - t0
         cache = np.full((nt_, 8, 4), np.nan)
         pair_ok = np.zeros(nt_, np.bool_)
+        host_X = np.empty((8, 3))  # the pattern's points in the host's mid-frame camera
+        target_X = np.full((nt_, 8, 3), np.nan)  # and in each target's, at their rows' times
         for q in range(8):
             uh = uv[p, 0] + PATTERN[q, 0]
             vh = uv[p, 1] + PATTERN[q, 1]
             xn, yn, _, _, _, _ = _undistort((uh - cx) / f, (vh - cy) / f, k1, k2)
+            Y0, Y1, Y2 = xn / rho[p], yn / rho[p], 1.0 / rho[p]
+            if readout != 0.0:
+                Y0, Y1, Y2 = _moved(Y0, Y1, Y2, velocity[h], -readout * (vh / rows - 0.5))
+            host_X[q, 0], host_X[q, 1], host_X[q, 2] = Y0, Y1, Y2
             for k in range(t0, t1):
                 tg = targets[k]
                 Rr = R_rel[h, tg]
                 tr = t_rel[h, tg]
-                X0 = (Rr[0, 0] * xn + Rr[0, 1] * yn + Rr[0, 2]) / rho[p] + tr[0]
-                X1 = (Rr[1, 0] * xn + Rr[1, 1] * yn + Rr[1, 2]) / rho[p] + tr[1]
-                X2 = (Rr[2, 0] * xn + Rr[2, 1] * yn + Rr[2, 2]) / rho[p] + tr[2]
+                Z0 = Rr[0, 0] * Y0 + Rr[0, 1] * Y1 + Rr[0, 2] * Y2 + tr[0]
+                Z1 = Rr[1, 0] * Y0 + Rr[1, 1] * Y1 + Rr[1, 2] * Y2 + tr[1]
+                Z2 = Rr[2, 0] * Y0 + Rr[2, 1] * Y1 + Rr[2, 2] * Y2 + tr[2]
+                X0, X1, X2 = Z0, Z1, Z2
+                if readout != 0.0 and Z2 > 1e-9:
+                    for _ in range(2):
+                        _, vt = _pixel(X0, X1, X2, f, cx, cy, k1, k2)
+                        X0, X1, X2 = _moved(Z0, Z1, Z2, velocity[tg],
+                                            readout * (vt / rows - 0.5))
+                        if X2 <= 1e-9:
+                            break
                 if X2 <= 1e-9:
                     continue
+                target_X[k - t0, q, 0], target_X[k - t0, q, 1] = X0, X1
+                target_X[k - t0, q, 2] = X2
                 ut, vt = _pixel(X0, X1, X2, f, cx, cy, k1, k2)
                 sx, sy = streaks[k - t0, 0], streaks[k - t0, 1]
                 nt = _samples(sx, sy, max_samples)
@@ -284,18 +316,15 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
             for c in range(N_INTR):
                 dxn[0, c] = (g11 * dxd[0, c] - g01 * dxd[1, c]) / det
                 dxn[1, c] = (-g01 * dxd[0, c] + g00 * dxd[1, c]) / det
-            Xh0 = xn / rho[p]
-            Xh1 = yn / rho[p]
-            Xh2 = 1.0 / rho[p]
+            # The Jacobians take the rolling shutter's motion as fixed (it is a velocity times
+            # a fraction of the readout: ~1 % of the points' own change).
+            Xh0, Xh1, Xh2 = host_X[q, 0], host_X[q, 1], host_X[q, 2]
             for k in range(t0, t1):
                 tg = targets[k]
                 slot = 1 + k - t0
                 Rr = R_rel[h, tg]
-                tr = t_rel[h, tg]
-                X0 = Rr[0, 0] * Xh0 + Rr[0, 1] * Xh1 + Rr[0, 2] * Xh2 + tr[0]
-                X1 = Rr[1, 0] * Xh0 + Rr[1, 1] * Xh1 + Rr[1, 2] * Xh2 + tr[1]
-                X2 = Rr[2, 0] * Xh0 + Rr[2, 1] * Xh1 + Rr[2, 2] * Xh2 + tr[2]
-                if X2 <= 1e-9:
+                X0, X1, X2 = target_X[k - t0, q, 0], target_X[k - t0, q, 1], target_X[k - t0, q, 2]
+                if not X2 > 1e-9:
                     continue
                 yx = X0 / X2
                 yy = X1 / X2
@@ -410,13 +439,15 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
 
 @nb.njit(cache=True)
 def _accumulate_tracks(X, obs_start, obs_frame, obs_xy, R, t, intr, weight, huber_px,
-                       with_cameras, H, b, Hpp, bpp, Hpc, stats):
+                       velocity, readout, rows, with_cameras, H, b, Hpp, bpp, Hpc, stats):
     """Reprojection residuals of the tracked points (world points X, 3 unknowns each, their
     observations in CSR order) added to the same normal equations as the photometric ones,
     the points eliminated by their own 3x3 Schur blocks. ``weight`` is the cost of one pixel
     in squared grey levels; Huber beyond ``huber_px``. Keyframe 0 is fixed (the gauge).
     ``Hpc`` keeps each observation's 3x6 pose block and each point's 3x5 intrinsics block
-    (stored after the observations) for the back-substitution."""
+    (stored after the observations) for the back-substitution. With a rolling shutter
+    (``readout`` > 0) each observation is of the camera moved for its row's time offset.
+    """
     f, cx, cy, k1, k2 = intr[0], intr[1], intr[2], intr[3], intr[4]
     n_obs_total = obs_frame.shape[0]
     cost = 0.0
@@ -437,6 +468,9 @@ def _accumulate_tracks(X, obs_start, obs_frame, obs_xy, R, t, intr, weight, hube
             Xc0 = Rk[0, 0] * X[p, 0] + Rk[0, 1] * X[p, 1] + Rk[0, 2] * X[p, 2] + t[k, 0]
             Xc1 = Rk[1, 0] * X[p, 0] + Rk[1, 1] * X[p, 1] + Rk[1, 2] * X[p, 2] + t[k, 1]
             Xc2 = Rk[2, 0] * X[p, 0] + Rk[2, 1] * X[p, 1] + Rk[2, 2] * X[p, 2] + t[k, 2]
+            if readout != 0.0:
+                Xc0, Xc1, Xc2 = _moved(Xc0, Xc1, Xc2, velocity[k],
+                                       readout * (obs_xy[o, 1] / rows - 0.5))
             if Xc2 <= 1e-9:
                 continue
             yx = Xc0 / Xc2
@@ -670,6 +704,38 @@ def _track_steps(e: _Normal, dc: np.ndarray, obs_start, obs_frame, lam: float) -
     return step
 
 
+def _adjust_to_tracks(R, t, intr, X, obs_start, obs_frame, obs_xy, rows, velocity, readout,
+                      huber_px, iterations):
+    """Cameras, intrinsics and points adjusted to the tracked points alone under a given
+    rolling-shutter readout (Levenberg-Marquardt, keyframe 0 fixed), and the reprojection
+    cost left: how well that readout explains the tracks. Returns (cost, R, t, intr, X)."""
+    K = len(R)
+    n_cam = N_INTR + N_FRAME * (K - 1)
+    R, t, intr, X = list(R), list(t), intr.copy(), X.copy()
+    lam = 1e-3
+
+    def run(R_, t_, intr_, X_, with_cameras):
+        e = _Normal(n_cam, 0, 1, len(X_), len(obs_frame))
+        _accumulate_tracks(X_, obs_start, obs_frame, obs_xy, np.asarray(R_), np.asarray(t_),
+                           intr_, 1.0, huber_px, velocity(R_, t_), readout, rows,
+                           with_cameras, e.H, e.b, e.Hpp3, e.bpp3, e.Hpc, e.stats)
+        return e
+
+    e = run(R, t, intr, X, True)
+    for _ in range(iterations):
+        dc = -np.linalg.solve(e.H + lam * np.diag(np.diag(e.H)) + 1e-9 * np.eye(n_cam), e.b)
+        R2, t2, _ = _update_frames(R, t, np.zeros((K, 2)), dc[N_INTR:])
+        intr2 = intr + dc[:N_INTR]
+        X2 = X + _track_steps(e, dc, obs_start, obs_frame, lam)
+        e2 = run(R2, t2, intr2, X2, True)
+        if e2.stats[0] < e.stats[0]:
+            R, t, intr, X, e = R2, t2, intr2, X2, e2
+            lam = max(lam / 4, 1e-7)
+        else:
+            lam *= 4
+    return float(e.stats[0]), R, t, intr, X
+
+
 def _update_frames(R, t, affine, delta):
     """Left-multiplied pose increments (v, w) and brightness increments for keyframes 1..K-1."""
     R, t, affine = [r.copy() for r in R], [x.copy() for x in t], affine.copy()
@@ -887,12 +953,15 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
     targets = np.fromiter((k for x in tgt for k in x), np.int64)
     n_cam = N_INTR + N_FRAME * (K - 1)
     max_local = N_INTR + N_FRAME * (2 * config.neighbours + 1)
-    blur = config.motion_blur and times is not None and frame_interval_s
+    video = times is not None and bool(frame_interval_s)
+    blur = config.motion_blur and video
+    shutter = config.rolling_shutter and video
     key_times = np.asarray(times if times is not None else np.zeros(K), float)
     exposure_s = (config.exposure_fraction or 0.0) * (frame_interval_s or 0.0) if blur else 0.0
+    readout_s = (config.readout_s or 0.0) if shutter else 0.0
 
-    def motion(R_, t_):
-        return camera_motion(R_, t_, key_times, exposure_s / 2)
+    def velocity(R_, t_):
+        return camera_motion(R_, t_, key_times, 1.0) if video else np.zeros((K, 6))
 
     # The tracked points (the geometric solution's, with their observations) in the same
     # solve: long tracks pin what the photometric residuals over neighbouring keyframes
@@ -918,6 +987,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
     # keyframes leave the principal point free against a tilt of every camera.
     free_intrinsics = config.refine_intrinsics and len(X) > 0
     rms_first = None
+    frozen_velocity = None
     for level in reversed(range(levels)):
         s = 2.0 ** level
         imgs, gxs, gys = nb.typed.List(), nb.typed.List(), nb.typed.List()
@@ -939,19 +1009,22 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                 host_weights[sel, q] = c2 / (c2 + g2)
 
         def evaluate(R_, t_, aff_, intr_, rho_, X_, with_cameras, with_tracks=True,
-                     residuals=None):
+                     residuals=None):  # noqa: B023 (the level's images, scale and velocity)
             R_rel, t_rel = _relative(R_, t_)
             e = _Normal(n_cam, len(host), max_local, len(X_), len(obs_frame))
             intr_l = _level_intrinsics(intr_, s)
+            vel = frozen_velocity if frozen_velocity is not None else velocity(R_, t_)
             _accumulate(host, uv_l, rho_, target_start, targets, imgs, gxs, gys, host_weights,
-                        motion(R_, t_), config.blur_samples, R_rel, t_rel, aff_, intr_l,
+                        vel * (exposure_s / 2), config.blur_samples, vel, readout_s,
+                        imgs[0].shape[0], R_rel, t_rel, aff_, intr_l,
                         huber, max_residual, with_cameras,
                         e.H, e.b, e.Hpp, e.bpp, e.Hcp, e.idx, e.stats,
                         residuals if residuals is not None else np.zeros(0))
             e.photometric = e.stats.copy()
             if with_tracks and len(X_):
                 _accumulate_tracks(X_, obs_start, obs_frame, obs_xy / s, np.asarray(R_),
-                                   np.asarray(t_), intr_l, track_w * s * s, config.track_huber_px / s,
+                                   np.asarray(t_), intr_l, track_w * s * s,
+                                   config.track_huber_px / s, vel, readout_s, imgs[0].shape[0],
                                    with_cameras, e.H, e.b, e.Hpp3, e.bpp3, e.Hpc, e.stats)
             e.cost, e.count = float(e.stats[0]), int(e.stats[1])
             return e
@@ -971,25 +1044,62 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
         huber, max_residual = 1e9, 1e9
         sigma = robust_scale()
         huber, max_residual = config.huber * sigma, config.max_residual * sigma
-        if blur and config.exposure_fraction is None:
-            # The exposure is rarely known for a video: the candidate whose blur model makes
-            # the residuals smallest (an over- or under-estimate leaves the two sides of every
-            # residual differently blurred). Again at each level: misaligned cameras favour
-            # a longer exposure (blurring both sides hides misalignment), the finer level
-            # starts from better ones.
+        # The exposure and the readout are rarely known for a video: the candidates whose
+        # model makes the residuals smallest (an over- or under-estimate leaves the two sides
+        # of every residual differently blurred, or their rows at the wrong times). Again at
+        # each level: misaligned cameras favour a longer exposure (blurring both sides hides
+        # misalignment), the finer level starts from better ones.
+        def choose(candidates, apply, name, unit):
             costs = []
-            for fraction in config.exposure_candidates:
-                exposure_s = fraction * frame_interval_s
+            for value in candidates:
+                apply(value)
                 e = evaluate(R, t, affine, intr, rho, X, False, with_tracks=False)
                 costs.append(e.cost / max(e.count, 1))
-            fraction = config.exposure_candidates[int(np.argmin(costs))]
-            exposure_s = fraction * frame_interval_s
-            log.append("exposure " + ", ".join(
-                f"{f:g}: rms {np.sqrt(c):.3f}" for f, c in zip(config.exposure_candidates,
-                                                               costs))
-                       + f"; chose {fraction:g} of a frame at level {level}")
+            best = candidates[int(np.argmin(costs))]
+            apply(best)
+            log.append(f"{name} " + ", ".join(f"{v:g}: rms {np.sqrt(c):.3f}"
+                                             for v, c in zip(candidates, costs))
+                       + f"; chose {best:g} {unit} at level {level}")
             if progress:
                 print(log[-1])
+            return best
+
+        def set_readout(value):
+            nonlocal readout_s
+            readout_s = value
+
+        def set_exposure(value):
+            nonlocal exposure_s
+            exposure_s = value * frame_interval_s
+
+        if shutter and config.readout_s is None and level == levels - 1:
+            if len(X):
+                # From the tracks, each candidate after its own adjustment of the cameras:
+                # the start absorbed the shutter's distortion into its cameras (a tilt, a
+                # principal point), so at the start every readout but 0 looks worse.
+                # The chosen readout's adjustment is the start: SfM and the geometric solution
+                # model no rolling shutter.
+                adjusted = [_adjust_to_tracks(
+                    R, t, intr, X, obs_start, obs_frame, obs_xy, greys[0].shape[0], velocity,
+                    value, config.track_huber_px, 15) for value in config.readout_candidates]
+                costs = [a[0] for a in adjusted]
+                best = int(np.argmin(costs))
+                readout_s = config.readout_candidates[best]
+                if readout_s > 0:
+                    R, t, intr, X = _adjust_to_tracks(
+                        *adjusted[best][1:], obs_start, obs_frame, obs_xy, greys[0].shape[0],
+                        velocity, readout_s, config.track_huber_px, 35)[1:]
+                    baseline_ref = np.linalg.norm(R[1].T @ t[1] - R[0].T @ t[0])
+                log.append("readout " + ", ".join(
+                    f"{v:g}: cost {c:.4g}" for v, c in zip(config.readout_candidates, costs))
+                    + f"; chose {readout_s:g} s from the tracks")
+                if progress:
+                    print(log[-1])
+            else:
+                choose(config.readout_candidates, set_readout, "readout", "s")
+        if blur and config.exposure_fraction is None:
+            choose(config.exposure_candidates, set_exposure, "exposure", "of a frame")
+        if shutter and config.readout_s is None or blur and config.exposure_fraction is None:
             sigma = robust_scale()
             huber, max_residual = config.huber * sigma, config.max_residual * sigma
         log.append(f"level {level}: residual scale {sigma:.2f} grey levels")
@@ -997,6 +1107,9 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
             w_centre = huber ** 2 * w_centre_unit
         lam = config.initial_lambda
         for it in range(config.iterations):
+            # The camera velocities (blur, rolling shutter) are those of the iteration's start
+            # for its step and the step's test: the Jacobians hold them fixed.
+            frozen_velocity = velocity(R, t)
             cams = it >= config.depth_only_iterations
             e = evaluate(R, t, affine, intr, rho, X, cams)
             H, b, cost, count = e.H, e.b, e.cost, e.count
@@ -1045,6 +1158,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                        f"lambda {lam:.1e}, |drho|/rho {np.median(np.abs(drho) / rho):.1e}")
             if progress:
                 print(log[-1])
+    frozen_velocity = None
     e = evaluate(R, t, affine, intr, rho, X, False)
     cost, count = e.cost, e.count
     out = Intrinsics(intrinsics.width, intrinsics.height, float(intr[0]), float(intr[0]),
@@ -1054,4 +1168,5 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
     return PBAResult(out, R, t, affine, len(host), count, float(rms_first),
                      float(np.sqrt(cost / max(count, 1))),
                      time.perf_counter() - start, log,
-                     exposure_s / frame_interval_s if blur else None)
+                     exposure_s / frame_interval_s if blur else None,
+                     readout_s if shutter else None)
