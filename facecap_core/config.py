@@ -320,7 +320,7 @@ class PBAConfig(StrictModel):
     exposure_fraction: float | None = Field(None, ge=0, le=1)
     """Exposure as a fraction of the frame interval; None: the one of
     ``exposure_candidates`` whose blur model fits the starting cameras best."""
-    exposure_candidates: tuple[float, ...] = (0.0, 0.125, 0.25, 0.375, 0.5, 0.75, 1.0)
+    exposure_candidates: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75)
     """Exposures (fractions of the frame interval) tried when ``exposure_fraction`` is None."""
     track_weight: float = Field(30.0, ge=0)
     """The tracked points' reprojection errors join the photometric residuals in one solve:
