@@ -320,7 +320,7 @@ class PBAConfig(StrictModel):
     exposure_fraction: float | None = Field(None, ge=0, le=1)
     """Exposure as a fraction of the frame interval; None: the one of
     ``exposure_candidates`` whose blur model fits the starting cameras best."""
-    exposure_candidates: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75)
+    exposure_candidates: tuple[float, ...] = Field((0.0, 0.25, 0.5, 0.75), min_length=1)
     """Exposures (fractions of the frame interval) tried when ``exposure_fraction`` is None."""
     track_weight: float = Field(30.0, ge=0)
     """The tracked points' reprojection errors join the photometric residuals in one solve:
@@ -337,7 +337,7 @@ class PBAConfig(StrictModel):
     readout_s: float | None = Field(None, ge=0, le=0.1)
     """Readout time from the first row to the last (seconds; 0: global shutter); None: the
     one of ``readout_candidates`` whose model fits the keyframes best."""
-    readout_candidates: tuple[float, ...] = (0.0, 0.01, 0.02, 0.03, 0.04)
+    readout_candidates: tuple[float, ...] = Field((0.0, 0.01, 0.02, 0.03, 0.04), min_length=1)
     """Readouts (seconds) tried when ``readout_s`` is None (phones: about 10-35 ms)."""
     blur_samples: int = Field(9, ge=1, le=64)
     """Most samples along one streak (one per pixel of its length)."""

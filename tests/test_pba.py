@@ -309,4 +309,9 @@ def test_the_tracks_under_a_rolling_shutter_recover_the_cameras():
     got = Intrinsics(320, 240, intr_[0], intr_[0], intr_[1], intr_[2], intr_[3], intr_[4])
     after = pose_errors(R_, t_, got, R, t, intr)
     assert after["rotation_deg"] < 1e-5 and after["focal_pct"] < 1e-6, after
-    assert costs[readout] < 1e-12 and costs[0.0] > 1e6 * max(costs[readout], 1e-18), costs
+    # The scale is the gauge's: the first baseline keeps its length.
+    baseline = [np.linalg.norm(r[1].T @ x[1] - r[0].T @ x[0]) for r, x in ((R_, t_), (R, t))]
+    assert after["centre_pct"] < 1e-6 and baseline[0] == pytest.approx(baseline[1], rel=1e-9)
+    # Exact under the true readout (float rounding, ~1e-24 px² in all); a global shutter
+    # folds most of the shear into the cameras but cannot reach zero (measured 0.016 px²).
+    assert costs[readout] < 1e-12 and costs[0.0] > 1e-3, costs

@@ -111,7 +111,7 @@ def test_pose_stage_calibrates_every_keyframe(capture, tmp_path):
     assert errors["geometric"]["centre_pct"] < 0.3 and errors["geometric"]["focal_pct"] < 1.0
     # A 3 s, 640x360 sweep: a few tenths of a degree (the 8 s 720p benchmark captures reach
     # ~0.07°). PBA starts from the geometric solution and must improve on it: measured on
-    # this capture 0.195° -> 0.161° and focal length 0.65 % -> 0.39 %.
+    # this capture about 0.19° -> 0.16-0.17° and focal length 0.65 % -> 0.4 %.
     assert errors["pba"]["rotation_deg"] < 0.5 and errors["pba"]["centre_pct"] < 0.3
     assert errors["pba"]["rotation_deg"] < errors["geometric"]["rotation_deg"], errors
     assert errors["pba"]["focal_pct"] < errors["geometric"]["focal_pct"], errors

@@ -1,8 +1,8 @@
 """Photometric bundle adjustment (PBA) of keyframe poses, intrinsics and radial distortion.
 
-One module of ~650 lines on purpose: the residual, its derivatives, the numba accumulation
-and the Schur-complement solve share one parameter layout and one set of kernels; split,
-they would need an interface as wide as the algorithm.
+One module on purpose: the residuals, their derivatives, the numba accumulation and the
+Schur-complement solve share one parameter layout and one set of kernels; split, they would
+need an interface as wide as the algorithm.
 
 The method of DSO (Engel et al.), run as a batch over all keyframes:
 
@@ -13,15 +13,22 @@ The method of DSO (Engel et al.), run as a batch over all keyframes:
 * **Residuals**: each pattern pixel is cast along its host ray at the point's inverse depth,
   projected into nearby keyframes (the targets) and compared there:
   ``r = I_t(u_t) - b_t - exp(a_t - a_h) (I_h(u_h) - b_h)``, with a per-keyframe affine
-  brightness (a, b) for exposure changes, a Huber weight and DSO's gradient-dependent weight.
+  brightness (a, b) for exposure changes, DSO's gradient-dependent weight and a robust loss
+  scaled to the residuals' own spread (whole patterns dropped as outliers). Each side is
+  sampled along the other keyframe's motion-blur streak, and optionally each row at its own
+  time (rolling shutter).
+* **Tracked points** (optional, the default in the pose stage): the initial reconstruction's
+  points (3 unknowns each) and their reprojection errors against their observations, in the
+  same solve.
 * **Unknowns**: every keyframe's pose (6) and brightness (2), one shared camera: focal length,
-  principal point and radial distortion k1, k2 (5), and all inverse depths.
-* **Solver**: Levenberg–Marquardt with analytic Jacobians. Inverse depths are eliminated by
-  the Schur complement (each is a 1×1 block), leaving a small dense system over the camera
-  unknowns; coarse to fine over an image pyramid.
+  principal point and radial distortion k1, k2 (5), all inverse depths and tracked points.
+* **Solver**: Levenberg–Marquardt with analytic Jacobians. Inverse depths (1×1 blocks) and
+  tracked points (3×3 blocks) are eliminated by the Schur complement, leaving a small dense
+  system over the camera unknowns; coarse to fine over an image pyramid.
 * **Gauge**: the first keyframe's pose and brightness are fixed, and the scale by a prior on
   the distance between the first two camera centres. Optionally the camera centres are held
-  near the start by a prior, and the intrinsics fixed (see :class:`PBAConfig`).
+  near the start by a prior; without tracked points the intrinsics are held (see
+  :class:`PBAConfig`).
 
 Distortion is part of the model (rays are undistorted with the current k1, k2), so the
 intrinsics' Jacobians pass through the undistortion by the implicit-function theorem.
@@ -705,14 +712,16 @@ def _track_steps(e: _Normal, dc: np.ndarray, obs_start, obs_frame, lam: float) -
 
 
 def _adjust_to_tracks(R, t, intr, X, obs_start, obs_frame, obs_xy, rows, velocity, readout,
-                      huber_px, iterations):
-    """Cameras, intrinsics and points adjusted to the tracked points alone under a given
-    rolling-shutter readout (Levenberg-Marquardt, keyframe 0 fixed), and the reprojection
-    cost left: how well that readout explains the tracks. Returns (cost, R, t, intr, X)."""
+                      huber_px, iterations, free_intrinsics=True):
+    """Cameras, intrinsics (``free_intrinsics``) and points adjusted to the tracked points
+    alone under a given rolling-shutter readout (Levenberg-Marquardt; the gauge: keyframe 0
+    and the first baseline's length), and the reprojection cost left: how well that readout
+    explains the tracks. Returns (cost, R, t, intr, X)."""
     K = len(R)
     n_cam = N_INTR + N_FRAME * (K - 1)
     R, t, intr, X = list(R), list(t), intr.copy(), X.copy()
     lam = 1e-3
+    baseline = np.linalg.norm(R[1].T @ t[1] - R[0].T @ t[0])
 
     def run(R_, t_, intr_, X_, with_cameras):
         e = _Normal(n_cam, 0, 1, len(X_), len(obs_frame))
@@ -723,7 +732,11 @@ def _adjust_to_tracks(R, t, intr, X, obs_start, obs_frame, obs_xy, rows, velocit
 
     e = run(R, t, intr, X, True)
     for _ in range(iterations):
-        dc = -np.linalg.solve(e.H + lam * np.diag(np.diag(e.H)) + 1e-9 * np.eye(n_cam), e.b)
+        H, b = e.H.copy(), e.b.copy()
+        _hold_baseline(H, b, R, t, baseline, 1e8)
+        if not free_intrinsics:
+            H[:N_INTR, :N_INTR] += 1e12 * np.eye(N_INTR)
+        dc = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-9 * np.eye(n_cam), b)
         R2, t2, _ = _update_frames(R, t, np.zeros((K, 2)), dc[N_INTR:])
         intr2 = intr + dc[:N_INTR]
         X2 = X + _track_steps(e, dc, obs_start, obs_frame, lam)
@@ -734,6 +747,17 @@ def _adjust_to_tracks(R, t, intr, X, obs_start, obs_frame, obs_xy, rows, velocit
         else:
             lam *= 4
     return float(e.stats[0]), R, t, intr, X
+
+
+def _hold_baseline(H, b, R, t, length, weight):
+    """Add the scale gauge to the camera system: a prior holding the first baseline at
+    ``length`` (keyframe 1's centre moves by -R_1^T v_1 under its increment)."""
+    c0, c1 = -R[0].T @ t[0], -R[1].T @ t[1]
+    n = (c1 - c0) / np.linalg.norm(c1 - c0)
+    a = -R[1] @ n
+    sl = slice(N_INTR, N_INTR + 3)
+    H[sl, sl] += weight * np.outer(a, a)
+    b[sl] += weight * a * (np.linalg.norm(c1 - c0) - length)
 
 
 def _update_frames(R, t, affine, delta):
@@ -903,13 +927,18 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
     that width, and the returned intrinsics are at the resolution of ``intrinsics``;
     ``R``, ``t``: their initial world-to-camera poses; ``sparse_points``: 3D points of the
     initial reconstruction. With ``sparse_hosts`` (a host keyframe per sparse point, -1 for
-    none) and ``config.points_from_sparse``, the points are those sparse points, hosted there
-    at their initial depths; otherwise strong-gradient pixels get their initial inverse depth
-    by a search along the epipolar lines within the sparse points' depth range. With
-    ``centre_prior`` the camera centres are held near their initial positions with a
-    standard deviation of ``config.centre_prior_pct`` of the mean camera distance from their
-    centroid: the photometric cost pins rotations and intrinsics well but lets the chain of
-    centres bend, where a geometric solution with long tracks is already good.
+    none) and ``config.points_from_sparse``, the photometric points are those sparse points,
+    hosted there at their initial depths; otherwise strong-gradient pixels get their initial
+    inverse depth by a search along the epipolar lines within the sparse points' depth range.
+    With ``centre_prior`` and ``config.centre_prior_pct`` > 0 the camera centres are held
+    near their initial positions (that % of the mean camera distance from their centroid).
+
+    ``tracks``: world points and their observations (rows: point, keyframe, x, y in pixels of
+    ``intrinsics``), whose reprojection errors join the photometric residuals in one solve
+    (``config.track_weight``); only with them are the intrinsics refined.
+    ``times`` (seconds, one per keyframe) and ``frame_interval_s`` (1 / fps) make it a video:
+    motion blur (``config.motion_blur``) and the rolling shutter (``config.rolling_shutter``)
+    are modelled from the camera's velocity through the neighbouring keyframes.
     """
     config = config or PBAConfig()
     start = time.perf_counter()
@@ -974,7 +1003,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
         pid = obs[:, 0].astype(np.int64)
         obs_start = np.searchsorted(pid, np.arange(len(X) + 1)).astype(np.int64)
         obs_frame = obs[:, 1].astype(np.int64)
-        scale_px = intrinsics.width / full.width
+        scale_px = np.array([intrinsics.width / full.width, intrinsics.height / full.height])
         obs_xy = (obs[:, 2:4] + 0.5) * scale_px - 0.5
         track_w = config.track_weight ** 2
     else:
@@ -990,6 +1019,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
     frozen_velocity = None
     for level in reversed(range(levels)):
         s = 2.0 ** level
+        frozen_velocity = None
         imgs, gxs, gys = nb.typed.List(), nb.typed.List(), nb.typed.List()
         for k in range(K):
             img = pyr[k][level]
@@ -1020,7 +1050,6 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                         huber, max_residual, with_cameras,
                         e.H, e.b, e.Hpp, e.bpp, e.Hcp, e.idx, e.stats,
                         residuals if residuals is not None else np.zeros(0))
-            e.photometric = e.stats.copy()
             if with_tracks and len(X_):
                 _accumulate_tracks(X_, obs_start, obs_frame, obs_xy / s, np.asarray(R_),
                                    np.asarray(t_), intr_l, track_w * s * s,
@@ -1081,15 +1110,16 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                 # model no rolling shutter.
                 adjusted = [_adjust_to_tracks(
                     R, t, intr, X, obs_start, obs_frame, obs_xy, greys[0].shape[0], velocity,
-                    value, config.track_huber_px, 15) for value in config.readout_candidates]
+                    value, config.track_huber_px, 15, free_intrinsics)
+                    for value in config.readout_candidates]
                 costs = [a[0] for a in adjusted]
                 best = int(np.argmin(costs))
                 readout_s = config.readout_candidates[best]
                 if readout_s > 0:
                     R, t, intr, X = _adjust_to_tracks(
                         *adjusted[best][1:], obs_start, obs_frame, obs_xy, greys[0].shape[0],
-                        velocity, readout_s, config.track_huber_px, 35)[1:]
-                    baseline_ref = np.linalg.norm(R[1].T @ t[1] - R[0].T @ t[0])
+                        velocity, readout_s, config.track_huber_px, 35, free_intrinsics)[1:]
+                    centres0 = np.array([-r.T @ x for r, x in zip(R, t)])
                 log.append("readout " + ", ".join(
                     f"{v:g}: cost {c:.4g}" for v, c in zip(config.readout_candidates, costs))
                     + f"; chose {readout_s:g} s from the tracks")
@@ -1117,13 +1147,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
             if rms_first is None:
                 rms_first = np.sqrt(cost / max(count, 1))
             if cams:
-                # Scale gauge: keep the first baseline's length (its centre moves by -R_1^T v_1).
-                c0, c1 = -R[0].T @ t[0], -R[1].T @ t[1]
-                n = (c1 - c0) / np.linalg.norm(c1 - c0)
-                a = -R[1] @ n
-                sl = slice(N_INTR, N_INTR + 3)
-                H[sl, sl] += config.scale_prior * np.outer(a, a)
-                b[sl] += config.scale_prior * a * (np.linalg.norm(c1 - c0) - baseline_ref)
+                _hold_baseline(H, b, R, t, baseline_ref, config.scale_prior)
                 if w_centre > 0:
                     # Centre c = -R^T t moves by -R^T v under the increment (v, w).
                     for k in range(1, K):
