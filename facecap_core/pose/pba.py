@@ -114,6 +114,16 @@ def _pixel(X0, X1, X2, f, cx, cy, k1, k2):
 
 
 @nb.njit(cache=True, inline="always")
+def _distortion_terms(X0, X1, X2, k1, k2):
+    """For a camera point: its normalised coordinates y, |y|², the radial factor and its
+    derivative over |y|² (doubled): what the projection and its Jacobian share."""
+    yx = X0 / X2
+    yy = X1 / X2
+    s2 = yx * yx + yy * yy
+    return yx, yy, s2, 1 + k1 * s2 + k2 * s2 * s2, 2 * k1 + 4 * k2 * s2
+
+
+@nb.njit(cache=True, inline="always")
 def _blur(X0, X1, X2, m, f, cx, cy, k1, k2):
     """The image streak (pixels) of the camera point X over one exposure: ``m`` holds the
     angular and linear displacement over half the exposure (w, v), X moves by w x X + v."""
@@ -333,11 +343,7 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
                 X0, X1, X2 = target_X[k - t0, q, 0], target_X[k - t0, q, 1], target_X[k - t0, q, 2]
                 if not X2 > 1e-9:
                     continue
-                yx = X0 / X2
-                yy = X1 / X2
-                s2 = yx * yx + yy * yy
-                fac = 1 + k1 * s2 + k2 * s2 * s2
-                dfac = 2 * k1 + 4 * k2 * s2
+                yx, yy, s2, fac, dfac = _distortion_terms(X0, X1, X2, k1, k2)
                 gw = host_weights[p, q]
                 if not pair_ok[k - t0]:
                     # Leaving the image costs as much as an outlier, so that no step can
@@ -480,11 +486,7 @@ def _accumulate_tracks(X, obs_start, obs_frame, obs_xy, R, t, intr, weight, hube
                                        readout * (obs_xy[o, 1] / rows - 0.5))
             if Xc2 <= 1e-9:
                 continue
-            yx = Xc0 / Xc2
-            yy = Xc1 / Xc2
-            s2 = yx * yx + yy * yy
-            fac = 1 + k1 * s2 + k2 * s2 * s2
-            dfac = 2 * k1 + 4 * k2 * s2
+            yx, yy, s2, fac, dfac = _distortion_terms(Xc0, Xc1, Xc2, k1, k2)
             e = np.empty(2)
             e[0] = f * yx * fac + cx - obs_xy[o, 0]
             e[1] = f * yy * fac + cy - obs_xy[o, 1]
