@@ -72,7 +72,7 @@ def other_value(model: type[BaseModel], name: str, field):
     elif isinstance(default, list | tuple):
         candidates = [[v * 0.9 if isinstance(v, float) else v - 1 for v in default]]
     elif default is None:
-        candidates = [1.0, 1, True, 63.0]  # 63 mm: an interpupillary distance
+        candidates = [1.0, 1, True, 63.0, 0.01]  # 63 mm: an interpupillary distance; 10 ms
     else:
         candidates = [c for c in choices if c != default] + ["full", "nicp"]
     for candidate in candidates:
