@@ -105,15 +105,6 @@ def _undistort(xd, yd, k1, k2):
 
 
 @nb.njit(cache=True, inline="always")
-def _pixel(X0, X1, X2, f, cx, cy, k1, k2):
-    yx = X0 / X2
-    yy = X1 / X2
-    s2 = yx * yx + yy * yy
-    fac = 1 + k1 * s2 + k2 * s2 * s2
-    return f * yx * fac + cx, f * yy * fac + cy
-
-
-@nb.njit(cache=True, inline="always")
 def _distortion_terms(X0, X1, X2, k1, k2):
     """For a camera point: its normalised coordinates y, |y|², the radial factor and its
     derivative over |y|² (doubled): what the projection and its Jacobian share."""
@@ -121,6 +112,21 @@ def _distortion_terms(X0, X1, X2, k1, k2):
     yy = X1 / X2
     s2 = yx * yx + yy * yy
     return yx, yy, s2, 1 + k1 * s2 + k2 * s2 * s2, 2 * k1 + 4 * k2 * s2
+
+
+@nb.njit(cache=True, inline="always")
+def _pixel(X0, X1, X2, f, cx, cy, k1, k2):
+    yx, yy, _, fac, _ = _distortion_terms(X0, X1, X2, k1, k2)
+    return f * yx * fac + cx, f * yy * fac + cy
+
+
+@nb.njit(cache=True, inline="always")
+def _point_gradient(gx, gy, X0, X1, X2, f, yx, yy, fac, dfac):
+    """g^T du/dX for the camera point X: the derivative of a pixel-space quantity with
+    gradient (gx, gy) along u, with du/dy = f (fac I + dfac y y^T) and y = X[:2] / X[2]."""
+    a0 = f * (gx * (fac + dfac * yx * yx) + gy * dfac * yx * yy)
+    a1 = f * (gx * dfac * yx * yy + gy * (fac + dfac * yy * yy))
+    return a0 / X2, a1 / X2, -(a0 * X0 + a1 * X1) / (X2 * X2)
 
 
 @nb.njit(cache=True, inline="always")
@@ -258,10 +264,13 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
         pair_ok = np.zeros(nt_, np.bool_)
         host_X = np.empty((8, 3))  # the pattern's points in the host's mid-frame camera
         target_X = np.full((nt_, 8, 3), np.nan)  # and in each target's, at their rows' times
+        host_ray = np.empty((8, 6))  # each pattern pixel's undistortion (for the Jacobians)
         for q in range(8):
             uh = uv[p, 0] + PATTERN[q, 0]
             vh = uv[p, 1] + PATTERN[q, 1]
-            xn, yn, _, _, _, _ = _undistort((uh - cx) / f, (vh - cy) / f, k1, k2)
+            xn, yn, rn2, g00, g01, g11 = _undistort((uh - cx) / f, (vh - cy) / f, k1, k2)
+            host_ray[q, 0], host_ray[q, 1], host_ray[q, 2] = xn, yn, rn2
+            host_ray[q, 3], host_ray[q, 4], host_ray[q, 5] = g00, g01, g11
             Y0, Y1, Y2 = xn / rho[p], yn / rho[p], 1.0 / rho[p]
             if readout != 0.0:
                 Y0, Y1, Y2 = _moved(Y0, Y1, Y2, velocity[h], -readout * (vh / rows - 0.5))
@@ -317,7 +326,8 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
             vh = uv[p, 1] + PATTERN[q, 1]
             xd = (uh - cx) / f
             yd = (vh - cy) / f
-            xn, yn, rn2, g00, g01, g11 = _undistort(xd, yd, k1, k2)
+            xn, yn, rn2 = host_ray[q, 0], host_ray[q, 1], host_ray[q, 2]
+            g00, g01, g11 = host_ray[q, 3], host_ray[q, 4], host_ray[q, 5]
             # x_d = g(x_n; k) = (u - c) / f  =>  dx_n/dθ = G^-1 (dx_d/dθ - ∂g/∂θ)
             det = g00 * g11 - g01 * g01
             dxd[0, 0] = -xd / f
@@ -365,12 +375,7 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
                     w = gw * huber / ar
                     cost += gw * (2 * huber * ar - huber * huber)
                 count += 1
-                # g^T du/dX_t, with du/dy = f (fac I + dfac y y^T) and y = X_t[:2] / X_t[2]
-                a0 = f * (gx * (fac + dfac * yx * yx) + gy * dfac * yx * yy)
-                a1 = f * (gx * dfac * yx * yy + gy * (fac + dfac * yy * yy))
-                dX0 = a0 / X2
-                dX1 = a1 / X2
-                dX2 = -(a0 * X0 + a1 * X1) / (X2 * X2)
+                dX0, dX1, dX2 = _point_gradient(gx, gy, X0, X1, X2, f, yx, yy, fac, dfac)
                 for c in range(n_loc):
                     J[c] = 0.0
                 # target keyframe: dX_t = v + w x X_t
@@ -464,6 +469,12 @@ def _accumulate_tracks(X, obs_start, obs_frame, obs_xy, R, t, intr, weight, hube
     f, cx, cy, k1, k2 = intr[0], intr[1], intr[2], intr[3], intr[4]
     n_obs_total = obs_frame.shape[0]
     cost = 0.0
+    e = np.empty(2)
+    J = np.empty(N_INTR + 6)  # one residual's columns: intrinsics, then its keyframe's pose
+    jp = np.empty(3)
+    cols = np.empty(N_INTR + 6, np.int64)
+    for c in range(N_INTR):
+        cols[c] = c
     for p in range(X.shape[0]):
         o0 = obs_start[p]
         o1 = obs_start[p + 1]
@@ -487,7 +498,6 @@ def _accumulate_tracks(X, obs_start, obs_frame, obs_xy, R, t, intr, weight, hube
             if Xc2 <= 1e-9:
                 continue
             yx, yy, s2, fac, dfac = _distortion_terms(Xc0, Xc1, Xc2, k1, k2)
-            e = np.empty(2)
             e[0] = f * yx * fac + cx - obs_xy[o, 0]
             e[1] = f * yy * fac + cy - obs_xy[o, 1]
             norm = np.sqrt(e[0] * e[0] + e[1] * e[1])
@@ -496,15 +506,12 @@ def _accumulate_tracks(X, obs_start, obs_frame, obs_xy, R, t, intr, weight, hube
                      else weight * (2 * huber_px * norm - huber_px * huber_px))
             stats[1] += 1
             slot = N_INTR + 6 * (o - o0)
+            for c in range(6):
+                cols[N_INTR + c] = slot + c
             for row in range(2):
                 gx = 1.0 if row == 0 else 0.0
                 gy = 1.0 - gx
-                a0 = f * (gx * (fac + dfac * yx * yx) + gy * dfac * yx * yy)
-                a1 = f * (gx * dfac * yx * yy + gy * (fac + dfac * yy * yy))
-                dX0 = a0 / Xc2
-                dX1 = a1 / Xc2
-                dX2 = -(a0 * Xc0 + a1 * Xc1) / (Xc2 * Xc2)
-                J = np.zeros(N_INTR + 6)
+                dX0, dX1, dX2 = _point_gradient(gx, gy, Xc0, Xc1, Xc2, f, yx, yy, fac, dfac)
                 y = yx if row == 0 else yy
                 J[0] = y * fac
                 J[1] = gx
@@ -517,7 +524,6 @@ def _accumulate_tracks(X, obs_start, obs_frame, obs_xy, R, t, intr, weight, hube
                 J[8] = Xc1 * dX2 - Xc2 * dX1
                 J[9] = Xc2 * dX0 - Xc0 * dX2
                 J[10] = Xc0 * dX1 - Xc1 * dX0
-                jp = np.empty(3)
                 for c in range(3):
                     jp[c] = dX0 * Rk[0, c] + dX1 * Rk[1, c] + dX2 * Rk[2, c]
                 r = e[row]
@@ -527,11 +533,6 @@ def _accumulate_tracks(X, obs_start, obs_frame, obs_xy, R, t, intr, weight, hube
                         Hp[c1, c2] += w * jp[c1] * jp[c2]
                 if not with_cameras:
                     continue
-                cols = np.empty(N_INTR + 6, np.int64)
-                for c in range(N_INTR):
-                    cols[c] = c
-                for c in range(6):
-                    cols[N_INTR + c] = slot + c
                 for i1 in range(N_INTR + 6):
                     c1 = cols[i1]
                     bc[c1] += w * J[i1] * r
