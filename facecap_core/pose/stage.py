@@ -51,8 +51,8 @@ def photometric_refinement(poses: Poses, grey_keyframes: list[np.ndarray], confi
     """PBA of ``poses`` over the keyframes (grey, in poses' order, at full resolution or
     already at most ``config.pba.max_width`` wide); the sparse points are re-triangulated
     from their observations with the refined cameras (full-resolution intrinsics).
-    ``keyframes``: the video's keyframes, whose times let PBA model motion blur (None, or
-    photos: not modelled)."""
+    ``keyframes``: the video's keyframes, whose times let PBA model motion blur and the
+    rolling shutter (None, or photos: neither is modelled)."""
     from facecap_core.pose.pba import photometric_bundle_adjustment
 
     times = interval = None
