@@ -7,13 +7,24 @@ coverage, focal length, metric scale, mesh sanity), and the seconds. For each me
 ``compare.png``: the shaded mesh seen through the reconstructed camera of a frontal and a
 profile keyframe, beside those photos, to look at.
 
+Two measures need no reference. *Roughness* (``report.json`` ``figures.roughness``,
+:mod:`facecap_core.fitting.roughness`): the share of the face's edges bent over 20° and the
+median bend; skin is smooth, the template itself has 2 % and 1.2°. *Split-half distance*
+(``--split-half``, photo folders): the registered photos in sweep order are dealt
+alternately into two folders, each is reconstructed on its own, and the two meshes are
+compared over the face after a similarity (median, mean and 95th percentile of the distance
+from each one's face vertices to the other's surface, mm): what the halves disagree on is
+noise.
+
     python benchmarks/bench_real.py [--root ../shared/data/real] [--out out/bench_real]
+        [--only photo_set_31] [--split-half]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -90,10 +101,45 @@ def run(name: str, capture: Path, out: Path, store: Path) -> dict:
         row.update(keyframes=fig.get("keyframes"), dropped=len(fig.get("dropped_keyframes", [])),
                    yaw=f"{cov.get('yaw_min_deg')}..{cov.get('yaw_max_deg')}",
                    focal_px=fig.get("focal_px"), metric_scale=fig.get("metric_scale"),
-                   sanity=fig.get("mesh_sanity"))
+                   sanity=fig.get("mesh_sanity"), roughness=fig.get("roughness"))
         compare = render_beside(out, capture)
         row["compare"] = str(compare) if compare else None
     return row
+
+
+def split_half(name: str, capture: Path, out: Path, store: Path) -> dict | None:
+    """Reconstruct two disjoint halves of a photo folder (its registered photos in sweep
+    order, dealt alternately) and measure how far apart the two meshes are over the face."""
+    from facecap_core.fitting.roughness import face_vertices, split_half_distance
+    from facecap_core.meshio import load_mesh
+    from facecap_core.photos import list_photos
+    from facecap_core.template import Template
+
+    full = out / name
+    if not capture.is_dir() or not (full / "mesh.ply").is_file():
+        return None
+    report = json.loads((full / "report.json").read_text())
+    yaws = report.get("figures", {}).get("coverage", {}).get("yaw_by_frame", [])
+    photos = list_photos(capture)
+    order = [photos[int(i)] for i, _ in sorted(yaws, key=lambda r: r[1])]
+    rows = {}
+    for half in (0, 1):
+        folder = out / f"{name}_half{half}"
+        shutil.rmtree(folder, ignore_errors=True)
+        (folder / "photos").mkdir(parents=True)
+        for photo in order[half::2]:
+            shutil.copy2(photo, folder / "photos" / photo.name)
+        rows[half] = run(f"{name}_half{half}", folder / "photos", folder / "result", store)
+        print(json.dumps(rows[half]), flush=True)
+        if rows[half]["exit"] != 0:
+            return {"halves": [rows.get(0), rows.get(1)], "distance": None}
+    template = Template.default()
+    a = load_mesh(out / f"{name}_half0" / "result" / "mesh.ply")
+    b = load_mesh(out / f"{name}_half1" / "result" / "mesh.ply")
+    distance = split_half_distance(a.vertices, b.vertices, template.faces,
+                                   face_vertices(template.vertices, template.landmarks))
+    return {"photos": [len(order[0::2]), len(order[1::2])], "distance": distance,
+            "roughness": [rows[0].get("roughness"), rows[1].get("roughness")]}
 
 
 def main() -> None:
@@ -101,6 +147,9 @@ def main() -> None:
     parser.add_argument("--root", type=Path, default=ROOT.parent / "shared" / "data" / "real")
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "bench_real")
     parser.add_argument("--only", nargs="*", help="capture names to run")
+    parser.add_argument("--split-half", action="store_true",
+                        help="also reconstruct two disjoint halves of each photo folder that "
+                             "reconstructs, and measure the distance between their meshes")
     args = parser.parse_args()
     if not args.root.is_dir():
         sys.exit(f"no real captures at {args.root}")
@@ -111,6 +160,8 @@ def main() -> None:
             continue
         row = run(name, args.root / rel, args.out / name, store)
         row["expected"] = expected
+        if args.split_half and row["exit"] == 0:
+            row["split_half"] = split_half(name, args.root / rel, args.out, store)
         rows.append(row)
         print(json.dumps(row), flush=True)
     (args.out / "report.json").write_text(json.dumps(rows, indent=1))

@@ -45,6 +45,15 @@ CONDITIONS = {
     "plain_walls": ({"plain_walls": True}, "untextured room (uniform albedo per surface)"),
     "smooth_skin": ({"skin_detail": 0.3}, "skin's fine texture at 30 %"),
     "fps120": ({"fps": 120.0}, "120 fps (4× the frames)"),
+    # What a phone makes of smooth skin at the size of the real photo folders: 512×512 with
+    # the face ~180 px wide, skin with little fine texture, a colour filter array and its
+    # demosaicing, noise of a high ISO, a slightly soft lens, the phone's sharpening, specular
+    # skin and H.264 at a phone's bitrate.
+    "phone_512": ({"width": 512, "height": 512, "hfov_deg": 50.0, "skin_detail": 0.2,
+                   "bayer": True, "read_noise": 0.02, "shot_noise": 0.03, "defocus_px": 0.7,
+                   "sharpen": 0.8, "specular": 0.25, "crf": 28},
+                  "phone-like: 512×512, smooth skin, Bayer + demosaic, high-ISO noise, soft "
+                  "lens, sharpening, specular skin, crf 28"),
     # 4K renders at ~20–40 s a frame here: half the sweep (±47.5°) in half the time, at
     # the others' angular speed, so tracking sees the same motion between frames.
     "4k": ({"width": 3840, "height": 2160, "duration_s": 2.0, "yaw_start_deg": -47.5,
@@ -117,6 +126,7 @@ def run_condition(name: str, overrides: dict, args, out: Path, env: dict) -> dic
         figures = report.get("figures", {})
         rec["evaluation"] = figures.get("evaluation")
         rec["dropped_keyframes"] = figures.get("dropped_keyframes")
+        rec["roughness"] = figures.get("roughness")
     rec["poses"] = pose_figures(result, gt / "cameras.json")
     return rec
 

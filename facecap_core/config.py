@@ -109,6 +109,16 @@ class SynthConfig(StrictModel):
     """Sensor read-noise standard deviation (fraction of full scale)."""
     shot_noise: float = Field(0.012, ge=0, le=0.2)
     """Shot-noise scale: standard deviation = shot_noise * sqrt(intensity)."""
+    defocus_px: float = Field(0.0, ge=0, le=10)
+    """Lens blur: standard deviation (px) of a Gaussian over the image before the sensor
+    samples it (a phone's small aperture focused at arm's length, or a soft lens)."""
+    bayer: bool = False
+    """Sample through an RGGB colour filter array (one colour per photosite, noise per
+    photosite) and demosaic (OpenCV's edge-aware demosaicing), as a phone sensor does:
+    colour noise, zipper artefacts at edges and noise correlated between neighbours."""
+    sharpen: float = Field(0.0, ge=0, le=3)
+    """Unsharp-mask amount (radius 1 px) after demosaicing, as phone image processing
+    sharpens: it amplifies the noise and compression artefacts along with the detail."""
     specular: float = Field(0.05, ge=0, le=1)
     """Strength of the skin's specular highlight (0 = Lambertian)."""
     ambient: float = Field(0.35, ge=0, le=2)
@@ -381,10 +391,12 @@ class FittingConfig(StrictModel):
     cloud, 3D landmarks, ear points and keyframe silhouettes (Agrawal et al. 2020, "Mesh
     fitting"). Distances in mm, weights relative to one cloud target."""
 
-    stiffness: list[float] = Field([50.0, 20.0, 10.0, 5.0, 2.0, 1.0], max_length=MAX_LEVELS)
+    stiffness: list[float] = Field([50.0, 20.0, 10.0, 5.0, 2.0], max_length=MAX_LEVELS)
     """Stiffness alpha per level, from global (large) to local (small) deformation; the
-    template is centred and scaled to unit RMS radius, so the values do not depend on units."""
-    landmark_weight: list[float] = Field([50.0, 20.0, 10.0, 5.0, 2.0, 1.0],
+    template is centred and scaled to unit RMS radius, so the values do not depend on units.
+    The schedule ends at 2: a last level at 1 follows the MVS noise into millimetre ridges
+    on clean renders as on real skin (calibration renders, docs/fitting.md)."""
+    landmark_weight: list[float] = Field([50.0, 20.0, 10.0, 5.0, 2.0],
                                          max_length=MAX_LEVELS)
     """Weight of each landmark target per level (same length as ``stiffness``); falls with
     the stiffness so that landmarks place the mesh first and the cloud refines it."""
@@ -422,6 +434,13 @@ class FittingConfig(StrictModel):
     normal_agreement_deg: float = Field(60.0, gt=0, le=180)
     """When the cloud has normals, accept only points whose normal is within this angle of
     the vertex normal (180: no check)."""
+    cloud_noise_mm: float | None = Field(0.12, gt=0, le=10)
+    """The smoothness follows the cloud's measured noise: when the fused points that give the
+    face its targets are less certain than this (their median standard error, from the
+    spread of the views that agree on each point), every cloud target weighs
+    ``(cloud_noise_mm / noise)²`` of ``data_weight``, so the stiffness, not the noise,
+    shapes the surface. 0.12 mm is the noise of the clean calibration render (ICT identity
+    11, 640x360), so a clean capture keeps the full weight. None: always ``data_weight``."""
     recompute_every: int = Field(1, ge=1, le=100)
     """Recompute the cloud targets every this many steps (the paper: every few)."""
 

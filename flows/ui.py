@@ -97,6 +97,11 @@ def capture_markdown(report: dict, out: Path, images: list[tuple[str, Path]]) ->
         from facecap_core.coarse import ears_summary
 
         lines.append(f"- ear points: {markdown_text(ears_summary(fig['ears']))}")
+    rough = fig.get("roughness") or {}
+    if rough.get("bent_share_pct") is not None:
+        lines.append(f"- surface roughness: {rough['bent_share_pct']:.1f} % of the face's edges "
+                     f"bent over {rough['bent_deg']:g}°, median bend {rough['median_bend_deg']:.1f}°"
+                     " (smooth skin: under 7 % and 3°)")
     for protocol, sc in fig.get("evaluation", {}).items():
         a, c = sc["accuracy"], sc["completion"]
         lines.append(f"- {protocol}: accuracy mean {a['mean']:.3f} / median {a['median']:.3f} mm,"

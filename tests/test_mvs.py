@@ -12,6 +12,7 @@ from facecap_core.camera import look_at
 from facecap_core.config import DepthMapConfig, SynthConfig, ViewSelectionConfig
 from facecap_core.errors import InputError
 from facecap_core.evaluation import distances, region_sphere
+from facecap_core.fitting.run import load_cloud_errors
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.mvs import (
     DepthMap,
@@ -164,10 +165,23 @@ def test_fusing_exact_depth_maps_lands_on_the_surface(scene, tmp_path):
     assert np.median(d) < 0.02 and np.percentile(d, 99) < 0.1
     assert np.all(cloud.views >= 3)
     assert np.allclose(np.linalg.norm(cloud.normals, axis=1), 1.0)
+    # Exact maps agree to the float32 depth's rounding: no spread between the views.
+    assert np.median(cloud.spread) < 0.005
     path = write_ply(cloud, tmp_path / "cloud.ply")
     import open3d as o3d
     back = o3d.io.read_point_cloud(str(path))
     assert len(back.points) == len(cloud) and back.has_normals() and back.has_colors()
+    points, normals, errors = load_cloud_errors(path)
+    assert np.allclose(points, cloud.points) and normals is not None
+    assert np.allclose(errors, cloud.spread / np.sqrt(cloud.views), atol=1e-6)
+
+    # Views 0.3 mm in front of and behind the surface in turn: each fused point's spread is
+    # the sample standard deviation of its views' depths along its normal, which the rays
+    # meet at up to ~45° here: between 0.3 cos 45° and 0.3 × sqrt(k / (k - 1)).
+    shifted = [_gt_map(v, scene, offset_mm=0.3 if k % 2 else -0.3) for k, v in enumerate(views)]
+    mixed = fuse(shifted, None, min_consistent_views=2)
+    both = mixed.spread[mixed.views >= 4]  # seen from both kinds of view (k >= 4)
+    assert 0.18 < np.median(both) < 0.35, np.median(both)
 
     # A map 4 mm off everywhere agrees with no other view: none of its depths are fused.
     outlier = _gt_map(views[3], scene, offset_mm=4.0)

@@ -271,3 +271,38 @@ def test_condition_settings_are_checked(tmp_path):
         build(SynthConfig, {"display_rotation_deg": 45})
     with pytest.raises(InputError, match="skin_detail"):
         synthesize(SynthConfig(subject="james", skin_detail=0.5), tmp_path, progress=False)
+
+
+def test_sensor_image_models_a_phone_sensor():
+    """The phone effects on a known image: defaults are Poisson–Gaussian noise and sRGB
+    only; a colour filter array over a flat colour demosaics back to it; the lens blur is a
+    Gaussian of the given width; sharpening amplifies the noise."""
+    from facecap_core.synthetic.sensor import sensor_image, to_srgb8
+
+    flat = np.full((64, 64, 3), [0.2, 0.45, 0.1])
+    quiet = SynthConfig(read_noise=0.0, shot_noise=0.0)
+    base = SynthConfig()
+    rng_a, rng_b = np.random.default_rng(7), np.random.default_rng(7)
+    sigma = np.sqrt(base.read_noise ** 2 + base.shot_noise ** 2 * flat)
+    expected = to_srgb8(flat + sigma * rng_b.standard_normal(flat.shape))
+    assert np.array_equal(sensor_image(flat, base, rng_a), expected)
+
+    mosaic = sensor_image(flat, quiet.model_copy(update={"bayer": True}),
+                          np.random.default_rng(0))
+    assert np.abs(mosaic.astype(int) - to_srgb8(flat).astype(int)).max() <= 1
+
+    # A vertical step edge blurred by a Gaussian of σ = 2 px: 10-90 % rise over 2.563 σ.
+    step = np.zeros((32, 128, 3))
+    step[:, 64:] = 1.0
+    soft = SynthConfig(read_noise=0.0, shot_noise=0.0, defocus_px=2.0)
+    linear = sensor_image(step, soft, np.random.default_rng(0))[16, :, 0].astype(float)
+    srgb = to_srgb8(np.array([0.1, 0.9]))  # the 10 % and 90 % levels, encoded
+    rise = np.interp(srgb[1], linear, np.arange(128)) - np.interp(srgb[0], linear,
+                                                                    np.arange(128))
+    assert rise == pytest.approx(2.563 * 2.0, abs=0.3)
+
+    noisy = SynthConfig(read_noise=0.02, shot_noise=0.0)
+    plain = sensor_image(flat, noisy, np.random.default_rng(1)).astype(float)
+    sharp = sensor_image(flat, noisy.model_copy(update={"sharpen": 1.0}),
+                         np.random.default_rng(1)).astype(float)
+    assert np.all(sharp.std(axis=(0, 1)) > 1.3 * plain.std(axis=(0, 1)))  # per channel

@@ -41,13 +41,15 @@ class CloudGrid:
 
     points: np.ndarray  # (N, 3) sorted by cell
     normals: np.ndarray  # (N, 3) or (0, 3) when the cloud has none
+    errors: np.ndarray  # (N,) each point's standard error (mm), or (0,) when unknown
     origin: np.ndarray
     cell: float
     dims: np.ndarray  # (3,) int64
     starts: np.ndarray  # (prod(dims) + 1,) first point of each cell
 
     @classmethod
-    def build(cls, points: np.ndarray, normals: np.ndarray | None, cell: float) -> CloudGrid:
+    def build(cls, points: np.ndarray, normals: np.ndarray | None, cell: float,
+              errors: np.ndarray | None = None) -> CloudGrid:
         P = np.asarray(points, float)
         origin = P.min(0) - 1e-6
         dims = np.maximum(np.ceil((P.max(0) - origin) / cell).astype(np.int64), 1) + 1
@@ -57,18 +59,23 @@ class CloudGrid:
         starts = np.searchsorted(key[order], np.arange(int(np.prod(dims)) + 1))
         N = (np.zeros((0, 3)) if normals is None
              else np.ascontiguousarray(np.asarray(normals, float)[order]))
-        return cls(np.ascontiguousarray(P[order]), N, origin, float(cell), dims, starts)
+        E = (np.zeros(0) if errors is None
+             else np.ascontiguousarray(np.asarray(errors, float).ravel()[order]))
+        return cls(np.ascontiguousarray(P[order]), N, E, origin, float(cell), dims, starts)
 
 
 @njit(cache=True)
-def _normal_ray_kernel(V, Nv, P, Pn, origin, cell, dims, starts, radius, perp_tol, min_cos,
+def _normal_ray_kernel(V, Nv, P, Pn, Pe, origin, cell, dims, starts, radius, perp_tol, min_cos,
                        max_keep):
     n = V.shape[0]
     t_med = np.zeros(n)
     count = np.zeros(n, np.int64)
     spread = np.zeros(n)
+    point_error = np.zeros(n)
     buf = np.empty(max_keep)
+    ebuf = np.empty(max_keep)
     use_normals = Pn.shape[0] > 0
+    use_errors = Pe.shape[0] > 0
     r = int(np.ceil(radius / cell))
     tol2 = perp_tol * perp_tol
     for i in range(n):
@@ -104,6 +111,8 @@ def _normal_ray_kernel(V, Nv, P, Pn, origin, cell, dims, starts, radius, perp_to
                                 continue
                         if k < max_keep:
                             buf[k] = t
+                            if use_errors:
+                                ebuf[k] = Pe[j]
                             k += 1
         count[i] = k
         if k > 0:
@@ -113,27 +122,37 @@ def _normal_ray_kernel(V, Nv, P, Pn, origin, cell, dims, starts, radius, perp_to
             dev = np.abs(s - med)
             dev.sort()
             spread[i] = 0.5 * (dev[(k - 1) // 2] + dev[k // 2])
-    return t_med, count, spread
+            if use_errors:
+                e = np.sort(ebuf[:k])
+                point_error[i] = 0.5 * (e[(k - 1) // 2] + e[k // 2])
+    return t_med, count, spread, point_error
 
 
 def cloud_targets(vertices: np.ndarray, normals: np.ndarray, grid: CloudGrid, radius: float,
                   perp_tol: float, min_points: int = 3, normal_agreement_deg: float = 60.0,
-                  max_keep: int = 512) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Normal-ray targets: ``(accepted (n,) bool, targets (n, 3), accepted counts (n,))``.
+                  max_keep: int = 512
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Normal-ray targets: ``(accepted (n,) bool, targets (n, 3), accepted counts (n,),
+    point errors (n,) mm)``.
 
     A point q is accepted for vertex (p, n) when ``|(q-p)·n| <= radius`` and its distance to
     the line ``p + t n`` is at most ``perp_tol``, and (if the cloud has normals) its normal is
-    within ``normal_agreement_deg`` of n. Targets are ``p + median(t) n``.
+    within ``normal_agreement_deg`` of n. Targets are ``p + median(t) n``. The point error
+    of a vertex is the median of its accepted points' own errors when the grid has them
+    (nan without).
     """
     V = np.ascontiguousarray(vertices, float)
     Nv = np.ascontiguousarray(normals, float)
     if grid.cell < radius / 3:
         raise ValueError("cloud grid cell too small for the search radius")
-    t, count, _ = _normal_ray_kernel(V, Nv, grid.points, grid.normals, grid.origin, grid.cell,
-                                     grid.dims, grid.starts, float(radius), float(perp_tol),
-                                     float(np.cos(np.radians(normal_agreement_deg))), max_keep)
+    t, count, _, point_error = _normal_ray_kernel(
+        V, Nv, grid.points, grid.normals, grid.errors, grid.origin, grid.cell, grid.dims,
+        grid.starts, float(radius), float(perp_tol),
+        float(np.cos(np.radians(normal_agreement_deg))), max_keep)
     ok = count >= min_points
-    return ok, V + t[:, None] * Nv, count
+    if len(grid.errors) == 0:
+        point_error[:] = np.nan
+    return ok, V + t[:, None] * Nv, count, point_error
 
 
 # --------------------------------------------------------------------------- landmarks

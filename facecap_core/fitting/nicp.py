@@ -28,6 +28,7 @@ from facecap_core.fitting.constraints import (
     landmark_targets,
     nearest_edge_pixels,
 )
+from facecap_core.fitting.roughness import face_vertices
 from facecap_core.fitting.solver import NicpSystem
 from facecap_core.geometry import umeyama
 from facecap_core.render import RaycastScene, vertex_normals
@@ -50,6 +51,8 @@ class FitResult:
     cpu_s: float
     log: list[dict] = field(default_factory=list)  # one record per step
     supported: np.ndarray | None = None  # last cloud support mask
+    cloud_noise_mm: float | None = None  # the cloud's measured noise over the face
+    cloud_weight: float | None = None  # the weight of one cloud target it gave
 
     @property
     def vertices(self) -> np.ndarray:
@@ -120,17 +123,24 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
         keyframes: list[Keyframe] | tuple = (),
         ear_points: tuple[np.ndarray, ...] | None = None,
         cloud_normals: np.ndarray | None = None,
-        config: FittingConfig | None = None) -> FitResult:
+        config: FittingConfig | None = None,
+        cloud_errors: np.ndarray | None = None) -> FitResult:
     """Deform ``template`` onto the constraints; returns a :class:`FitResult`.
 
     ``cloud`` (N, 3) mm (with optional ``cloud_normals``), ``landmarks`` the subject's 68 3D
     landmarks (only 17-67 are used), ``keyframes`` images with cameras for the silhouettes,
     ``ear_points`` ``(vertex ids (k,), targets (k, 3)[, weights (k,)])``, the weights each
-    point's reliability (1 without them). The template is used as given
+    point's reliability (1 without them), ``cloud_errors`` (N,) each cloud point's standard
+    error in mm (the fusion stage's; see ``FittingConfig.target_error_mm``). The template is
+    used as given
     (in the subject's frame) unless ``config.initial_similarity``.
     """
     config = config or FittingConfig()
     check_inputs(template, cloud, landmarks, ear_points, cloud_normals, config)
+    if config.use_cloud and cloud_errors is not None and \
+            np.shape(cloud_errors) != (len(cloud),):
+        raise InputError(f"cloud errors shape {np.shape(cloud_errors)} does not match the "
+                         f"cloud's {len(cloud)} points")
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     L = np.asarray(landmarks, float)
     faces = template.faces
@@ -143,7 +153,8 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
     radii = np.geomspace(r0, r1, levels) if levels > 1 else np.array([r1])
     grid = None
     if config.use_cloud:
-        grid = CloudGrid.build(cloud, cloud_normals, cell=max(r1, 2.0 * config.normal_distance_mm))
+        grid = CloudGrid.build(cloud, cloud_normals, max(r1, 2.0 * config.normal_distance_mm),
+                               cloud_errors)
 
     lm_ids = template.landmarks[INNER_LANDMARKS]
     lm_pts = L[INNER_LANDMARKS]
@@ -159,6 +170,8 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
                ] if use_edges else []
 
     V = v0.copy()
+    face = face_vertices(template.vertices, template.landmarks)
+    cloud_noise, cloud_w = None, config.data_weight
     records: list[dict] = []
     step = 0
     ok = np.zeros(n, bool)
@@ -171,9 +184,12 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
             t0 = time.perf_counter()
             normals = vertex_normals(V, faces)
             if grid is not None and (step % config.recompute_every == 0 or it == 0):
-                ok, cloud_t, _ = cloud_targets(V, normals, grid, radii[level],
-                                               config.normal_distance_mm, config.min_points,
-                                               config.normal_agreement_deg)
+                ok, cloud_t, _, point_error = cloud_targets(V, normals, grid, radii[level],
+                                                            config.normal_distance_mm,
+                                                            config.min_points,
+                                                            config.normal_agreement_deg)
+                if cloud_noise is None:
+                    cloud_noise, cloud_w = _noise_weight(point_error, ok & face, config)
             t_cloud = time.perf_counter() - t0
             if use_edges and level >= config.edge_first_level and \
                     (it == 0 or step % config.edge_recompute_every == 0):
@@ -182,7 +198,7 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
             elif not use_edges or level < config.edge_first_level:
                 edge_w, edge_wu = np.zeros(n), np.zeros((n, 3))
 
-            w = np.where(ok, config.data_weight, 0.0) if grid is not None else np.zeros(n)
+            w = np.where(ok, cloud_w, 0.0) if grid is not None else np.zeros(n)
             wu = w[:, None] * cloud_t
             lw, lwu = landmark_targets(n, lm_ids, lm_pts, beta)
             w, wu = w + lw, wu + lwu
@@ -209,6 +225,7 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
             moved = float(np.max(np.linalg.norm(V_new - V, axis=1)))
             V = V_new
             rec = {"level": level, "alpha": alpha, "landmark_weight": beta, "step": step,
+                   "cloud_weight": cloud_w,
                    "cloud_targets": int(ok.sum()), "edge_targets": int((edge_w > 0).sum()),
                    "max_move_mm": moved, "cloud_s": t_cloud, "solve_s": t_solve,
                    "wall_s": time.perf_counter() - t0,
@@ -221,7 +238,22 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
 
     fitted = template.with_vertices(V)
     return FitResult(fitted, v0, step, system.factorizations, time.perf_counter() - t_wall,
-                     time.process_time() - t_cpu, records, ok)
+                     time.process_time() - t_cpu, records, ok, cloud_noise, cloud_w)
+
+
+def _noise_weight(point_error: np.ndarray, face_targets: np.ndarray,
+                  config: FittingConfig) -> tuple[float, float]:
+    """The cloud's noise over the face (the median error of the points that give the face's
+    vertices their targets, mm; nan when the cloud does not say) and the weight of one cloud
+    target: ``data_weight``, times the inverse variance relative to ``cloud_noise_mm`` when
+    the cloud is noisier than that. One weight for the whole face: a weight that varied from
+    vertex to vertex would itself pull neighbours apart."""
+    errors = point_error[face_targets]
+    errors = errors[np.isfinite(errors)]
+    noise = float(np.median(errors)) if len(errors) else float("nan")
+    if config.cloud_noise_mm is None or not np.isfinite(noise) or noise <= 0:
+        return noise, config.data_weight
+    return noise, config.data_weight * min(1.0, (config.cloud_noise_mm / noise) ** 2)
 
 
 def _edge_terms(V, normals, faces, keyframes, nearest, exclude, config):

@@ -21,6 +21,7 @@ import trimesh
 from facecap_core.errors import InputError
 from facecap_core.fitting.constraints import Keyframe
 from facecap_core.fitting.nicp import FitResult, FittingConfig, fit
+from facecap_core.fitting.roughness import face_edges, roughness
 from facecap_core.fitting.sanity import MeshSanity, check_mesh, relax_folds
 from facecap_core.meshio import load_landmarks, save_landmarks
 from facecap_core.template import Template
@@ -38,6 +39,15 @@ log = logging.getLogger(__name__)
 def load_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Points (N, 3) and normals (or None) from a PLY/PCD/XYZ point cloud or an ``.npz``
     with ``points`` (and ``normals``)."""
+    points, normals, _ = load_cloud_errors(path)
+    return points, normals
+
+
+def load_cloud_errors(path: str | Path
+                      ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Points, normals (or None) and each point's standard error in mm (or None), from the
+    fusion stage's ``spread`` and ``views`` PLY properties (spread / sqrt(views)), or an
+    ``.npz``'s ``errors``."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"point cloud file not found: {path}")
@@ -45,14 +55,21 @@ def load_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         with np.load(path) as z:
             if "points" not in z:
                 raise InputError(f"point cloud {path} has no 'points' array")
-            return z["points"].astype(float), (z["normals"].astype(float) if "normals" in z else None)
+            return (z["points"].astype(float),
+                    z["normals"].astype(float) if "normals" in z else None,
+                    z["errors"].astype(float).ravel() if "errors" in z else None)
     import open3d as o3d
 
-    pc = o3d.io.read_point_cloud(str(path))
-    pts = np.asarray(pc.points, float)
-    if len(pts) == 0:
+    pc = o3d.t.io.read_point_cloud(str(path))
+    if "positions" not in pc.point or len(pc.point.positions) == 0:
         raise InputError(f"point cloud {path} is empty or unreadable (expected PLY/PCD/XYZ)")
-    return pts, (np.asarray(pc.normals, float) if pc.has_normals() else None)
+    pts = pc.point.positions.numpy().astype(float)
+    normals = pc.point.normals.numpy().astype(float) if "normals" in pc.point else None
+    errors = None
+    if "spread" in pc.point and "views" in pc.point:
+        errors = (pc.point.spread.numpy().astype(float).ravel()
+                  / np.sqrt(np.maximum(pc.point.views.numpy().astype(float).ravel(), 1.0)))
+    return pts, normals, errors
 
 
 def keyframes_from_video(video: str | Path, intrinsics, poses: list[dict],
@@ -133,7 +150,7 @@ def ears_off_the_cloud(ear_points, cloud: np.ndarray) -> tuple[tuple | None, dic
 
 def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | None = None,
          keyframes: list[Keyframe] | tuple = (), ear_points=None, cloud_normals=None,
-         config: FittingConfig | None = None) -> Path:
+         config: FittingConfig | None = None, cloud_errors=None) -> Path:
     """Fit and write the mesh; returns the path of ``mesh.ply``.
 
     ``cloud``: (N, 3) array or a point-cloud file; ``landmarks``: (68, 3) array or a
@@ -141,15 +158,17 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
     """
     config = config or FittingConfig()
     if isinstance(cloud, (str, Path)):
-        cloud, file_normals = load_cloud(cloud)
+        cloud, file_normals, file_errors = load_cloud_errors(cloud)
         cloud_normals = cloud_normals if cloud_normals is not None else file_normals
+        cloud_errors = cloud_errors if cloud_errors is not None else file_errors
     if isinstance(landmarks, (str, Path)):
         landmarks = load_landmarks(landmarks)
     template = template or Template.default()
     ears_report = {}
     if config.use_cloud and config.use_ear_landmarks:
         ear_points, ears_report = ears_off_the_cloud(ear_points, cloud)
-    result = fit(template, cloud, landmarks, keyframes, ear_points, cloud_normals, config)
+    result = fit(template, cloud, landmarks, keyframes, ear_points, cloud_normals, config,
+                 cloud_errors)
     sanity, relaxed = check_mesh(result.vertices, result.faces, template.vertices), None
     if not sanity.ok and config.relax_folds:
         found = sanity.to_json()
@@ -175,21 +194,33 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
     ply, _ = write_mesh(out, result.vertices, result.faces, colours)
     save_landmarks(out / MESH_LANDMARKS, result.template.landmark_points,
                    template=template.name)
-    write_report(out / FIT_JSON, result, config, sanity, relaxed, ears_report)
+    rough = roughness(result.vertices, result.faces,
+                      face_edges(template.vertices, template.faces, template.landmarks))
+    write_report(out / FIT_JSON, result, config, sanity, relaxed, ears_report, rough)
     last = result.log[-1] if result.log else {}
     log.info("fitted %d vertices in %d steps (%.1f s): landmark RMS %.2f mm, %d cloud targets, "
-             "last step moved %.3f mm", len(result.vertices), result.iterations, result.wall_s,
+             "last step moved %.3f mm; %.1f %% of the face's edges bent over %g°",
+             len(result.vertices), result.iterations, result.wall_s,
              last.get("landmark_rms_mm", float("nan")), last.get("cloud_targets", 0),
-             last.get("max_move_mm", float("nan")))
+             last.get("max_move_mm", float("nan")), rough["bent_share_pct"] or 0.0,
+             rough["bent_deg"])
     return ply
+
+
+def _rounded(value: float | None, digits: int) -> float | None:
+    """A figure for JSON: rounded, None where unknown (strict JSON has no nan)."""
+    return None if value is None or not np.isfinite(value) else round(float(value), digits)
 
 
 def write_report(path: Path, result: FitResult, config: FittingConfig,
                  sanity: MeshSanity | None = None, relaxed: dict | None = None,
-                 ears: dict | None = None) -> Path:
+                 ears: dict | None = None, rough: dict | None = None) -> Path:
     doc = {"config": config.model_dump(mode="json"), "timing": result.timing(),
            "vertices": len(result.vertices), "faces": len(result.faces), "steps": result.log,
            "sanity": sanity.to_json() if sanity is not None else None, "relaxed": relaxed,
-           "ears_on_cloud": ears or {}}
+           "ears_on_cloud": ears or {}, "roughness": rough,
+           "cloud_noise": {"noise_mm": _rounded(result.cloud_noise_mm, 4),
+                           "reference_mm": config.cloud_noise_mm,
+                           "weight": _rounded(result.cloud_weight, 4)}}
     path.write_text(json.dumps(doc, indent=1))
     return path

@@ -67,11 +67,16 @@ def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str |
 
 
 def figures(folder: str | Path) -> dict:
-    """Headline figures of a fitting artifact: its time and the mesh checks."""
+    """Headline figures of a fitting artifact: its time, the mesh checks and the face's
+    roughness."""
     if not (Path(folder) / FIT_JSON).is_file():
         return {}
     fit = json.loads((Path(folder) / FIT_JSON).read_text())
     fig = {"fit_seconds": round(fit["timing"].get("wall_s", 0.0), 2)}
     if fit.get("sanity"):
         fig["mesh_sanity"] = fit["sanity"]
+    if fit.get("roughness"):
+        fig["roughness"] = fit["roughness"]
+    if fit.get("cloud_noise"):
+        fig["cloud_noise"] = fit["cloud_noise"]
     return fig

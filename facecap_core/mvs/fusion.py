@@ -4,7 +4,10 @@ Each reference pixel with a depth is projected into the other depth maps; where 
 ``min_consistent_views`` of them agree (depth, round-trip reprojection and normal, see
 :func:`~facecap_core.mvs.filtering.agreement`) the agreeing 3D points, normals and colours
 are averaged into one output point, and the pixels used are marked so that the same surface
-point is not emitted again from another view.
+point is not emitted again from another view. Each point keeps its measured uncertainty: the
+spread (standard deviation, mm) of the agreeing views' points along its normal. The views'
+errors are independent (each its own window, sources and noise), so where they scatter the
+surface is uncertain, however densely it is sampled; the fit weighs each point by it.
 """
 
 from __future__ import annotations
@@ -34,12 +37,14 @@ FUSION = "fusion.json"
 @dataclass
 class PointCloud:
     """Fused points (N, 3) mm world frame, unit normals (N, 3), uint8 colours (N, 3),
-    and how many views each point was seen consistently in."""
+    how many views each point was seen consistently in, and the spread (N,) mm of those
+    views' points along the normal (their sample standard deviation)."""
 
     points: np.ndarray
     normals: np.ndarray
     colors: np.ndarray
     views: np.ndarray
+    spread: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -52,7 +57,7 @@ def fuse(maps: list[DepthMap], images: list[np.ndarray] | None = None,
     if images is not None and len(images) != len(maps):
         raise InputError(f"fusion: {len(images)} images for {len(maps)} depth maps")
     used = [np.zeros(m.depth.shape, bool) for m in maps]
-    out_p, out_n, out_c, out_v = [], [], [], []
+    out_p, out_n, out_c, out_v, out_s = [], [], [], [], []
     for i, dm in enumerate(maps):
         rows, cols = np.nonzero((dm.depth > 0) & ~used[i])
         if len(rows) == 0:
@@ -62,6 +67,8 @@ def fuse(maps: list[DepthMap], images: list[np.ndarray] | None = None,
         s_c = (images[i][rows, cols].astype(float) if images is not None
                else np.zeros((len(rows), 3)))
         count = np.ones(len(rows), np.int32)
+        # Depths along the reference normal, relative to the reference point (no cancellation).
+        s_d, s_dd = np.zeros(len(rows)), np.zeros(len(rows))
         contrib = []
         for j in _partners(maps, i):
             if j == i:
@@ -72,6 +79,9 @@ def fuse(maps: list[DepthMap], images: list[np.ndarray] | None = None,
             ok &= ~used[j][orow, ocol]
             s_p[ok] += o_p[ok]
             s_n[ok] += o_n[ok]
+            d = np.einsum("ij,ij->i", o_p - pts, nrm)
+            s_d[ok] += d[ok]
+            s_dd[ok] += d[ok] ** 2
             if images is not None:
                 s_c[ok] += images[j][orow[ok], ocol[ok]]
             count += ok
@@ -87,26 +97,33 @@ def fuse(maps: list[DepthMap], images: list[np.ndarray] | None = None,
         out_n.append(n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12))
         out_c.append(np.clip(np.rint(s_c[keep] / c), 0, 255).astype(np.uint8))
         out_v.append(count[keep])
+        k = count[keep].astype(float)
+        var = (s_dd[keep] - s_d[keep] ** 2 / k) / np.maximum(k - 1, 1)
+        out_s.append(np.sqrt(np.maximum(var, 0.0)))
     if not out_p:
         return PointCloud(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
-                          np.zeros(0, np.int32))
+                          np.zeros(0, np.int32), np.zeros(0))
     return PointCloud(np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_c),
-                      np.concatenate(out_v))
+                      np.concatenate(out_v), np.concatenate(out_s))
 
 
 def write_ply(cloud: PointCloud, path: str | Path) -> Path:
-    """Binary PLY with positions, normals and colours (MeshLab, CloudCompare, open3d);
-    written to a temporary name first so a crash never leaves half a file."""
+    """Binary PLY with positions, normals, colours and, when known, each point's ``spread``
+    (mm) and ``views`` as scalar properties (MeshLab, CloudCompare, open3d); written to a temporary name
+    first so a crash never leaves half a file."""
     import open3d as o3d
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    pc = o3d.geometry.PointCloud()
-    pc.points = o3d.utility.Vector3dVector(np.asarray(cloud.points, float))
-    pc.normals = o3d.utility.Vector3dVector(np.asarray(cloud.normals, float))
-    pc.colors = o3d.utility.Vector3dVector(np.asarray(cloud.colors, float) / 255.0)
+    pc = o3d.t.geometry.PointCloud()
+    pc.point.positions = o3d.core.Tensor(np.asarray(cloud.points, np.float64).reshape(-1, 3))
+    pc.point.normals = o3d.core.Tensor(np.asarray(cloud.normals, np.float64).reshape(-1, 3))
+    pc.point.colors = o3d.core.Tensor(np.asarray(cloud.colors, np.uint8).reshape(-1, 3))
+    if cloud.spread is not None:
+        pc.point.spread = o3d.core.Tensor(np.asarray(cloud.spread, np.float32).reshape(-1, 1))
+        pc.point.views = o3d.core.Tensor(np.asarray(cloud.views, np.float32).reshape(-1, 1))
     tmp = path.with_name(f".{path.stem}.part{path.suffix}")
-    if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
+    if not o3d.t.io.write_point_cloud(str(tmp), pc, write_ascii=False):
         raise InputError(f"could not write the point cloud to {path}")
     os.replace(tmp, path)
     return path

@@ -32,7 +32,7 @@ from facecap_core.synthetic.sensor import (
     motion_blur,
     project_lines,
     rolling_readout,
-    to_srgb8,
+    sensor_image,
     turn_image,
 )
 from facecap_core.synthetic.subjects import Subject, make_subject
@@ -209,11 +209,9 @@ def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True) 
             f = shot.frame(i)
             on_subject = f.hits.mesh == 0
             seen[np.unique(f.hits.triangle[on_subject])] = True
-            img = f.image
-            sigma = np.sqrt(config.read_noise ** 2 + config.shot_noise ** 2 * np.clip(img, 0, 1))
-            img = img + sigma * noise_rng.standard_normal(img.shape)
             # Stored as the sensor holds it; the display rotation turns it upright again.
-            stored = turn_image(to_srgb8(img), -config.display_rotation_deg)
+            stored = turn_image(sensor_image(f.image, config, noise_rng),
+                                -config.display_rotation_deg)
             frame = av.VideoFrame.from_ndarray(stored, format="rgb24")
             frame.pts = i
             for packet in stream.encode(frame):

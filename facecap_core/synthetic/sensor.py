@@ -193,6 +193,35 @@ def motion_blur(img: np.ndarray, points: np.ndarray, projections: list[Callable]
     return acc / len(projections)
 
 
+def sensor_image(linear: np.ndarray, config: SynthConfig,
+                 rng: np.random.Generator) -> np.ndarray:
+    """What the phone stores for a rendered linear RGB image: lens blur, the colour filter
+    array, Poisson–Gaussian noise per photosite, demosaicing, sRGB and sharpening (uint8)."""
+    img = np.asarray(linear, np.float64)
+    if config.defocus_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), config.defocus_px)
+    if config.bayer:
+        h, w = img.shape[:2]
+        # RGGB: red at (even, even), green at (even, odd) and (odd, even), blue at (odd, odd).
+        channel = np.ones((h, w), np.int64)
+        channel[0::2, 0::2] = 0
+        channel[1::2, 1::2] = 2
+        raw = np.take_along_axis(img, channel[..., None], axis=2)[..., 0]
+        sigma = np.sqrt(config.read_noise ** 2 + config.shot_noise ** 2 * np.clip(raw, 0, 1))
+        raw = raw + sigma * rng.standard_normal(raw.shape)
+        raw16 = np.round(np.clip(raw, 0, 1) * 65535).astype(np.uint16)
+        # OpenCV names the pattern by the second row's first two pixels: RGGB is "BayerBG".
+        img = cv2.demosaicing(raw16, cv2.COLOR_BayerBG2RGB_EA).astype(np.float64) / 65535
+    else:
+        sigma = np.sqrt(config.read_noise ** 2 + config.shot_noise ** 2 * np.clip(img, 0, 1))
+        img = img + sigma * rng.standard_normal(img.shape)
+    srgb = to_srgb8(img)
+    if config.sharpen > 0:
+        soft = cv2.GaussianBlur(srgb, (0, 0), 1.0).astype(np.float64)
+        srgb = np.clip(np.round(srgb + config.sharpen * (srgb - soft)), 0, 255).astype(np.uint8)
+    return srgb
+
+
 def to_srgb8(linear: np.ndarray) -> np.ndarray:
     x = np.clip(linear, 0.0, 1.0)
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
