@@ -640,6 +640,12 @@ class LandmarkConfig(StrictModel):
     """An eye is measured only when its lids are this far apart, as a fraction of its
     corner-to-corner width (dlib's points; ~0.3 open, below ~0.15 closed): the lids of a
     half-closed eye cut the iris."""
+    min_lid_opening: float = Field(0.2, ge=0, le=1)
+    """An eye is measured only when MediaPipe's lid points are this far apart too, as a
+    fraction of its corner-to-corner width (the eye aspect ratio of blink detection): dlib
+    draws an open eye on a closed one (0.18-0.26 on the closed eyes of ``photo_set_31``),
+    MediaPipe's lids follow it. Measured: 0.26-0.30 on rendered open eyes (ICT identity 11,
+    calibration renders), 0.06-0.17 on real closed eyes."""
     ear_min_views: int = Field(3, ge=2, le=100)
     """Fewest keyframes with an ear detection for that ear's points to be triangulated."""
     ear_outlier_threshold: float = Field(0.1, gt=0, le=1)

@@ -221,7 +221,7 @@ STAGES: tuple[Stage, ...] = (
           exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=_figures("pose.stage")),
     Stage("frames", "landmarks", "1", ("video", "poses"), None, compute_frames,
           (FRAMES_JSON, "frame_{index:06d}.png")),
-    Stage("landmarks", "landmarks", "5", ("video", "poses"), "landmarks", compute_landmarks,
+    Stage("landmarks", "landmarks", "6", ("video", "poses"), "landmarks", compute_landmarks,
           (LANDMARKS_2D, LANDMARKS_3D, EARS_3D),
           version_suffix=_landmark_models),
     Stage("coarse", "coarse", "5", ("landmarks", "poses"), "coarse", compute_coarse,

@@ -13,7 +13,9 @@ diameter error 5.4 % RMS per eye. An own limbus fit near dlib's eye points did w
 docs/landmarks.md, "Metric scale").
 
 An eye is refused when it is not open enough (its dlib eye opening, the lids' mean distance
-over the corner-to-corner width, below ``min_eye_opening``), when the iris centre lies outside
+over the corner-to-corner width, below ``min_eye_opening``; and the same ratio from
+MediaPipe's own lid points, below ``min_lid_opening``: dlib's predictor draws an open eye's
+outline on a closed one, MediaPipe's mesh follows the lids), when the iris centre lies outside
 the eye's dlib outline, or when the diameter is implausible for the eye's width.
 """
 
@@ -43,6 +45,9 @@ RIGHT_EYE = np.arange(36, 42)  # the subject's right eye (image left in a fronta
 LEFT_EYE = np.arange(42, 48)
 # MediaPipe's iris points: centre, then the subject's right/top/left/bottom edge... per side.
 _MESH_IRIS = {"right": (468, 469, 471), "left": (473, 474, 476)}
+# MediaPipe's lid points per eye in the 68-point eye order: outer corner, two upper-lid
+# points, inner corner, two lower-lid points (the usual eye-aspect-ratio sextuple).
+_MESH_LIDS = {"right": (33, 160, 158, 133, 153, 144), "left": (263, 387, 385, 362, 380, 373)}
 DETECTOR = ("MediaPipe face mesh with iris refinement (478 points) on dlib's face box; pupils "
             "refined along the eye's axis to the dark centroid")
 # An adult's visible iris is 0.35-0.5 of the eye's corner-to-corner width.
@@ -51,16 +56,19 @@ _DIAMETER_OVER_WIDTH = (0.25, 0.65)
 
 @dataclass
 class IrisFit:
-    """One iris: its centre (x, y) and horizontal diameter in pixels, and the eye's opening."""
+    """One iris: its centre (x, y) and horizontal diameter in pixels, and the eye's opening
+    by dlib's points and by MediaPipe's lids."""
 
     centre: np.ndarray
     diameter: float
     opening: float
+    lid_opening: float = float("nan")
 
     def as_dict(self) -> dict:
         return {"centre": [round(float(c), 3) for c in self.centre],
                 "diameter_px": round(float(self.diameter), 4),
-                "opening": round(float(self.opening), 4)}
+                "opening": round(float(self.opening), 4),
+                "lid_opening": round(float(self.lid_opening), 4)}
 
 
 def available() -> bool:
@@ -144,8 +152,8 @@ def _inside(point: np.ndarray, polygon: np.ndarray) -> bool:
 
 
 def detect_irises(image: np.ndarray, points68: np.ndarray, box: tuple[float, ...],
-                  min_eye_opening: float = 0.18, refine_pupil: bool = True
-                  ) -> dict[str, IrisFit]:
+                  min_eye_opening: float = 0.18, refine_pupil: bool = True,
+                  min_lid_opening: float = 0.2) -> dict[str, IrisFit]:
     """The irises ({"right", "left"}: :class:`IrisFit`) of the face whose 68 points and box
     are given, in an RGB uint8 ``image``; an eye that is refused is missing. Without
     ``refine_pupil`` the centre is MediaPipe's own."""
@@ -172,14 +180,15 @@ def detect_irises(image: np.ndarray, points68: np.ndarray, box: tuple[float, ...
         diameter = float(np.linalg.norm(a - b))
         width = float(np.linalg.norm(eye[3] - eye[0]))
         opening = eye_opening(eye)
-        if (opening < min_eye_opening or not _inside(centre, eye)
+        lids = eye_opening(mesh[list(_MESH_LIDS[side])])
+        if (opening < min_eye_opening or lids < min_lid_opening or not _inside(centre, eye)
                 or not _DIAMETER_OVER_WIDTH[0] <= diameter / width <= _DIAMETER_OVER_WIDTH[1]):
             continue
         if refine_pupil:
             centre = pupil_centre(image, centre, 0.5 * diameter, eye[3] - eye[0])
         if not _inside(centre, eye):
             continue
-        found[side] = IrisFit(centre, diameter, opening)
+        found[side] = IrisFit(centre, diameter, opening, lids)
     return found
 
 

@@ -154,11 +154,12 @@ def detect_keyframes(video: str | Path, cams: CameraSet, config: LandmarkConfig
             irises = None
             if measure_irises:
                 irises = iris.detect_irises(frame.image, det.points, det.box,
-                                            config.min_eye_opening)
+                                            config.min_eye_opening,
+                                            min_lid_opening=config.min_lid_opening)
                 zoom = cams.intrinsics.width / frame.image.shape[1]
                 irises = {side: iris.IrisFit(_to_intrinsics(f.centre[None], frame.image.shape,
                                                             cams.intrinsics)[0],
-                                             f.diameter * zoom, f.opening)
+                                             f.diameter * zoom, f.opening, f.lid_opening)
                           for side, f in irises.items()}
             det = Detection(pts, det.score, tuple(float(b) for b in box), det.view, irises)
         found[frame.index] = det
