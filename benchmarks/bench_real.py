@@ -10,11 +10,11 @@ profile keyframe, beside those photos, to look at.
 Two measures need no reference. *Roughness* (``report.json`` ``figures.roughness``,
 :mod:`facecap_core.fitting.roughness`): the share of the face's edges bent over 20° and the
 median bend; skin is smooth, the template itself has 2 % and 1.2°. *Split-half distance*
-(``--split-half``, photo folders): the registered photos in sweep order are dealt
-alternately into two folders, each is reconstructed on its own, and the two meshes are
-compared over the face after a similarity (median, mean and 95th percentile of the distance
-from each one's face vertices to the other's surface, mm): what the halves disagree on is
-noise.
+(``--split-half``): the keyframes in sweep order are dealt alternately into two halves, the
+dense reconstruction (views, depth maps, fusion, fit) is run on each with the full run's
+cameras, and the two meshes are compared over the face after a similarity (median, mean and
+95th percentile of the distance from each one's face vertices to the other's surface, mm):
+what the halves disagree on is noise.
 
     python benchmarks/bench_real.py [--root ../shared/data/real] [--out out/bench_real]
         [--only photo_set_31] [--split-half]
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -107,39 +108,54 @@ def run(name: str, capture: Path, out: Path, store: Path) -> dict:
     return row
 
 
-def split_half(name: str, capture: Path, out: Path, store: Path) -> dict | None:
-    """Reconstruct two disjoint halves of a photo folder (its registered photos in sweep
-    order, dealt alternately) and measure how far apart the two meshes are over the face."""
+def split_half(name: str, out: Path, store: Path) -> dict | None:
+    """The dense reconstruction of two disjoint halves of a capture's keyframes (sweep order,
+    dealt alternately), on the full run's cameras and coarse mesh: view selection, depth
+    maps, fusion and fit per half; then the distance between the two meshes over the face.
+
+    The halves share the camera solve because a half of a photo folder is often too few
+    photos to solve alone (``photo_set_31``'s halves: 10 of 16 and 2 of 15 register), and
+    the cameras are measured apart (against COLMAP); what differs between the halves is
+    every image the surface is made from."""
+    from facecap_core.config import PipelineConfig
+    from facecap_core.fitting import stage as fitting_stage
     from facecap_core.fitting.roughness import face_vertices, split_half_distance
     from facecap_core.meshio import load_mesh
-    from facecap_core.photos import list_photos
+    from facecap_core.mvs import depth, fusion, views
     from facecap_core.template import Template
 
     full = out / name
-    if not capture.is_dir() or not (full / "mesh.ply").is_file():
+    if not (full / "report.json").is_file():
         return None
     report = json.loads((full / "report.json").read_text())
-    yaws = report.get("figures", {}).get("coverage", {}).get("yaw_by_frame", [])
-    photos = list_photos(capture)
-    order = [photos[int(i)] for i, _ in sorted(yaws, key=lambda r: r[1])]
-    rows = {}
+    keys = {k.split("-")[0]: store / "artifacts" / k
+            for k in re.findall(r'"([a-z]+-[0-9a-f]{32})"', json.dumps(report))}
+    frames, coarse, poses = keys["frames"], keys["coarse"], keys["poses"]
+    config = PipelineConfig()
+    cameras = json.loads((coarse / "cameras.json").read_text())
+    meshes, rows = [], []
     for half in (0, 1):
-        folder = out / f"{name}_half{half}"
-        shutil.rmtree(folder, ignore_errors=True)
-        (folder / "photos").mkdir(parents=True)
-        for photo in order[half::2]:
-            shutil.copy2(photo, folder / "photos" / photo.name)
-        rows[half] = run(f"{name}_half{half}", folder / "photos", folder / "result", store)
-        print(json.dumps(rows[half]), flush=True)
-        if rows[half]["exit"] != 0:
-            return {"halves": [rows.get(0), rows.get(1)], "distance": None}
+        work = out / f"{name}_half{half}"
+        shutil.rmtree(work, ignore_errors=True)
+        shutil.copytree(coarse, work / "coarse")
+        mine = dict(cameras, keyframes=cameras["keyframes"][half::2])
+        (work / "coarse" / "cameras.json").write_text(json.dumps(mine))
+        cams = work / "coarse" / "cameras.json"
+        views_json = views.main(frames, cams, work / "coarse" / "coarse.ply", work / "views",
+                                config.mvs.views, poses / "sparse.npz")
+        maps = [depth.main(i, frames, cams, views_json, work / "coarse" / "coarse.ply",
+                           work / "depth", config.mvs.depth)
+                for i in views.read_views(views_json)]
+        cloud = fusion.main(maps, frames, cams, work / "fusion", config.mvs.fusion)
+        mesh = fitting_stage.main(cloud, work / "coarse", frames, work / "fit", config.fitting)
+        meshes.append(load_mesh(mesh))
+        fit = json.loads((work / "fit" / "fit.json").read_text())
+        rows.append({"keyframes": len(mine["keyframes"]), "depth_maps": len(maps),
+                     "roughness": fit["roughness"], "cloud_noise": fit["cloud_noise"]})
     template = Template.default()
-    a = load_mesh(out / f"{name}_half0" / "result" / "mesh.ply")
-    b = load_mesh(out / f"{name}_half1" / "result" / "mesh.ply")
-    distance = split_half_distance(a.vertices, b.vertices, template.faces,
+    distance = split_half_distance(meshes[0].vertices, meshes[1].vertices, template.faces,
                                    face_vertices(template.vertices, template.landmarks))
-    return {"photos": [len(order[0::2]), len(order[1::2])], "distance": distance,
-            "roughness": [rows[0].get("roughness"), rows[1].get("roughness")]}
+    return {"halves": rows, "distance": distance}
 
 
 def main() -> None:
@@ -148,8 +164,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "bench_real")
     parser.add_argument("--only", nargs="*", help="capture names to run")
     parser.add_argument("--split-half", action="store_true",
-                        help="also reconstruct two disjoint halves of each photo folder that "
-                             "reconstructs, and measure the distance between their meshes")
+                        help="also reconstruct two disjoint halves of the keyframes of each "
+                             "capture that reconstructs, and measure the distance between "
+                             "their meshes")
     args = parser.parse_args()
     if not args.root.is_dir():
         sys.exit(f"no real captures at {args.root}")
@@ -161,7 +178,7 @@ def main() -> None:
         row = run(name, args.root / rel, args.out / name, store)
         row["expected"] = expected
         if args.split_half and row["exit"] == 0:
-            row["split_half"] = split_half(name, args.root / rel, args.out, store)
+            row["split_half"] = split_half(name, args.out, store)
         rows.append(row)
         print(json.dumps(row), flush=True)
     (args.out / "report.json").write_text(json.dumps(rows, indent=1))

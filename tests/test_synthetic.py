@@ -279,7 +279,7 @@ def test_sensor_image_models_a_phone_sensor():
     Gaussian of the given width; sharpening amplifies the noise."""
     from facecap_core.synthetic.sensor import sensor_image, to_srgb8
 
-    flat = np.full((64, 64, 3), [0.2, 0.45, 0.1])
+    flat = np.full((64, 64, 3), [0.2, 0.45, 0.1], np.float32)  # renders are float32
     quiet = SynthConfig(read_noise=0.0, shot_noise=0.0)
     base = SynthConfig()
     rng_a, rng_b = np.random.default_rng(7), np.random.default_rng(7)

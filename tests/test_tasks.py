@@ -28,7 +28,7 @@ def test_key_depends_on_inputs_config_and_version(monkeypatch):
     assert base != stage_key("fusion", {"frames": "input-" + "1" * 32}, {"a": 1})
     assert base != stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 2})
     assert base != stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 1}, {"index": 3})
-    bumped = replace(BY_NAME["fusion"], version="2")
+    bumped = replace(BY_NAME["fusion"], version=BY_NAME["fusion"].version + ".1")
     assert base != bumped.key({"frames": "input-" + "0" * 32}, {"a": 1})
 
 

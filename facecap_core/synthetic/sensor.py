@@ -197,7 +197,7 @@ def sensor_image(linear: np.ndarray, config: SynthConfig,
                  rng: np.random.Generator) -> np.ndarray:
     """What the phone stores for a rendered linear RGB image: lens blur, the colour filter
     array, Poisson–Gaussian noise per photosite, demosaicing, sRGB and sharpening (uint8)."""
-    img = np.asarray(linear, np.float64)
+    img = np.asarray(linear)  # its own dtype: the default path renders as it always has
     if config.defocus_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), config.defocus_px)
     if config.bayer:
