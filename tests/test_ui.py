@@ -22,6 +22,18 @@ def test_capture_and_folder_names_cannot_add_links_images_or_html():
     assert markdown_text("O'Brien") == "O'Brien"  # an apostrophe is shown as one
 
 
+def test_the_summary_says_how_smooth_the_face_is():
+    report = {"subject": "s", "capture": "c", "computed": 1, "cached": 0, "wall_seconds": 1.0,
+              "figures": {"roughness": {"edges": 46220, "bent_share_pct": 3.75,
+                                        "median_bend_deg": 2.87, "p90_bend_deg": 11.4,
+                                        "bent_deg": 20.0}}}
+    page = capture_markdown(report, Path("/out"), [])
+    assert "3.8 % of the face's edges bent over 20°, median bend 2.9°" in page
+    # A mesh with no face edge measured (another template) shows no line rather than None.
+    report["figures"]["roughness"]["bent_share_pct"] = None
+    assert "bent over" not in capture_markdown(report, Path("/out"), [])
+
+
 @pytest.mark.slow
 def test_a_forgotten_subjects_ui_pages_are_deleted_and_no_one_elses():
     import asyncio
