@@ -178,7 +178,10 @@ def main() -> None:
         row = run(name, args.root / rel, args.out / name, store)
         row["expected"] = expected
         if args.split_half and row["exit"] == 0:
-            row["split_half"] = split_half(name, args.out, store)
+            try:
+                row["split_half"] = split_half(name, args.out, store)
+            except Exception as exc:  # a failed half is a figure of its own, not the end
+                row["split_half"] = {"error": f"{type(exc).__name__}: {exc}"}
         rows.append(row)
         print(json.dumps(row), flush=True)
     (args.out / "report.json").write_text(json.dumps(rows, indent=1))

@@ -438,9 +438,11 @@ class FittingConfig(StrictModel):
     """The smoothness follows the cloud's measured noise: when the fused points that give the
     face its targets are less certain than this (their median standard error, from the
     spread of the views that agree on each point), every cloud target weighs
-    ``(cloud_noise_mm / noise)²`` of ``data_weight``, so the stiffness, not the noise,
-    shapes the surface. 0.12 mm is the noise of the clean calibration render (ICT identity
-    11, 640x360), so a clean capture keeps the full weight. None: always ``data_weight``."""
+    ``(cloud_noise_mm / noise)²`` of ``data_weight``: the cloud then counts less against the
+    stiffness (and against the landmarks, ear points and silhouettes), so the stiffness, not
+    the noise, shapes the surface. 0.12 mm is the noise of the clean calibration render (ICT
+    identity 11, 640x360: 0.117 mm); held-out clean renders measured 0.094 (ict:12) and
+    0.102 mm (the demo) and keep the full weight. None: always ``data_weight``."""
     recompute_every: int = Field(1, ge=1, le=100)
     """Recompute the cloud targets every this many steps (the paper: every few)."""
 

@@ -184,7 +184,7 @@ def test_a_noisy_cloud_weighs_less_and_leaves_the_surface_smooth(setup):
     reference keeps ``data_weight``; one 4× noisier weighs 1/16 of it, and the same noisy
     points then bend the face less."""
     template, sv, sf, slm, cloud, normals, noisy = setup
-    config = FittingConfig(**FAST)
+    config = FittingConfig()  # the shipped schedule
     errors = np.full(len(cloud), 0.5 * config.cloud_noise_mm)
     precise = fit(template, cloud, noisy, cloud_normals=normals, config=config,
                   cloud_errors=errors)
@@ -198,14 +198,15 @@ def test_a_noisy_cloud_weighs_less_and_leaves_the_surface_smooth(setup):
     edges = face_edges(template.vertices, template.faces, template.landmarks)
     bend = [roughness(r.vertices, r.faces, edges)["median_bend_deg"]
             for r in (precise, uncertain)]
-    # The 11k-vertex ICT subject itself bends a median 4.7° at its edges; the precise fit
-    # 5.3° (it follows the 0.5 mm noise), the down-weighted one 4.3° (measured).
-    assert bend[1] < bend[0] - 0.5, bend
-    # The errors claim 4× the noise these points have, so this over-smooths (0.38 mm
-    # measured, 0.15 for the precise fit); the cloud still shapes it (the start: > 0.8 mm).
+    # The 11k-vertex ICT subject itself bends a median 4.7° at its edges (a coarse mesh);
+    # with the shipped schedule the precise fit bends 4.5°, the down-weighted one 4.2°
+    # (measured; with a last level at stiffness 1: 5.3° and 4.3°).
+    assert bend[1] < bend[0] - 0.2, bend
+    # The errors claim 4× the noise these points have, so this over-smooths (0.51 mm
+    # measured); the cloud still shapes it (the landmark similarity start: > 0.8 mm).
     s = score(uncertain.vertices, uncertain.faces, sv, sf, slm,
               uncertain.template.landmark_points, protocol="metric")
-    assert s.accuracy.median < 0.55, s.accuracy
+    assert s.accuracy.median < 0.7, s.accuracy
     with pytest.raises(InputError, match="cloud errors"):
         fit(template, cloud, noisy, config=config, cloud_errors=errors[:-1])
 

@@ -236,8 +236,9 @@ def test_stage_measures_pupils_and_iris_size(capture, stage_run):
         assert abs(by_frame[frame]["yaw_deg"]) <= config.iris_max_yaw_deg
     measured = [f for k in keyframes for f in k.get("irises", {}).values()]
     assert measured and all(f["opening"] >= config.min_eye_opening for f in measured)
-    # MediaPipe's lids find the rendered eyes open (0.26-0.30 measured; closed: under 0.2).
-    assert all(f["lid_opening"] >= config.min_lid_opening for f in measured)
+    # MediaPipe's lids find the rendered eyes open with room to spare over the gate (0.26-0.30
+    # measured on open rendered eyes; real closed eyes read 0.06-0.17).
+    assert min(f["lid_opening"] for f in measured) > config.min_lid_opening + 0.02
 
 
 @pytest.mark.slow

@@ -71,7 +71,7 @@ def _normal_ray_kernel(V, Nv, P, Pn, Pe, origin, cell, dims, starts, radius, per
     t_med = np.zeros(n)
     count = np.zeros(n, np.int64)
     spread = np.zeros(n)
-    point_error = np.zeros(n)
+    point_error = np.full(n, np.nan)
     buf = np.empty(max_keep)
     ebuf = np.empty(max_keep)
     use_normals = Pn.shape[0] > 0
@@ -150,8 +150,6 @@ def cloud_targets(vertices: np.ndarray, normals: np.ndarray, grid: CloudGrid, ra
         grid.starts, float(radius), float(perp_tol),
         float(np.cos(np.radians(normal_agreement_deg))), max_keep)
     ok = count >= min_points
-    if len(grid.errors) == 0:
-        point_error[:] = np.nan
     return ok, V + t[:, None] * Nv, count, point_error
 
 

@@ -188,7 +188,9 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
                                                             config.normal_distance_mm,
                                                             config.min_points,
                                                             config.normal_agreement_deg)
-                if cloud_noise is None:
+                if cloud_noise is None or (len(grid.errors) and not np.isfinite(cloud_noise)):
+                    # Once, where the cloud has errors: measured again while no face vertex
+                    # has found its points yet.
                     cloud_noise, cloud_w = _noise_weight(point_error, ok & face, config)
             t_cloud = time.perf_counter() - t0
             if use_edges and level >= config.edge_first_level and \
