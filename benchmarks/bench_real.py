@@ -118,8 +118,9 @@ def split_half(name: str, out: Path, store: Path) -> dict | None:
     the cameras are measured apart (against COLMAP); what differs between the halves is
     every image the surface is made from."""
     from facecap_core.config import PipelineConfig
+    from facecap_core.evaluation import split_half_distance
     from facecap_core.fitting import stage as fitting_stage
-    from facecap_core.fitting.roughness import face_vertices, split_half_distance
+    from facecap_core.fitting.roughness import face_vertices
     from facecap_core.meshio import load_mesh
     from facecap_core.mvs import depth, fusion, views
     from facecap_core.template import Template

@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from facecap_core.evaluation import split_half_distance
 from facecap_core.fitting.roughness import (
     BENT_DEG,
     bend_angles,
     face_edges,
     face_vertices,
     roughness,
-    split_half_distance,
 )
 from facecap_core.render import vertex_normals
 from facecap_core.template import Template

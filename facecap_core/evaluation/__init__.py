@@ -68,6 +68,7 @@ from facecap_core.evaluation.alignment import (
     align,
     distances,
 )
+from facecap_core.evaluation.consistency import split_half_distance
 from facecap_core.evaluation.figures import (
     COLORBAR_HEIGHT,
     error_heatmap,
@@ -100,5 +101,5 @@ __all__ = [
     "REGIONS", "Alignment", "EvaluationConfig", "Protocol", "RegionScore", "Score", "Stats",
     "align", "distances", "ear_region", "ear_spheres", "error_heatmap", "evaluate",
     "face_region", "face_size", "find_file", "main", "mesh_render", "paper_table",
-    "region_sphere", "render_views", "score", "score_json",
+    "region_sphere", "render_views", "score", "score_json", "split_half_distance",
 ]

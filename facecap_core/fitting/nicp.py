@@ -131,7 +131,7 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
     landmarks (only 17-67 are used), ``keyframes`` images with cameras for the silhouettes,
     ``ear_points`` ``(vertex ids (k,), targets (k, 3)[, weights (k,)])``, the weights each
     point's reliability (1 without them), ``cloud_errors`` (N,) each cloud point's standard
-    error in mm (the fusion stage's; see ``FittingConfig.target_error_mm``). The template is
+    error in mm (the fusion stage's; see ``FittingConfig.cloud_noise_mm``). The template is
     used as given
     (in the subject's frame) unless ``config.initial_similarity``.
     """

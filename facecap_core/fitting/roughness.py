@@ -1,6 +1,4 @@
-"""Reference-free measures of a fitted face: how crinkled it is, and how well two fits agree.
-
-**Roughness**: the bend across the face's edges.
+"""How crinkled a fitted face is, without a reference: the bend across its edges.
 
 Skin is smooth at the 1–2 mm scale of the template's triangles, so the angle between the
 normals of two triangles that share an edge is small on a face mesh (the default template
@@ -11,17 +9,14 @@ a fifth of the face's edges bent over 20°.
 The measure is taken over the face: the template's vertices within ``FACE_RADIUS_MM`` ×
 (its eye-corner distance L36–L45 / ``EYE_CORNERS_MM``) of the centroid of its landmarks
 17–67, and the edges both of whose triangles lie wholly inside. The region is the
-template's, so it is the same set of edges on every fit of it.
-
-**Split-half distance** (:func:`split_half_distance`): two fits of one face from disjoint
-halves of its views, brought together by a similarity over the face; the distance from each
-one's face vertices to the other's surface. What the two halves do not share is noise (and
-what one half sees that the other does not), so it measures the noise without a scan.
+template's, so it is the same set of edges on every fit of it (:func:`face_vertices` is
+also the region that ``benchmarks/bench_real.py --split-half`` measures).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 
 FACE_RADIUS_MM = 70.0
 """Radius of the face region on a face whose outer eye corners are ``EYE_CORNERS_MM`` apart
@@ -30,7 +25,7 @@ EYE_CORNERS_MM = 90.0
 BENT_DEG = 20.0
 """An edge counts as bent when its two triangles' normals differ by more than this."""
 
-__all__ = ["face_vertices", "face_edges", "bend_angles", "roughness", "split_half_distance"]
+__all__ = ["face_vertices", "face_edges", "bend_angles", "roughness"]
 
 
 def face_vertices(vertices: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
@@ -45,24 +40,9 @@ def face_vertices(vertices: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
 def face_edges(vertices: np.ndarray, faces: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
     """(E, 2) triangle-index pairs of the interior edges of the face region of a template
     (``vertices``, ``faces`` and its 68 landmark vertex ids)."""
-    F = np.asarray(faces, np.int64)
-    inside = face_vertices(vertices, landmarks)
-    tri_inside = inside[F].all(1)
-    # Each directed half-edge (a, b) of triangle f; its twin (b, a) belongs to the neighbour.
-    half = np.stack([F, np.roll(F, -1, axis=1)], axis=2).reshape(-1, 2)
-    owner = np.repeat(np.arange(len(F)), 3)
-    key = np.sort(half, axis=1)
-    order = np.lexsort((key[:, 1], key[:, 0]))
-    key, owner = key[order], owner[order]
-    same = np.all(key[1:] == key[:-1], axis=1)
-    # A manifold edge appears exactly twice; a non-manifold one (three or more) is skipped.
-    first = np.nonzero(same)[0]
-    single = np.ones(len(first), bool)
-    if len(first) > 1:
-        chained = first[1:] == first[:-1] + 1
-        single[1:] &= ~chained
-        single[:-1] &= ~chained
-    pairs = np.stack([owner[first], owner[first + 1]], axis=1)[single]
+    tri_inside = face_vertices(vertices, landmarks)[np.asarray(faces, np.int64)].all(1)
+    # Pairs of triangles that share an edge (manifold edges: exactly two triangles).
+    pairs = trimesh.Trimesh(vertices, faces, process=False).face_adjacency
     return pairs[tri_inside[pairs].all(1)]
 
 
@@ -90,32 +70,3 @@ def roughness(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray) -> dic
             "median_bend_deg": round(float(np.median(angles)), 2),
             "p90_bend_deg": round(float(np.percentile(angles, 90)), 2),
             "bent_deg": BENT_DEG}
-
-
-def split_half_distance(a_vertices: np.ndarray, b_vertices: np.ndarray, faces: np.ndarray,
-                        face: np.ndarray) -> dict:
-    """Distances (mm) between two fits of one face in one topology (``face``: the vertices
-    of :func:`face_vertices`): ``b`` is moved onto ``a`` by the similarity over the face
-    vertices (the halves' scales and frames differ), then each side's face vertices are
-    measured to the other's surface; median, mean and 95th percentile over both sides."""
-    import open3d as o3d
-
-    from facecap_core.geometry import umeyama
-
-    a = np.asarray(a_vertices, float)
-    b = np.asarray(b_vertices, float)
-    F = np.asarray(faces, np.int64)
-    if a.shape != b.shape:
-        raise ValueError(f"the fits differ in vertex count ({len(a)} vs {len(b)})")
-    s, R, t = umeyama(b[face], a[face], with_scale=True)
-    b = s * b @ R.T + t
-    d = []
-    for src, dst in ((a, b), (b, a)):
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(dst.astype(np.float32)),
-                            o3d.core.Tensor(F.astype(np.uint32)))
-        query = o3d.core.Tensor(src[face].astype(np.float32))
-        d.append(scene.compute_distance(query).numpy())
-    d = np.concatenate(d)
-    return {"median_mm": round(float(np.median(d)), 3), "mean_mm": round(float(d.mean()), 3),
-            "p95_mm": round(float(np.percentile(d, 95)), 3), "scale_ratio": round(float(s), 4)}
