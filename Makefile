@@ -14,12 +14,12 @@ SYSTEM_LIBS := libusb-1.0.so.0:libusb-1.0-0 libgomp.so.1:libgomp1
 # would replace opencv-python-headless's cv2 (pyproject.toml lists what it needs).
 MEDIAPIPE := mediapipe==0.10.14
 
-.PHONY: demo test test-fast lint install constraints system-libs compose-tool bench clean
+.PHONY: demo test test-fast lint install constraints system-libs compose-tool browser bench clean
 
 demo: install
 	$(PY) -m flows.cli demo --out out/demo --ict-model "$(ICT_MODEL)"
 
-test: install compose-tool
+test: install compose-tool browser
 	$(PY) -m pytest -q
 
 # Style and static checks (ruff; its rules are in pyproject.toml).
@@ -27,7 +27,7 @@ lint: install
 	$(VENV)/bin/ruff check .
 
 # The edit-test loop: everything but the end-to-end renders and stage runs.
-test-fast: install compose-tool
+test-fast: install compose-tool browser
 	$(PY) -m pytest -q -m "not slow"
 
 install: system-libs $(VENV)/.installed
@@ -62,6 +62,11 @@ system-libs:
 compose-tool:
 	@command -v docker-compose >/dev/null || { echo "installing system packages: docker-compose"; \
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq --no-install-recommends docker-compose; }
+
+# The capture page's tests look at it in Debian's headless Chromium (tests/browser.py).
+browser:
+	@command -v chromium >/dev/null || { echo "installing system packages: chromium"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq chromium; }
 
 bench: install
 	$(PY) benchmarks/bench_baseline.py

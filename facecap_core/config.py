@@ -10,11 +10,23 @@ rejected with a message that names the field.
 
 from __future__ import annotations
 
+import re
+import stat
+from functools import lru_cache
 from pathlib import Path
-from typing import Literal, TypeVar
+from typing import Any, Literal, TypeVar, get_args
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
 
 from facecap_core.errors import InputError
 
@@ -25,6 +37,15 @@ MAX_CONFIG_BYTES = 256 * 1024
 """Largest config file read: every setting with a comment fits in a few kilobytes."""
 MAX_FRAMES = 100_000
 """Most frames any setting may ask a capture to have (about 7 minutes at 240 fps)."""
+MAX_SEED = 2**32 - 1
+"""Largest seed of a synthetic capture's random draws, or of an ``ict:SEED`` subject."""
+
+
+def _is_ict_subject(subject: str) -> bool:
+    """Whether ``subject`` is ``ict:mean`` or ``ict:SEED`` with a seed a synthetic capture
+    takes (ASCII digits: ``int`` reads other scripts' digits too, and ``-1`` is no seed)."""
+    seed = re.fullmatch(r"ict:(?:mean|([0-9]{1,10}))", subject)
+    return seed is not None and (seed[1] is None or int(seed[1]) <= MAX_SEED)
 
 
 class StrictModel(BaseModel):
@@ -34,6 +55,32 @@ class StrictModel(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False,
                               use_attribute_docstrings=True)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_boolean_for_a_number(cls, value: Any, info: ValidationInfo) -> Any:
+        """``true`` is no number, but pydantic's lax mode takes it as 1 (and YAML reads
+        ``yes`` and ``on`` as ``true``). Strict mode would refuse it, and also the strings
+        and lists that YAML and flow parameters give for paths and tuples."""
+        items = value if isinstance(value, list | tuple) else (value,)
+        if any(isinstance(v, bool) for v in items) and _is_numeric(
+                cls.model_fields[info.field_name].annotation):
+            raise PydanticCustomError("bool_for_number", "Input should be a number, not a "
+                                      "boolean (true/false, yes/no, on/off)")
+        return value
+
+
+@lru_cache
+def _is_numeric(annotation: Any) -> bool:
+    """Whether a field's type holds numbers (``int``, ``float | None``, ``list[float]``,
+    ``tuple[int, int]``) and no bool (a ``Literal`` of numbers lists values, not types:
+    pydantic itself refuses ``true`` there)."""
+    types, todo = set(), [annotation]
+    while todo:
+        t = todo.pop()
+        types.add(t)
+        todo.extend(get_args(t))
+    return bool(types & {int, float}) and bool not in types
 
 
 class SynthConfig(StrictModel):
@@ -159,8 +206,20 @@ class SynthConfig(StrictModel):
     it), both at ``crf`` with the medium preset."""
     crf: int = Field(16, ge=0, le=51)
     """Constant rate factor of the output video (lower = better quality)."""
-    seed: int = Field(0, ge=0, le=2**32 - 1)
+    seed: int = Field(0, ge=0, le=MAX_SEED)
     """Seed of every random draw (camera, path, lighting, textures, noise)."""
+
+    @field_validator("subject")
+    @classmethod
+    def _check_subject(cls, value: str) -> str:
+        # Any other string is a mesh path, checked when it is loaded; an ict: one is checked
+        # here, before anything is written.
+        if value.startswith("ict:") and not _is_ict_subject(value):
+            raise PydanticCustomError(
+                "subject", "'{subject}' names no subject (the forms are ict:SEED with SEED a "
+                "whole number from 0 to {most}, ict:mean, james, or the path of a mesh file)",
+                {"subject": value, "most": MAX_SEED})
+        return value
 
     @model_validator(mode="after")
     def _check_ranges(self):
@@ -198,23 +257,121 @@ def build(model: type[M], values: dict, source: str = "config") -> M:
                          "these settings") from None
 
 
-def load_yaml(model: type[M], path: str | Path, overrides: dict | None = None) -> M:
-    """Read a YAML config (``{}`` for an empty file) and apply ``overrides`` on top."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"config file not found: {path}; check the path")
-    size = path.stat().st_size
-    if size > MAX_CONFIG_BYTES:
-        raise InputError(f"config file {path} is {size} bytes, too large to be a config (at "
-                         f"most {MAX_CONFIG_BYTES}); give the settings that differ from the "
+class ConfigLoader(yaml.SafeLoader):
+    """PyYAML's safe loader without a YAML 1.1 surprise: ``1:30`` is a string, not the
+    base-60 integer 90 (nor ``1:30.5`` a float), so that a number field refuses it."""
+
+
+# The implicit int and float resolvers of PyYAML's resolver.py, without their base-60 forms;
+# every other resolver as SafeLoader has it.
+ConfigLoader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers
+            if tag not in ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+ConfigLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:int",
+    re.compile(r"""^(?:[-+]?0b[0-1_]+
+                   |[-+]?0[0-7_]+
+                   |[-+]?(?:0|[1-9][0-9_]*)
+                   |[-+]?0x[0-9a-fA-F_]+)$""", re.X),
+    list("-+0123456789"))
+ConfigLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+][0-9]+)?
+                   |\.[0-9][0-9_]*(?:[eE][-+][0-9]+)?
+                   |[-+]?\.(?:inf|Inf|INF)
+                   |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."))
+
+
+class DuplicateKeyError(yaml.YAMLError):
+    """A mapping of a YAML document gives one key twice."""
+
+    def __init__(self, key: str, line: int):
+        super().__init__(f"{key} is given twice (line {line})")
+        self.key, self.line = key, line
+
+
+def parse_yaml(text: str) -> Any:
+    """The one YAML document of ``text`` (None when empty), read by :class:`ConfigLoader`;
+    a key given twice in one mapping raises :class:`DuplicateKeyError` (PyYAML would keep
+    the last silently)."""
+    loader = ConfigLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _check_unique_keys(node)
+        try:
+            return loader.construct_document(node)
+        except (ValueError, TypeError, OverflowError) as exc:  # a scalar its resolver misread
+            raise yaml.constructor.ConstructorError(None, None, str(exc)) from None
+    finally:
+        loader.dispose()
+
+
+def _check_unique_keys(node: yaml.Node, path: tuple[str, ...] = (),
+                       seen: set[int] | None = None) -> None:
+    """Raise :class:`DuplicateKeyError`, naming the key's dotted path, for a key given twice
+    in one mapping under ``node``."""
+    seen = set() if seen is None else seen
+    if id(node) in seen:  # an alias: its node is checked once (and may contain itself)
+        return
+    seen.add(id(node))
+    if isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            _check_unique_keys(item, (*path, str(i)), seen)
+    elif isinstance(node, yaml.MappingNode):
+        keys = set()
+        for key, value in node.value:
+            name = str(key.value) if isinstance(key, yaml.ScalarNode) else "?"
+            # The tag tells 'iterations' and "iterations" (one key) from 1 and "1" (two);
+            # a merge key (<<) brings its own mapping's keys, which the mapping may override.
+            if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
+                if (key.tag, key.value) in keys:
+                    raise DuplicateKeyError(".".join((*path, name)), key.start_mark.line + 1)
+                keys.add((key.tag, key.value))
+            _check_unique_keys(value, (*path, name), seen)
+
+
+def _config_text(path: Path) -> str:
+    """The text of a config file: a regular UTF-8 file of at most MAX_CONFIG_BYTES."""
+    try:
+        info = path.stat()
+    except (FileNotFoundError, NotADirectoryError):
+        raise InputError(f"config file not found: {path}; check the path") from None
+    except OSError as exc:
+        raise InputError(f"config file {path} cannot be read ({exc.strerror}); check the path "
+                         "and its permissions") from None
+    if stat.S_ISDIR(info.st_mode):
+        raise InputError(f"config file {path} is a folder, not a file; give the path of a YAML "
+                         "file")
+    if not stat.S_ISREG(info.st_mode):  # a FIFO or a device: opening it could block
+        raise InputError(f"config file {path} is not a regular file; give the path of a YAML "
+                         "file")
+    if info.st_size > MAX_CONFIG_BYTES:
+        raise InputError(f"config file {path} is {info.st_size} bytes, too large to be a config "
+                         f"(at most {MAX_CONFIG_BYTES}); give the settings that differ from the "
                          "defaults")
     try:
-        text = path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
         raise InputError(f"config file {path} is not UTF-8 text (byte {exc.start} is not); "
                          "save it as UTF-8") from None
+    except OSError as exc:
+        raise InputError(f"config file {path} cannot be read ({exc.strerror}); check its "
+                         "permissions") from None
+
+
+def load_yaml(model: type[M], path: str | Path, overrides: dict | None = None) -> M:
+    """Read a YAML config (``{}`` for an empty file) and apply ``overrides`` on top."""
+    path = Path(path)
+    text = _config_text(path)
     try:
-        values = yaml.safe_load(text)
+        values = parse_yaml(text)
+    except DuplicateKeyError as exc:
+        raise InputError(f"config file {path} sets {exc.key} twice (the second time on line "
+                         f"{exc.line}); keep one of them") from None
     except yaml.YAMLError as exc:
         raise InputError(f"config file {path} is not valid YAML ({str(exc).splitlines()[0]});"
                          " fix its syntax") from None

@@ -50,7 +50,8 @@ class FacecapSettings(BaseSettings):
     home: Path = Field(default_factory=default_home)
     """Folder of facecap's own files: downloaded assets (``assets/``, ``downloads/``), the
     default store (``store/``), copies of remote artifacts (``store-cache/``), locks of a
-    remote store (``locks/``), scratch space (``work/``), crash logs (``logs/``). Default
+    remote store (``locks/``), scratch space (``work/``), crash logs (``logs/``); made if
+    missing, refused if it is a file or a folder facecap may not write in. Default
     ``~/.cache/facecap``."""
     store: str | None = None
     """Artifact store: a folder or ``s3://bucket/prefix``. A served run uses this one and may
@@ -115,6 +116,17 @@ class FacecapSettings(BaseSettings):
     def _expand_path(cls, value: Path | None) -> Path | None:
         return value.expanduser() if value is not None else None
 
+    @field_validator("home")
+    @classmethod
+    def _check_home(cls, value: Path) -> Path:
+        # Every command writes below it (assets, store, locks, scratch, crash logs): a file
+        # or a folder it may not write in is named here, with its variable, rather than by
+        # the traceback of the first folder made under it.
+        problem = folder_problem(value)
+        if problem:
+            raise ValueError(problem)
+        return value
+
     @field_validator("input_roots")
     @classmethod
     def _expand_roots(cls, value: tuple[Path, ...]) -> tuple[Path, ...]:
@@ -134,6 +146,24 @@ class FacecapSettings(BaseSettings):
             raise ValueError("expected STAGE[:N[:HOW]], N a positive count and HOW one of "
                              "exit, interrupt, oserror")
         return value
+
+
+def folder_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be a folder facecap writes in (it, or the nearest of its parents
+    that exists, is not a folder or not writable), or None. A folder still to be made is
+    fine."""
+    existing = next(p for p in (path, *path.parents) if p.exists() or p.is_symlink())
+    inside = "" if existing == path else f"{path} cannot be made: "
+    if not existing.is_dir():
+        return f"{inside}{existing} is {'a file, ' if existing.is_file() else ''}not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"{inside}{existing} is a folder facecap may not write in"
+    return None
+
+
+REMEDIES = {"home": "set FACECAP_HOME to a writable folder, or unset it for the default "
+                    "(~/.cache/facecap)"}
+"""What to do about a bad value, where more can be said than "correct it"."""
 
 
 def time_limit(field: str) -> float:
@@ -187,8 +217,8 @@ def _problem(error: dict) -> str:
     reason = reason[:1].lower() + reason[1:]
     default = FacecapSettings.model_fields[field].get_default(call_default_factory=True)
     shown = f" ({default:g})" if isinstance(default, int | float) else ""
-    return (f"invalid {env_name(field)}={value!r} in the environment: {reason}; correct it or "
-            f"unset it for the default{shown}")
+    remedy = REMEDIES.get(field, f"correct it or unset it for the default{shown}")
+    return f"invalid {env_name(field)}={value!r} in the environment: {reason}; {remedy}"
 
 
 def _shorten(text: str, limit: int = 80) -> str:

@@ -6,12 +6,15 @@ only the stages that read it and those after them), fans the depth maps out over
 (the PatchMatch kernels release the GIL, so ``mvs.workers`` threads use that many cores of
 a worker without a second process or API server), and exports the results to ``out``::
 
-    mesh.ply, mesh.obj      fitted mesh (mm, template topology, per-vertex colour)
+    index.html              the results as one page to look at in a browser (flows.page)
+    mesh.ply, mesh.obj      fitted mesh (mm, template topology, per-vertex colour);
+    mesh.glb                the same as binary glTF (Blender, three.js, 3D viewers)
     cameras.json            metric cameras (mm) of the keyframes; colmap/ the pose stage's
                             COLMAP text model (its own units)
     cloud.ply               fused point cloud with normals and colours
     landmarks3d.json        68 3D landmarks (mm); ears3d.json the ear points
     report.json             per-stage seconds (computed or cached), figures, evaluation
+    preview.png             three views of the mesh (the heat map with a scan)
     evaluation.json, heatmap_*.png   with a scan
 """
 
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import tempfile
 import time
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -42,7 +46,9 @@ from tasks.graph import (
     producer,
     stages_until,
 )
-from tasks.runner import open_store
+from tasks.outputs import ResultWriter, check_output_place
+from tasks.runner import default_store_url, open_store, run_leases
+from tasks.scratch import process_scratch
 from tasks.stages import call_ingest, call_stage, stage_result
 
 Step = Literal[STEPS]
@@ -186,28 +192,49 @@ def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str
     return runs
 
 
-def _export(store: str, keys: dict[str, str], out: Path) -> None:
-    """Copy the user-facing files of the finished stages into ``out``; results an earlier
-    run left there that this run did not make (a heat map when no scan is given now, a mesh
-    after ``--until coarse``) are removed, so that the folder shows this run alone (they stay
-    in the store)."""
-    st = open_store(store)
-    written = {"report.json"}  # rewritten after the export
+def _export(store: str, keys: dict[str, str], writer: ResultWriter, scratch: Path
+            ) -> dict[str, Path]:
+    """Stage the user-facing files of the finished stages and a preview rendered from them
+    (``writer`` commits them with the report, so that the folder shows this run alone:
+    results an earlier run left there that this run did not make go; they stay in the
+    store). Returns what was staged, name -> the file it came from."""
+    st, staged = open_store(store), {}
     for stage, names in EXPORTED.items():
         if stage not in keys:
             continue
         folder = st.get(keys[stage])  # checked: a file changed after its commit is refused
         for name in names:
-            src = folder / name
-            if src.is_file():
-                dst = out / name
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                tmp = dst.with_name(f".{dst.name}.part")
-                shutil.copyfile(src, tmp)
-                tmp.replace(dst)
-                written.add(name)
-    for name in sorted(OUTPUT_NAMES - written):
-        (out / name).unlink(missing_ok=True)
+            if (folder / name).is_file():
+                writer.add(name, source=folder / name)
+                staged[name] = folder / name
+    from flows.page import GLB_NAME, mesh_glb
+    from flows.ui import mesh_preview
+
+    made = {"preview.png": mesh_preview(staged, scratch / "preview.png")}
+    if "mesh.ply" in staged:
+        made[GLB_NAME] = scratch / GLB_NAME
+        made[GLB_NAME].write_bytes(mesh_glb(staged["mesh.ply"]))
+    for name, path in made.items():
+        if path is not None:
+            writer.add(name, source=path)
+            staged[name] = path
+    return staged
+
+
+def _page(store: str, keys: dict[str, str], report: dict, results: dict[str, Path]) -> bytes:
+    """``index.html`` of the run (:mod:`flows.page`), the heat map on the mesh from the
+    evaluation's metric protocol."""
+    import numpy as np
+
+    from facecap_core.evaluation.stage import ACCURACY_NPY
+    from flows.page import GLB_NAME, build_page
+
+    accuracy = None
+    if "evaluation" in keys:
+        path = open_store(store).get(keys["evaluation"]) / ACCURACY_NPY.format(protocol="metric")
+        accuracy = np.load(path) if path.is_file() else None
+    glb = results[GLB_NAME].read_bytes() if GLB_NAME in results else None
+    return build_page(report, results, glb, accuracy)
 
 
 def _stage_report(store: str, runs: dict[str, tuple[str, bool]]) -> dict:
@@ -247,33 +274,42 @@ def reconstruct_capture(video: str, out: str, config: ConfigParameter = None,
     start = time.perf_counter()
     store = guard(out, store, video=video, config=config_file(config), scan=scan,
                   scan_landmarks=scan_landmarks)  # a served run: only what it may touch
-    cfg = with_ipd(preflight(video, config, scan, scan_landmarks, out), ipd_mm)
+    cfg = with_ipd(preflight(video, config, scan, scan_landmarks, out, store), ipd_mm)
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
+    inputs = (video, scan, scan_landmarks, config_file(config))
     subject, capture = capture_name(video)
     label = f"{subject}/{capture}"
-    keys = {"video": call_ingest(store, video, capture_input_name(video), label)}
-    for name, path in (("scan", scan), ("scan_landmarks", scan_landmarks)):
-        if path:
-            keys[name] = call_ingest(store, path, Path(path).name, label)
-    # The capture's time limit, kept by the stages themselves: Prefect's own limit on the
-    # flow (BACKSTOP_S later) is a signal in the main thread, which Prefect holds off while
-    # it talks to its API and which can land in any code.
-    deadline = time.monotonic() + settings().capture_timeout_s - (time.perf_counter() - start)
-    runs = run_stages(store, keys, cfg, label, stages_until(until), progress, deadline)
-    _export(store, keys, out_dir)
-    stages = _stage_report(store, runs)
-    cached = sum(info["cached"] for info in stages.values())
-    report = {
-        "subject": subject, "capture": capture, "video": str(video), "store": store,
-        "until": until, "wall_seconds": round(time.perf_counter() - start, 2),
-        "computed": len(stages) - cached, "cached": cached, "stages": stages,
-    }
-    figures = _figures(store, runs)
-    if figures:
-        report["figures"] = figures
-    (out_dir / "report.json").write_text(json.dumps(report, indent=1))
-    _publish(report, out_dir, label)
+    with run_leases():  # what the run reads stays in the store until it ends
+        keys = {"video": call_ingest(store, video, capture_input_name(video), label)}
+        for name, path in (("scan", scan), ("scan_landmarks", scan_landmarks)):
+            if path:
+                keys[name] = call_ingest(store, path, Path(path).name, label)
+        # The capture's time limit, kept by the stages themselves: Prefect's own limit on the
+        # flow (BACKSTOP_S later) is a signal in the main thread, which Prefect holds off while
+        # it talks to its API and which can land in any code.
+        deadline = time.monotonic() + settings().capture_timeout_s - (time.perf_counter() - start)
+        runs = run_stages(store, keys, cfg, label, stages_until(until), progress, deadline)
+        stages = _stage_report(store, runs)
+        cached = sum(info["cached"] for info in stages.values())
+        report = {
+            "subject": subject, "capture": capture, "video": str(video), "store": store,
+            "until": until, "wall_seconds": round(time.perf_counter() - start, 2),
+            "computed": len(stages) - cached, "cached": cached, "stages": stages,
+        }
+        figures = _figures(store, runs)
+        if figures:
+            report["figures"] = figures
+        scratch = Path(tempfile.mkdtemp(prefix="export-", dir=process_scratch()))
+        try:
+            with ResultWriter(out_dir, inputs) as writer:
+                results = _export(store, keys, writer, scratch)
+                writer.add("report.json", json.dumps(report, indent=1).encode())
+                writer.add("index.html", _page(store, keys, report, results))
+                writer.commit(stale=OUTPUT_NAMES)
+            _publish(report, out_dir, label, results)
+        finally:
+            shutil.rmtree(scratch, ignore_errors=True)
     logger.info(f"{label}: {report['computed']} artifacts computed, {report['cached']} reused; "
                 f"results in {out_dir}")
     return report
@@ -289,11 +325,11 @@ def _figures(store: str, runs: dict[str, tuple[str, bool]]) -> dict:
     return fig
 
 
-def _publish(report: dict, out: Path, label: str) -> None:
+def _publish(report: dict, out: Path, label: str, results: dict[str, Path]) -> None:
     """UI artifacts (stage table, preview images) and a completion event."""
     from flows.ui import publish_capture
 
-    publish_capture(report, out, label)
+    publish_capture(report, out, label, results)
 
 
 MIN_VIDEO_SIDE_PX = 120
@@ -301,8 +337,8 @@ MIN_VIDEO_SIDE_PX = 120
 
 
 def preflight(video: str | Path, config: ConfigParameter | Path = None, scan: str | None = None,
-              scan_landmarks: str | None = None, out: str | Path | None = None
-              ) -> PipelineConfig:
+              scan_landmarks: str | None = None, out: str | Path | None = None,
+              store: str | None = None) -> PipelineConfig:
     """Checks that need no stage: the files exist, the video decodes, is long and large
     enough and within the input limits (``FACECAP_MAX_*``, :mod:`facecap_core.settings`), the
     config is valid, the output folder is writable. Run before anything is started so bad
@@ -354,6 +390,8 @@ def preflight(video: str | Path, config: ConfigParameter | Path = None, scan: st
 
     assets.default_template_files()  # fetched once; a damaged copy fails here, not at fitting
     if out is not None:
+        check_output_place(out, store or default_store_url(),
+                           (video, scan, scan_landmarks, config_file(config)))
         check_output_folder(Path(out))
         results = {(Path(out) / n).resolve() for n in OUTPUT_NAMES}
         for what, path in (("capture", video), ("scan", scan), ("scan landmarks", scan_landmarks)):
@@ -397,11 +435,17 @@ def with_ipd(cfg: PipelineConfig, ipd_mm: float | None) -> PipelineConfig:
 
 
 def as_user_sees_it(message: str, video: str | Path) -> str:
-    """A stage's message with the store's copy of the video named as the user gave it
-    (stages read the video from the artifact store, so they name the stored copy)."""
+    """A stage's message with the store's copy of the capture named as the user gave it
+    (stages read the capture from the artifact store, so they name the stored copy): the
+    stored video file, or the stored photo folder, whose photos keep their names
+    (``.../input-<key>/photos/IMG_2.jpg`` is ``<the user's folder>/IMG_2.jpg``)."""
     import re
 
-    stored = re.compile(r"\S*/input-[0-9a-f]{32}/video\.mp4")
+    from tasks.graph import PHOTOS, VIDEO
+
+    # Not a stored scan whose name begins like them (photos.ply).
+    stored = re.compile(rf"\S*/input-[0-9a-f]{{32}}/(?:{re.escape(VIDEO)}|{re.escape(PHOTOS)})"
+                        r"(?![\w.-])")
     return " ".join(stored.sub(lambda _: str(video), message).split())
 
 

@@ -31,6 +31,19 @@ on the console."""
 
 
 def _prefect_env(console_level: str = "WARNING") -> None:
+    """What a command that runs flows sets up first: its scratch folder under FACECAP_HOME
+    (the folders of killed commands removed), quiet consoles (unless ``--verbose``) and its
+    own Prefect server unless PREFECT_API_URL names one."""
+    from flows.local_server import start_local_server
+    from tasks.scratch import process_scratch, remove_orphans
+
+    remove_orphans()
+    process_scratch()  # before COLMAP loads: its glog files go there too
+    _logging(console_level)
+    start_local_server(quiet=not _VERBOSE)
+
+
+def _logging(console_level: str) -> None:
     """Quiet consoles for a command that runs flows (unless ``--verbose``)."""
     import logging
     import os
@@ -135,8 +148,8 @@ def _check_store(args) -> None:
 def _cmd_reconstruct(args) -> int:
     from flows.capture import preflight, with_ipd
 
-    with_ipd(preflight(args.video, args.config, args.scan, args.scan_landmarks, args.out),
-             args.ipd_mm)
+    with_ipd(preflight(args.video, args.config, args.scan, args.scan_landmarks, args.out,
+                       args.store), args.ipd_mm)
     _check_store(args)
     _prefect_env()
     from flows.capture import reconstruct_capture
@@ -152,8 +165,11 @@ def _cmd_dataset(args) -> int:
     from facecap_core.dataset import scan_dataset
     from flows.capture import check_output_folder
     from flows.dataset import check_dataset_output
+    from tasks.outputs import check_output_place
+    from tasks.runner import default_store_url
 
     check_dataset_output(scan_dataset(args.root), Path(args.out))  # before any flow starts
+    check_output_place(args.out, args.store or default_store_url(), (args.root,))
     check_output_folder(Path(args.out))
     _check_store(args)
     _prefect_env()
@@ -253,10 +269,39 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+class UsageError(FacecapError):
+    """A command line that does not parse: argparse's message and the help to read."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, for ``facecap`` and (``add_subparsers`` makes its own class)
+    every subcommand: an error is facecap's one line, argparse's message and the help of the
+    command it is about, without the usage lines; ``--help`` is argparse's own."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        # The innermost subcommand's default wins in the namespace: which help to name.
+        self.set_defaults(help_command=self.prog)
+
+    def parse_args(self, args=None, namespace=None):
+        parsed, extras = self.parse_known_args(args, namespace)
+        if extras:  # a subcommand's unknown options are only found out here, at the top
+            raise _usage_error(f"unrecognized arguments: {' '.join(extras)}",
+                               parsed.help_command)
+        return parsed
+
+    def error(self, message: str):
+        raise _usage_error(message, self.prog)
+
+
+def _usage_error(message: str, command: str) -> UsageError:
+    return UsageError(f"{' '.join(message.split())}; see '{command} --help'")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from tasks.graph import STEPS
 
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="facecap",
         description="Metric 3D face meshes from one handheld phone video, and the tools to "
                     "measure them.")
@@ -407,7 +452,11 @@ def _as_user_sees_it(exc: FacecapError, args) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     _prefect_defaults()
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except UsageError as exc:
+        print(f"facecap: error: {exc}", file=sys.stderr)
+        return 2
     global _VERBOSE
     _VERBOSE = args.verbose
     from flows.service import LOCAL_COMMAND
@@ -434,10 +483,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"facecap: error: {store_unreachable(store, exc)}", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 - anything else is a bug: say so, keep the trace
-        log = _write_crash_log(exc, argv)
-        print(f"facecap: internal error (a bug in facecap, not a problem with your input): "
-              f"{type(exc).__name__}: {' '.join(str(exc).split())[:200]}; the traceback is in "
-              f"{log}; please report it with that file", file=sys.stderr)
+        print(_internal_error(exc, argv), file=sys.stderr)
         return 1
     finally:
         LOCAL_COMMAND.reset(local)
@@ -455,8 +501,33 @@ def _network_errors() -> tuple[type[BaseException], ...]:
     return (ConnectionError, TimeoutError, *network_errors())
 
 
+def _internal_error(exc: BaseException, argv: list[str] | None) -> str:
+    """The one line of a bug: what was raised, and the log file that holds its traceback,
+    or why there is none."""
+    line = (f"facecap: internal error (a bug in facecap, not a problem with your input): "
+            f"{type(exc).__name__}: {' '.join(str(exc).split())[:200]}")
+    try:
+        log = _write_crash_log(exc, argv)
+    except Exception as failure:  # noqa: BLE001 - a full disk must not bury the bug's line
+        return (f"{line}; the traceback could not be saved ({_why(failure)}); please report "
+                "this line")
+    return f"{line}; the traceback is in {log}; please report it with that file"
+
+
+def _why(failure: BaseException) -> str:
+    """Why a file could not be written, in a few words."""
+    import os
+
+    if isinstance(failure, OSError) and failure.errno:
+        text = failure.strerror or os.strerror(failure.errno)
+        return f"{text}: {failure.filename}" if failure.filename else text
+    return f"{type(failure).__name__}: {' '.join(str(failure).split())[:120]}"
+
+
 def _write_crash_log(exc: BaseException, argv: list[str] | None) -> Path:
-    """The traceback of an unexpected exception, in ``$FACECAP_HOME/logs``."""
+    """The traceback of an unexpected exception, in ``$FACECAP_HOME/logs``; raises what
+    kept it from being written (no partial log is left)."""
+    import contextlib
     import os
     import time
     import traceback
@@ -472,8 +543,13 @@ def _write_crash_log(exc: BaseException, argv: list[str] | None) -> Path:
     folder = home / "logs"
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"crash-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.log"
-    path.write_text(f"facecap {' '.join(sys.argv[1:] if argv is None else argv)}\n\n"
-                    + "".join(traceback.format_exception(exc)))
+    try:
+        path.write_text(f"facecap {' '.join(sys.argv[1:] if argv is None else argv)}\n\n"
+                        + "".join(traceback.format_exception(exc)))
+    except BaseException:
+        with contextlib.suppress(OSError):  # an empty or cut log would pass for the trace
+            path.unlink(missing_ok=True)
+        raise
     return path
 
 

@@ -29,6 +29,7 @@ from flows.capture import (
     reconstruct_capture,
 )
 from flows.service import guard
+from tasks.outputs import check_output_place, write_results
 from tasks.stages import capture_time_limit_message
 
 CAPTURE_DEPLOYMENT = "reconstruct-capture/reconstruct-capture"
@@ -68,7 +69,7 @@ def consistency_report(out: Path, done: dict[tuple[str, str], Path]) -> list[dic
             rows.append({"subject": subject, "capture_a": ca, "capture_b": cb,
                          **{k: round(v, 3) for k, v in figures.items()}})
     if rows:
-        (out / "consistency.json").write_text(json.dumps(rows, indent=1))
+        write_results(out, {"consistency.json": json.dumps(rows, indent=1).encode()})
     return rows
 
 
@@ -95,6 +96,7 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
     entries = scan_dataset(root)
     out_root = Path(out)
     check_dataset_output(entries, out_root)
+    check_output_place(out_root, store, (root,))
     out_root.mkdir(parents=True, exist_ok=True)
     pool = _work_pool()
     if pool:
@@ -113,7 +115,7 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
                               description="same subject, two captures: vertex-to-vertex mm")
     summary = {"captures": len(entries), "done": [f"{s}/{c}" for s, c in done],
                "failed": failed, "consistency": rows, "captures_at_once": at_once}
-    (out_root / "dataset.json").write_text(json.dumps(summary, indent=1))
+    write_results(out_root, {"dataset.json": json.dumps(summary, indent=1).encode()})
     if failed:
         raise FacecapError(f"{len(failed)} of {len(entries)} captures failed: "
                            + "; ".join(f"{k}: {v}" for k, v in failed.items()))

@@ -19,6 +19,8 @@ from facecap_core.dataset import inside, scan_dataset
 from facecap_core.errors import InputError
 from facecap_core.settings import time_limit
 from flows.service import guard
+from tasks.outputs import check_output_place, write_results
+from tasks.runner import run_leases
 from tasks.stages import call_ingest, call_stage
 
 
@@ -96,36 +98,36 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
 
     logger = get_run_logger()
     store = guard(out, store, dataset=root)  # a served run: only what it may touch
+    check_output_place(out, store, (root,))
     out_root = Path(out)
     entries = scan_dataset(root)
     previous = check_history(out_root)  # a damaged history fails before any scoring
     current, skipped, without_mesh = {}, [], []
-    for entry in entries:
-        mesh = entry.out_dir(out_root) / "mesh.ply"
-        name = entry.name
-        if entry.scan is None or entry.scan_landmarks is None or not mesh.is_file():
-            skipped.append(name)
-            if entry.scan is not None and not mesh.is_file():
-                without_mesh.append(name)
-            continue
-        mesh = inside(out_root, mesh, "results folder")  # not a link to elsewhere
-        inputs = {"mesh": call_ingest(store, mesh, "mesh.ply", name),
-                  "scan": call_ingest(store, entry.scan, entry.scan.name, name),
-                  "scan_landmarks": call_ingest(store, entry.scan_landmarks,
-                                                entry.scan_landmarks.name, name)}
-        key, _ = call_stage("evaluation", store, inputs, {}, name)
-        from tasks.runner import open_store
+    with run_leases():  # what the scoring reads stays in the store until it is done
+        for entry in entries:
+            mesh = entry.out_dir(out_root) / "mesh.ply"
+            name = entry.name
+            if entry.scan is None or entry.scan_landmarks is None or not mesh.is_file():
+                skipped.append(name)
+                if entry.scan is not None and not mesh.is_file():
+                    without_mesh.append(name)
+                continue
+            mesh = inside(out_root, mesh, "results folder")  # not a link to elsewhere
+            inputs = {"mesh": call_ingest(store, mesh, "mesh.ply", name),
+                      "scan": call_ingest(store, entry.scan, entry.scan.name, name),
+                      "scan_landmarks": call_ingest(store, entry.scan_landmarks,
+                                                    entry.scan_landmarks.name, name)}
+            key, _ = call_stage("evaluation", store, inputs, {}, name)
+            from tasks.runner import open_store
 
-        doc = json.loads((open_store(store).get(key) / "evaluation.json").read_text())
-        current[name] = doc["similarity"]
+            doc = json.loads((open_store(store).get(key) / "evaluation.json").read_text())
+            current[name] = doc["similarity"]
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
-    history = out_root / "evaluations"
-    history.mkdir(parents=True, exist_ok=True)
     flagged = regressions(current, previous, tolerance_mm, tolerance_rel, without_mesh)
-    (history / f"{stamp}.json").write_text(json.dumps(
+    write_results(out_root, {f"evaluations/{stamp}.json": json.dumps(
         {"time": stamp, "captures": current, "skipped": skipped, "regressions": flagged,
          "carried": {name: previous[name] for name in without_mesh if name in previous}},
-        indent=1))
+        indent=1).encode()})
     rows = [{"capture": name, "accuracy_mean": round(s["accuracy"]["mean"], 3),
              "accuracy_median": round(s["accuracy"]["median"], 3),
              "completion_mean": round(s["completion"]["mean"], 3),

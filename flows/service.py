@@ -15,8 +15,10 @@ results wherever the worker may write, or make the worker send requests to any h
     The artifact store; a run may repeat it as ``store`` but not name another.
 
 Paths are resolved (``..`` and symbolic links followed) before they are compared, so a link
-inside a root that points out of it is refused too. The limits apply to a run that comes
-from a deployment, and to any flow run in a process whose environment sets
+inside a root that points out of it is refused too; ``~`` is not expanded, as the flows do
+not expand it when they open a path. A hard link has no target to follow, so an input file
+with other hard links is refused. The limits apply to a run that comes from a deployment,
+and to any flow run in a process whose environment sets
 ``FACECAP_INPUT_ROOTS`` or ``FACECAP_OUTPUT_ROOT`` (a worker); a deployment run without
 them reads and writes nothing. The ``facecap`` command on one's own machine is not
 limited: it marks its own flow runs as local (:data:`LOCAL_COMMAND`).
@@ -25,12 +27,14 @@ limited: it marks its own flow runs as local (:data:`LOCAL_COMMAND`).
 from __future__ import annotations
 
 import os
+import stat
 from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 
 from facecap_core.errors import InputError
 from facecap_core.settings import settings
+from tasks.store.base import redact
 
 LOCAL_COMMAND: ContextVar[bool] = ContextVar("facecap_local_command", default=False)
 """Set by the ``facecap`` command for the flows it runs in its own process: a user on their
@@ -68,14 +72,16 @@ class ServicePolicy:
         """Refuse an input outside every input root."""
         if path is None:
             return
-        if not any(_contains(root, path) for root in self.input_roots):
+        opened = _as_path(path, what)
+        if not any(_contains(root, opened) for root in self.input_roots):
             allowed = ", ".join(map(str, self.input_roots)) or f"none ({INPUT_ROOTS_ENV} is unset)"
             raise InputError(f"the {what} {path} is outside the folders this service reads "
                              f"from ({allowed}); put it inside one of them")
+        _check_single_link(opened, what)
 
     def output(self, path: str | os.PathLike, what: str = "output folder") -> None:
         """Refuse an output folder outside the output root."""
-        if self.output_root is None or not _contains(self.output_root, path):
+        if self.output_root is None or not _contains(self.output_root, _as_path(path, what)):
             allowed = self.output_root or f"none ({OUTPUT_ROOT_ENV} is unset)"
             raise InputError(f"the {what} {path} is outside the folder this service writes "
                              f"to ({allowed}); give a folder inside it")
@@ -85,13 +91,41 @@ class ServicePolicy:
         another scheme, another bucket)."""
         if store is not None and store != self.store:
             raise InputError(f"this service keeps its artifacts in its own store; leave "
-                             f"'store' empty instead of {store!r}")
+                             f"'store' empty instead of {redact(repr(store))}")
         return self.store
 
 
-def _contains(root: Path, path: str | os.PathLike) -> bool:
-    resolved = Path(path).expanduser().resolve()
+def _as_path(path: object, what: str) -> Path:
+    """``path`` as the flow opens it; what cannot name a file is refused in one line, not
+    with the TypeError or ValueError of resolving it."""
+    try:
+        text = os.fspath(path)
+    except TypeError:
+        raise InputError(f"the {what} {path!r} is not a path; give the path as text") from None
+    if isinstance(text, bytes):  # the flows take text: the bytes may name another file
+        raise InputError(f"the {what} {path!r} is bytes, not a path; give the path as text")
+    if "\0" in text:
+        raise InputError(f"the {what} path {text!r} holds a NUL byte; give the path without it")
+    return Path(text)
+
+
+def _contains(root: Path, path: Path) -> bool:
+    # No expanduser: the flow opens '~/x' as a folder named '~'; what is compared is what
+    # is opened.
+    resolved = path.resolve()
     return resolved == root or root in resolved.parents
+
+
+def _check_single_link(path: Path, what: str) -> None:
+    """Refuse an input file with other hard links: each is the file itself, and one may lie
+    outside the input roots (where no path leads that could be compared)."""
+    try:
+        info = path.stat()
+    except OSError:
+        return  # missing or unreadable: the flow's own checks say so
+    if stat.S_ISREG(info.st_mode) and info.st_nlink > 1:
+        raise InputError(f"the {what} {path} has other hard links; copy it into the input "
+                         "folder instead")
 
 
 def service_policy() -> ServicePolicy | None:

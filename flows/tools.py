@@ -84,12 +84,18 @@ def print_removal(removal, dry_run: bool) -> None:
           f"folders and {removal.history_entries} evaluation-history entries")
     for folder in removal.folders:
         print(f"  {folder}")
+    if removal.in_use:
+        count = len(removal.in_use)
+        print(f"kept {count} artifact{'s' if count > 1 else ''} that a run in progress uses; "
+              "run this again when it has ended")
 
 
 def forget(args) -> int:
     from tasks import lifecycle
     from tasks.runner import check_store, default_store_url
+    from tasks.scratch import remove_orphans
 
+    remove_orphans()  # a killed run's scratch holds frames of the face too
     store = check_store(args.store or default_store_url())
     root, out = (Path(args.root) if args.root else None), (Path(args.out) if args.out else None)
     planned = lifecycle.plan_forget(store, args.subject, root, out)
@@ -126,7 +132,9 @@ def store_prune(args) -> int:
 
     from tasks import lifecycle
     from tasks.runner import check_store, default_store_url
+    from tasks.scratch import remove_orphans
 
+    remove_orphans()  # what killed runs left in FACECAP_HOME
     if args.unreferenced and not args.out:
         raise InputError("--unreferenced needs the results folders whose reports keep their "
                          "artifacts; give them with --out")
@@ -144,6 +152,8 @@ def store_prune(args) -> int:
     else:
         removal = lifecycle.prune(store, before, dry_run=args.dry_run)
     print_removal(removal, args.dry_run)
+    for problem in removal.damaged.values():  # each problem says what to do
+        print(f"kept a damaged artifact, whose age cannot be read: {problem}")
     return 0
 
 

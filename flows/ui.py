@@ -45,21 +45,22 @@ def png_data_uri(path: Path, max_width: int = 960) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode() if ok else ""
 
 
-def mesh_preview(out: Path) -> Path:
-    """``out/preview.png``: the accuracy heat map (metric protocol) when a scan was given,
-    otherwise the mesh in its own colours turned to face the viewer."""
+def mesh_preview(results: dict[str, Path], target: Path) -> Path | None:
+    """Render ``target`` from a run's results (name -> file, as :func:`flows.capture._export`
+    staged them): the accuracy heat map (metric protocol) when a scan was given, otherwise
+    the mesh in its own colours turned to face the viewer; None without a mesh."""
     import shutil
 
     from facecap_core.evaluation import mesh_render
     from facecap_core.meshio import load_mesh
     from facecap_core.template import Template, head_frame
 
-    preview = out / "preview.png"
-    heatmap = out / "heatmap_metric.png"
-    if heatmap.is_file():
-        shutil.copyfile(heatmap, preview)
-        return preview
-    mesh = load_mesh(out / "mesh.ply", "mesh")
+    if "heatmap_metric.png" in results:
+        shutil.copyfile(results["heatmap_metric.png"], target)
+        return target
+    if "mesh.ply" not in results:
+        return None
+    mesh = load_mesh(results["mesh.ply"], "mesh")
     vertices = np.asarray(mesh.vertices, float)
     template = Template.default()
     framed = vertices
@@ -70,7 +71,7 @@ def mesh_preview(out: Path) -> Path:
         framed = vertices[template.regions["face"]]
     # Only colours the file holds: trimesh gives an uncoloured mesh a default grey.
     colours = mesh.visual.vertex_colors[:, :3] if mesh.visual.kind == "vertex" else None
-    return mesh_render(vertices, mesh.faces, preview, colours, size=320, framed=framed)
+    return mesh_render(vertices, mesh.faces, target, colours, size=320, framed=framed)
 
 
 def stage_rows(report: dict) -> list[dict]:
@@ -194,7 +195,10 @@ def forget_artifacts(labels: list[str]) -> int:
     return asyncio.run(delete())
 
 
-def publish_capture(report: dict, out: Path, label: str) -> None:
+def publish_capture(report: dict, out: Path, label: str, results: dict[str, Path]) -> None:
+    """The run's UI artifacts (stage table, results page with its previews, link) and its
+    completion event; the previews are read from ``results`` (name -> this run's file), never
+    from the output folder, which may hold anything."""
     from prefect.artifacts import (
         create_link_artifact,
         create_markdown_artifact,
@@ -207,11 +211,11 @@ def publish_capture(report: dict, out: Path, label: str) -> None:
     create_table_artifact(stage_rows(report), key=stages_key,
                           description=f"stages of {label}: computed or reused, seconds")
     images = []
-    if (out / "mesh.ply").is_file():
-        scored = (out / "heatmap_metric.png").is_file()
-        images.append(("Accuracy (metric)" if scored else "Mesh", mesh_preview(out)))
-    if (out / "heatmap_similarity.png").is_file():
-        images.append(("Accuracy (similarity)", out / "heatmap_similarity.png"))
+    if "preview.png" in results:
+        scored = "heatmap_metric.png" in results
+        images.append(("Accuracy (metric)" if scored else "Mesh", results["preview.png"]))
+    if "heatmap_similarity.png" in results:
+        images.append(("Accuracy (similarity)", results["heatmap_similarity.png"]))
     create_markdown_artifact(capture_markdown(report, out, images), key=capture_key,
                              description=f"{label}: results and previews")
     link, where = results_link(report, out)

@@ -238,7 +238,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("fitting", "fitting", "6", ("fusion", "coarse", "frames"), "fitting",
           compute_fitting, (MESH_PLY, MESH_OBJ, MESH_LANDMARKS, FIT_JSON),
           exported=(MESH_PLY, MESH_OBJ, FIT_JSON), figures=_figures("fitting.stage")),
-    Stage("evaluation", "evaluation", "2", ("mesh", "scan"), None, compute_evaluation,
+    Stage("evaluation", "evaluation", "3", ("mesh", "scan"), None, compute_evaluation,
           (EVALUATION_JSON, *(f"heatmap_{p}.png" for p in PROTOCOLS)),
           exported=(EVALUATION_JSON, *(f"heatmap_{p}.png" for p in PROTOCOLS)),
           optional=("scan_landmarks",), figures=_figures("evaluation.stage")),
@@ -253,8 +253,8 @@ ALIASES = {"mesh": "fitting"}
 STEPS = tuple(dict.fromkeys(stage.step for stage in STAGES))
 """What ``--until`` can stop after, in order."""
 EXPORTED = {stage.name: stage.exported for stage in STAGES if stage.exported}
-OUTPUT_NAMES = frozenset(n for names in EXPORTED.values() for n in names) | {"report.json",
-                                                                              "preview.png"}
+OUTPUT_NAMES = frozenset(n for names in EXPORTED.values() for n in names) | {
+    "report.json", "preview.png", "index.html", "mesh.glb"}
 """Every file a run may write into the user's output folder."""
 
 

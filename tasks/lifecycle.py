@@ -11,13 +11,15 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
 from facecap_core.dataset import SUMMARY_NAMES
 from facecap_core.errors import InputError
-from tasks.store import ArtifactStore, input_key
+from tasks.store import ArtifactStore, CorruptArtifactError, input_key
+from tasks.store.base import redact
 
 
 @dataclass
@@ -29,6 +31,11 @@ class Removal:
     history_entries: int = 0
     captures: list[str] = field(default_factory=list)
     """``subject/capture`` of each capture forgotten (their UI pages go too)."""
+    in_use: list[str] = field(default_factory=list)
+    """Artifacts kept because a run in progress holds them (see :func:`tasks.runner.lease`)."""
+    damaged: dict[str, str] = field(default_factory=dict)
+    """Artifacts a prune kept because their manifest cannot be read (so neither can their
+    age): their key and the one-line problem, which says what to do."""
 
 
 def _made_from(manifests: dict) -> dict[str, set[str]]:
@@ -39,6 +46,18 @@ def _made_from(manifests: dict) -> dict[str, set[str]]:
 def _manifests(store: ArtifactStore) -> dict:
     """Every stored artifact's manifest, read once per command."""
     return {key: store.manifest(key) for key in store.keys()}
+
+
+def _dated_manifests(store: ArtifactStore) -> tuple[dict, dict[str, str]]:
+    """The manifests a prune can read (and so date), and why each of the others cannot be
+    read: one damaged manifest must neither stop a prune nor be removed as old."""
+    manifests, damaged = {}, {}
+    for key in store.keys():
+        try:
+            manifests[key] = store.manifest(key)
+        except CorruptArtifactError as exc:
+            damaged[key] = str(exc)
+    return manifests, damaged
 
 
 def _down(made_from: dict[str, set[str]], keys: set[str]) -> set[str]:
@@ -66,11 +85,11 @@ def derived(store: ArtifactStore, keys: set[str]) -> set[str]:
 
 def prune(store: ArtifactStore, before: datetime, dry_run: bool = False) -> Removal:
     """Remove the artifacts committed before ``before`` and every artifact made from them."""
-    manifests = _manifests(store)
-    old = {key for key, m in manifests.items() if datetime.fromisoformat(m.created) < before}
-    removal = Removal(artifacts=sorted(_down(_made_from(manifests), old)))
+    manifests, damaged = _dated_manifests(store)
+    old = {key for key, m in manifests.items() if m.created_at < before}
+    removal = Removal(artifacts=sorted(_down(_made_from(manifests), old)), damaged=damaged)
     if not dry_run:
-        _delete(store, removal.artifacts)
+        _delete(store, removal)
     return removal
 
 
@@ -86,25 +105,39 @@ def prune_unreferenced(store: ArtifactStore, results: list[Path], before: dateti
         if not Path(folder).is_dir():
             raise InputError(f"results folder not found: {folder}; give the --out folders "
                              "whose results keep their artifacts")
-    manifests = _manifests(store)
+        if next(_run_reports(Path(folder)), None) is None:  # a wrong folder keeps nothing
+            raise InputError(f"{folder} holds no facecap results (no report.json under it); "
+                             "give the results folder the runs wrote (--out)")
+    manifests, damaged = _dated_manifests(store)
     named = set().union(*(_reported_keys(Path(folder))[0] for folder in results))
     keep = _up(_made_from(manifests), named)
     removal = Removal(artifacts=sorted(
-        key for key, m in manifests.items()
-        if key not in keep and datetime.fromisoformat(m.created) < before))
+        key for key, m in manifests.items() if key not in keep and m.created_at < before),
+        damaged=damaged)
     if not dry_run:
-        _delete(store, removal.artifacts)
+        _delete(store, removal)
     return removal
 
 
-def _delete(store: ArtifactStore, keys: list[str]) -> None:
-    """Delete artifacts, each under its key's lock: a run computing one of them finishes its
-    commit first (and a later run computes it again)."""
-    from tasks.runner import key_lock
+def _delete(store: ArtifactStore, removal: Removal) -> None:
+    """Delete the removal's artifacts, each under its key's lock (a run computing one of
+    them finishes its commit first, and a later run computes it again); one that a run in
+    progress reads or made is kept (moved to ``removal.in_use``): the run would fail or
+    hand out results whose artifacts are gone."""
+    from tasks.runner import key_lock, unleased
 
-    for key in keys:
-        with key_lock(store, key):
-            store.delete(key)
+    kept = []
+    for key in removal.artifacts:
+        # The lease first, without waiting: a run computing the key holds its lease too, so
+        # a leased key is never waited for, and the lock below waits only for another prune.
+        with unleased(store, key) as free:
+            if not free:
+                kept.append(key)
+                continue
+            with key_lock(store, key):
+                store.delete(key)
+    removal.artifacts = [key for key in removal.artifacts if key not in kept]
+    removal.in_use = kept
 
 
 def _subject_inputs(root: Path, subject: str) -> set[str]:
@@ -128,16 +161,26 @@ def _capture_labels(subject: str, root: Path | None, results: Path | None) -> li
     return sorted(f"{subject}/{name}" for name in names)
 
 
+def _run_reports(folder: Path) -> Iterator[dict]:
+    """The run reports under a results folder: each ``report.json`` facecap wrote, whose
+    ``stages`` name each stage's artifact key. Other files of that name are passed over (a
+    forgotten subject's folder is removed all the same)."""
+    for path in folder.rglob("report.json"):
+        try:
+            doc = json.loads(path.read_text())
+            keys = [row["key"] for row in doc["stages"].values()]
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            continue
+        if keys and all(isinstance(key, str) for key in keys):
+            yield doc
+
+
 def _reported_keys(folder: Path) -> tuple[set[str], set[str], set[str]]:
     """The artifact keys named by the run reports under a results folder, the stores the
     reports say the runs used and the runs' ``subject/capture`` labels (their UI pages)."""
     keys, stores, labels = set(), set(), set()
-    for report in folder.rglob("report.json"):
-        try:
-            doc = json.loads(report.read_text())
-            keys |= {row["key"] for row in doc["stages"].values()}
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
-            continue  # not a facecap report: its folder is removed all the same
+    for doc in _run_reports(folder):
+        keys |= {row["key"] for row in doc["stages"].values()}
         if doc.get("store"):
             stores.add(str(doc["store"]))
         if doc.get("subject") and doc.get("capture"):
@@ -152,9 +195,9 @@ def _same_store(a: str, b: str) -> bool:
 
 
 def _rewrite(path: Path, doc) -> None:
-    tmp = path.with_name(f".{path.name}.part")
-    tmp.write_text(json.dumps(doc, indent=1))
-    tmp.replace(path)
+    from tasks.outputs import write_results
+
+    write_results(path.parent, {path.name: json.dumps(doc, indent=1).encode()})
 
 
 def _of(subject: str, name: object) -> bool:
@@ -241,7 +284,8 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
         if reported and not reported & set(made_from) and others:
             raise InputError(
                 f"none of the {len(reported)} artifacts the reports under {results} name is in "
-                f"the store {store.url}; the runs used {', '.join(sorted(others))}: give that "
+                f"the store {store.shown_url}; the runs used "
+                f"{', '.join(redact(u) for u in sorted(others))}: give that "
                 "store (--store); nothing was removed")
         seeds |= _up(made_from, reported)  # the video and scan they were made from
         seeds |= {input_key(mesh) for mesh in results.rglob("mesh.ply")
@@ -269,7 +313,7 @@ def remove(store: ArtifactStore, removal: Removal, subject: str, out: Path | Non
     Prefect server): remove them first, so that a server that cannot be reached leaves
     everything in place to try again."""
     if not dry_run:
-        _delete(store, removal.artifacts)
+        _delete(store, removal)
         for folder in removal.folders:
             shutil.rmtree(folder)
     if out is not None:  # last: a failure above leaves the summaries to name what remains

@@ -22,13 +22,16 @@ import tempfile
 import threading
 import time
 from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
 from facecap_core.assets import facecap_home
 from facecap_core.errors import FacecapError, InputError
 from facecap_core.settings import settings
 from tasks.graph import INPUT_VERSION, Stage
+from tasks.scratch import process_scratch
 from tasks.store import ArtifactStore, CorruptArtifactError, StoreWriteError, input_key
+from tasks.store.base import redact
 
 
 def default_store_url() -> str:
@@ -44,9 +47,14 @@ def open_store(url: str) -> ArtifactStore:
 
 
 def check_store(url: str) -> ArtifactStore:
-    """Open the store and reach it once (a remote store: one request), so that a missing
-    credential or a server that is down is reported before any work starts."""
+    """The store a command line run uses: opened and reached once (a remote store: one
+    request), so that a missing credential or a server that is down is reported before any
+    work starts, and refused if its artifacts would not outlast the command."""
     store = open_store(url)
+    if not store.outlives_process:  # memory:// is for tests, through the Python API
+        raise InputError(f"the store {redact(url)} is held in this process's memory, so its "
+                         "artifacts would vanish when facecap exits; give a folder or an "
+                         "s3://bucket/prefix URL (--store or FACECAP_STORE)")
     try:
         store.exists("input-" + "0" * 32)
     except FacecapError:
@@ -57,8 +65,10 @@ def check_store(url: str) -> ArtifactStore:
 
 
 def store_unreachable(url: str, exc: BaseException) -> FacecapError:
-    """One line for a store that cannot be reached or refuses access."""
-    reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+    """One line for a store that cannot be reached or refuses access (its password hidden,
+    also where the library's message quotes it)."""
+    reason = redact(" ".join(str(exc).split())[:160]) or type(exc).__name__
+    url = redact(url)
     if type(exc).__name__ in ("NoCredentialsError", "PartialCredentialsError"):
         return InputError(f"no credentials for the store {url} ({reason}); set "
                           "AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY")
@@ -91,7 +101,7 @@ def key_lock(store: ArtifactStore, key: str):
         folder.mkdir(parents=True, exist_ok=True)
         handle = open(folder / f"{key}.lock", "w")
     except OSError as exc:  # a read-only store: the lasting errno keeps it from retries
-        raise StoreWriteError(f"cannot lock artifact {key} in store {store.url} "
+        raise StoreWriteError(f"cannot lock artifact {key} in store {store.shown_url} "
                               f"({exc.strerror or type(exc).__name__}); check that the "
                               "location is writable, then retry") from exc
     with handle:
@@ -102,8 +112,81 @@ def key_lock(store: ArtifactStore, key: str):
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
+_LEASES: ContextVar[dict | None] = ContextVar("facecap_leases", default=None)
+"""The lease files a run holds open, by key (:func:`run_leases`)."""
+UNLEASABLE = frozenset({errno.EROFS, errno.EACCES, errno.EPERM})
+"""A store folder no lease can be written in: nothing can prune it either."""
+
+
+def _lease_file(store: ArtifactStore, key: str):
+    folder = _lock_dir(store)
+    folder.mkdir(parents=True, exist_ok=True)
+    return open(folder / f"{key}.lease", "a")  # noqa: SIM115 - held by the caller
+
+
+@contextmanager
+def run_leases():
+    """A run's leases: every artifact the run reads or makes (:func:`lease`) is held until
+    the block ends, or the process does (a killed run's leases go with it), so that
+    ``store prune`` and ``forget`` leave them alone (:func:`unleased`)."""
+    held: dict = {}
+    token = _LEASES.set(held)
+    try:
+        yield
+    finally:
+        _LEASES.reset(token)
+        for handle in held.values():
+            handle.close()
+
+
+def lease(store: ArtifactStore, key: str) -> None:
+    """Hold a shared lease on ``key`` for the rest of the run (nothing outside a run)."""
+    held = _LEASES.get()
+    if held is None or key in held:
+        return
+    try:
+        handle = _lease_file(store, key)
+    except OSError as exc:
+        if exc.errno in UNLEASABLE:
+            return
+        raise StoreWriteError(f"cannot take a lease on artifact {key} in store "
+                              f"{store.shown_url} ({exc.strerror}); check that the location "
+                              "is writable, then retry") from exc
+    try:  # waits only while a prune removes this very key (a fraction of a second)
+        fcntl.flock(handle, fcntl.LOCK_SH)
+    except BaseException:
+        handle.close()
+        raise
+    held[key] = handle
+
+
+@contextmanager
+def unleased(store: ArtifactStore, key: str):
+    """Yields whether no run holds ``key``; while the block runs no run can take it (a
+    run that wants it waits, then finds it gone and makes it again)."""
+    try:
+        handle = _lease_file(store, key)
+    except OSError:
+        yield True
+        return
+    with handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+SCRATCH_FULL = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS})
+"""A stage's scratch folder (under FACECAP_HOME) that cannot take its files: the user's
+disk to free, not a bug."""
+
 def _scratch() -> Path:
-    folder = facecap_home() / "work"
+    folder = process_scratch() / "work"
     folder.mkdir(parents=True, exist_ok=True)
     return folder
 
@@ -113,6 +196,8 @@ def run_stage(store_url: str, stage: Stage, inputs: dict[str, str], config: dict
     """Make the stage's artifact unless it is stored; returns ``(key, computed)``."""
     store = open_store(store_url)
     key = stage.key(inputs, config, params)
+    for held in [*inputs.values(), key]:
+        lease(store, held)
     if store.exists(key):
         return key, False
     model = stage.config_model(config)  # a bad config fails before any lock or download
@@ -123,7 +208,17 @@ def run_stage(store_url: str, stage: Stage, inputs: dict[str, str], config: dict
         work = Path(tempfile.mkdtemp(prefix=f"{stage.name}-", dir=_scratch()))
         try:
             wall, cpu = time.perf_counter(), time.process_time()
-            stage.compute(folders, work, model, params or {})
+            try:
+                stage.compute(folders, work, model, params or {})
+            except OSError as exc:
+                if exc.errno not in SCRATCH_FULL:
+                    raise
+                fix = ("make it writable" if exc.errno == errno.EROFS
+                       else "free space there")
+                raise StoreWriteError(
+                    f"the {stage.name} stage could not write its files into FACECAP_HOME "
+                    f"({facecap_home()}: {exc.strerror}); {fix}, or set FACECAP_HOME to "
+                    "another folder, and run again") from exc
             meta = {"seconds": round(time.perf_counter() - wall, 3),
                     "cpu_seconds": round(time.process_time() - cpu, 3),
                     "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -186,6 +281,7 @@ def ingest(store_url: str, path: str | os.PathLike, name: str) -> str:
         raise InputError(f"input file not found: {path}")
     store = open_store(store_url)
     key = input_key(path)
+    lease(store, key)
     if not store.exists(key):
         with key_lock(store, key):
             inject_fault("input", path)

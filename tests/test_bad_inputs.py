@@ -37,6 +37,7 @@ from facecap_core.camera import look_at
 from flows.cli import main
 from tasks.store import ArtifactStore, artifact_key
 from tests.media import write_video
+from tests.test_photos import png_claiming
 
 ROOT = Path(__file__).resolve().parents[1]
 W, H = 224, 128  # the smallest 16:9 size above the preflight's 120-pixel floor
@@ -310,6 +311,58 @@ def _dataset_without_captures(tmp: Path) -> Path:
     return tmp / "dataset"
 
 
+def _photo_folder(tmp: Path) -> Path:
+    """Five W x H photos, IMG_0.jpg to IMG_4.jpg, in ``tmp/photos of anna``."""
+    folder = tmp / "photos of anna"
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for i in range(5):
+        cv2.imwrite(str(folder / f"IMG_{i}.jpg"), rng.integers(0, 255, (H, W, 3), np.uint8))
+    return folder
+
+
+def _photos_with_png_claiming(tmp: Path, width: int, height: int) -> Path:
+    """The photo folder with IMG_2.jpg replaced by a tiny PNG whose header says
+    ``width`` x ``height``."""
+    folder = _photo_folder(tmp)
+    (folder / "IMG_2.jpg").unlink()
+    png_claiming(folder / "IMG_2.png", width, height)
+    return folder
+
+
+def _photos_with_a_large_png(tmp: Path) -> Path:
+    """The photo folder with IMG_2.jpg replaced by a real 8000x12000 PNG (96 megapixels,
+    over Pillow's warning threshold of 89; one colour, so 12 kB)."""
+    from PIL import Image
+
+    folder = _photo_folder(tmp)
+    (folder / "IMG_2.jpg").unlink()
+    Image.new("1", (8000, 12000)).save(folder / "IMG_2.png")
+    return folder
+
+
+def _photos_with_a_truncated_one(tmp: Path) -> Path:
+    """The photo folder with IMG_2.jpg cut in half: its header reads, its pixels do not."""
+    folder = _photo_folder(tmp)
+    whole = (folder / "IMG_2.jpg").read_bytes()
+    (folder / "IMG_2.jpg").write_bytes(whole[: len(whole) // 2])
+    return folder
+
+
+def _a_folder(tmp: Path) -> Path:
+    (tmp / "pipeline.yaml").mkdir()
+    return tmp / "pipeline.yaml"
+
+
+def _a_fifo(tmp: Path) -> Path:
+    os.mkfifo(tmp / "pipeline.yaml")  # opening it to read would wait for a writer
+    return tmp / "pipeline.yaml"
+
+
+ICT_SUBJECT_FORMS = ["names no subject", "ict:seed with seed a whole number from 0 to 4294967295",
+                     "ict:mean, james, or the path of a mesh file"]
+
+
 CORPUS = {
     # name: (argv builder (media, tmp, kept) -> facecap arguments, words the message holds)
     "missing video": (lambda m, t, k: ["reconstruct", t / "nope.mp4"], ["capture not found"]),
@@ -437,6 +490,47 @@ CORPUS = {
         lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                          _config(t, f"fitting: {{stiffness: {[1] * 200_000}}}\n")],
         ["too large to be a config", "settings that differ from the defaults"]),
+    "photos: a PNG whose header says 100000x100000": (
+        lambda m, t, k: ["reconstruct", _photos_with_png_claiming(t, 100_000, 100_000)],
+        ["photos of anna/img_2.png is 100000x100000 pixels", "larger than the limit of 8192 on "
+         "the long side", "give photos of 8192 pixels or less"]),
+    "photos: an 8000x12000 PNG (Pillow would warn)": (
+        lambda m, t, k: ["reconstruct", _photos_with_a_large_png(t)],
+        ["img_2.png is 8000x12000 pixels", "larger than the limit of 8192"]),
+    "config: a folder": (lambda m, t, k: ["reconstruct", m["orbit"], "--config", _a_folder(t)],
+                         ["pipeline.yaml is a folder, not a file", "give the path of a yaml file"]),
+    "config: a FIFO": (lambda m, t, k: ["reconstruct", m["orbit"], "--config", _a_fifo(t)],
+                       ["pipeline.yaml is not a regular file", "give the path of a yaml file"]),
+    "config: a key given twice": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                         _config(t, "mvs: {depth: {iterations: 3, iterations: 4}}\n")],
+        ["sets mvs.depth.iterations twice", "line 1", "keep one of them"]),
+    "config: true for a number": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                         _config(t, "mvs: {depth: {iterations: true}}\n")],
+        ["mvs.depth.iterations", "should be a number, not a boolean"]),
+    "config: on in a list of numbers": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                         _config(t, "fitting: {stiffness: [1.0, on]}\n")],
+        ["fitting.stiffness", "not a boolean"]),
+    "config: 1:30 (YAML 1.1 reads base 60: 90)": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                         _config(t, "mvs: {depth: {iterations: 1:30}}\n")],
+        ["mvs.depth.iterations", "valid integer"]),
+    "config: ._ (a float to a careless resolver)": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                         _config(t, "mvs: {depth: {iterations: ._}}\n")],
+        ["mvs.depth.iterations", "valid integer"]),
+    "synth: subject ict:-1": (lambda m, t, k: ["synth", "--subject", "ict:-1"],
+                              ["subject: 'ict:-1'", *ICT_SUBJECT_FORMS]),
+    "synth: subject ict:abc": (lambda m, t, k: ["synth", "--subject", "ict:abc"],
+                               ["subject: 'ict:abc'", *ICT_SUBJECT_FORMS]),
+    "synth: a config that sets fps twice": (
+        lambda m, t, k: ["synth", "--config", _config(t, "fps: 30\nfps: 60\n")],
+        ["sets fps twice (the second time on line 2)"]),
+    "synth: a config with yes for a number": (
+        lambda m, t, k: ["synth", "--config", _config(t, "duration_s: yes\n")],
+        ["duration_s", "not a boolean"]),
 }
 
 
@@ -481,6 +575,37 @@ def test_read_only_output_folder(media, kept, tmp_path):
         assert_kept(before, snapshot(kept["store"], kept["out"]))
     finally:
         os.chmod(kept["out"], 0o755)
+
+
+def test_an_oversized_photo_is_one_line_without_pillow_warnings(kept, tmp_path):
+    """The promise on the console itself (pytest's own capture keeps warnings off stderr):
+    a 96-megapixel photo, which Pillow warns about, is one line in a process of its own."""
+    proc = subprocess.run([sys.executable, "-m", "flows.cli", "reconstruct",
+                           str(_photos_with_a_large_png(tmp_path)), "--out", str(kept["out"]),
+                           "--store", str(kept["store"])],
+                          capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert_one_line_error(proc.returncode, proc.stderr, ["img_2.png is 8000x12000 pixels"])
+
+
+def test_a_damaged_photo_is_named_as_the_user_gave_it(tmp_path):
+    """The stages read a photo folder from the store's copy (``input-<key>/photos/``), so a
+    photo that does not decode is refused there under its stored path; the message names
+    the user's photo instead (the IN_A_FLOW case shows it through the command)."""
+    from facecap_core.errors import InputError
+    from facecap_core.video import iter_frames
+    from flows.capture import as_user_sees_it
+    from tasks.graph import PHOTOS
+    from tasks.runner import ingest
+
+    folder = _photos_with_a_truncated_one(tmp_path)
+    key = ingest(str(tmp_path / "store"), folder, PHOTOS)
+    stored = ArtifactStore(tmp_path / "store").get(key) / PHOTOS
+    with pytest.raises(InputError) as refused:
+        list(iter_frames(stored, grey=True))
+    assert f"{key}/{PHOTOS}/IMG_2.jpg cannot be decoded" in str(refused.value)
+    line = as_user_sees_it(str(refused.value), folder)
+    assert line == (f"{folder / 'IMG_2.jpg'} cannot be decoded (OSError); the file is damaged "
+                    "or truncated")
 
 
 def test_8k_is_accepted_and_streamed_at_processing_width(media, tmp_path):
@@ -627,6 +752,9 @@ IN_A_FLOW = {
                                              "ear to ear"]),
     "no face": (lambda m, t: ["reconstruct", m["orbit"], "--config", _config(t, CHEAP_POSES)],
                 ["no face was detected", "the video must show a face"]),
+    "photos: one cut short (its header reads)": (
+        lambda m, t: ["reconstruct", _photos_with_a_truncated_one(t), "--until", "keyframes"],
+        ["photos of anna/img_2.jpg cannot be decoded", "damaged or truncated"]),
 }
 
 

@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -93,6 +94,21 @@ BAD = {
          "{s}/scan_landmarks.json"], "cannot be aligned to the scan"),
     "68 identical scan landmarks": (["evaluate", "{s}/scan.ply", "--scan", "{s}/scan.ply",
                                      "--scan-landmarks", "{d}/same.json"], "landmarks"),
+    "a mesh whose every triangle is a point": (
+        ["evaluate", "{d}/points.ply", "--scan", "{s}/scan.ply", "--scan-landmarks",
+         "{s}/scan_landmarks.json"], "mesh file {d}/points.ply has no triangle with an area"),
+    "a mesh whose every triangle is a line": (
+        ["evaluate", "{d}/lines.ply", "--scan", "{s}/scan.ply", "--scan-landmarks",
+         "{s}/scan_landmarks.json"], "mesh file {d}/lines.ply has no triangle with an area"),
+    "a scan whose every triangle is a point": (
+        ["evaluate", "{s}/scan.ply", "--scan", "{d}/points.ply", "--scan-landmarks",
+         "{s}/scan_landmarks.json"], "scan file {d}/points.ply has no triangle with an area"),
+    "a mesh without faces": (["evaluate", "{d}/faceless.ply", "--scan", "{s}/scan.ply",
+                              "--scan-landmarks", "{s}/scan_landmarks.json"],
+                             "holds no triangles"),
+    "a scan without faces": (["evaluate", "{s}/scan.ply", "--scan", "{d}/faceless.ply",
+                              "--scan-landmarks", "{s}/scan_landmarks.json"],
+                             "scan file {d}/faceless.ply holds no triangles"),
     "synth: negative seed": (["synth", "--out", "{d}/o", "--seed", "-1"], "seed"),
     "synth: a frame a year": (["synth", "--out", "{d}/o", "--fps", "0.0001"], "fps"),
     "scan without landmarks": (["evaluate", "{s}/big.ply", "--scan", "{s}/scan.ply"],
@@ -144,7 +160,21 @@ def test_bad_input_is_one_clear_line(case, scan, tmp_path):
             "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
             "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
             f"end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 {index}\n")
+    # The scan's vertices, every triangle collapsed to one of them (i, i, i) or to a line
+    # (i, i, j): perfect "accuracy", no surface; and the scan's vertices with no faces.
+    head = trimesh.load(scan / "scan.ply", process=False)
+    header = ("ply\nformat ascii 1.0\nelement vertex {n}\nproperty float x\nproperty float y\n"
+              "property float z\nelement face {f}\nproperty list uchar int vertex_indices\n"
+              "end_header\n")
+    rows = "".join(f"{x} {y} {z}\n" for x, y, z in head.vertices)
+    n = len(head.vertices)
+    for name, corners in (("points.ply", lambda i: (i, i, i)),
+                          ("lines.ply", lambda i: (i, i, (i + 1) % n))):
+        (tmp_path / name).write_text(header.format(n=n, f=n) + rows + "".join(
+            "3 {} {} {}\n".format(*corners(i)) for i in range(n)))
+    (tmp_path / "faceless.ply").write_text(header.format(n=n, f=0) + rows)
     args, expected = BAD[case]
+    expected = expected.format(d=tmp_path, s=scan)
     code, out, err = facecap(*[a.format(d=tmp_path, s=scan) for a in args])
     assert code == 2, (out, err)
     lines = err.strip().splitlines()
@@ -174,3 +204,148 @@ def test_an_unexpected_exception_is_reported_as_a_bug_with_its_log(tmp_path, mon
     assert str(log) in err
     text = log.read_text()
     assert "Traceback" in text and "in broken" in text and "evaluate" in text.splitlines()[0]
+
+
+# --------------------------------------------------------------------------- usage errors
+
+
+USAGE_ERRORS = {
+    # argv: (argparse's message, the help to see)
+    "an unknown option": (["forget", "-x"], "the following arguments are required: subject",
+                          "facecap forget"),
+    "an unknown option after the arguments": (["forget", "bob", "-x"],
+                                              "unrecognized arguments: -x", "facecap forget"),
+    "not a number": (["store", "prune", "--older-than-days", "abc"],
+                     "argument --older-than-days: invalid float value: 'abc'",
+                     "facecap store prune"),
+    "an unknown command": (["reconstruc"], "argument command: invalid choice: 'reconstruc'",
+                           "facecap"),
+    "a missing required option": (["reconstruct", "v.mp4"],
+                                  "the following arguments are required: --out",
+                                  "facecap reconstruct"),
+    "no command": ([], "the following arguments are required: command", "facecap"),
+    "store without its command": (["store"], "the following arguments are required: "
+                                  "store_command", "facecap store"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(USAGE_ERRORS))
+def test_a_usage_error_is_one_line_naming_the_commands_help(case, capfd):
+    """argparse's own message, no usage lines: ``facecap: error: <message>; see 'facecap
+    <command> --help'``, exit code 2."""
+    from flows.cli import main
+
+    argv, message, command = USAGE_ERRORS[case]
+    code = main(argv)
+    out, err = capfd.readouterr()
+    assert code == 2 and out == "", err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith(f"facecap: error: {message}"), err
+    assert lines[0].endswith(f"; see '{command} --help'"), err
+
+
+def test_help_still_prints_the_help(capfd):
+    from flows.cli import main
+
+    for argv in (["--help"], ["store", "prune", "--help"]):
+        with pytest.raises(SystemExit) as exit_:
+            main(argv)
+        out, err = capfd.readouterr()
+        assert exit_.value.code == 0 and out.startswith("usage: facecap") and err == ""
+
+
+# --------------------------------------------------------------------------- the store
+
+
+@pytest.fixture(scope="module")
+def orbit(tmp_path_factory) -> Path:
+    """A 40-frame video that passes the preflight (it shows no face: no stage may run)."""
+    from tests.media import write_video
+    from tests.test_bad_inputs import orbit_frames
+
+    return write_video(tmp_path_factory.mktemp("orbit") / "take.mp4", orbit_frames(40))
+
+
+def test_a_store_in_memory_is_refused_by_every_command(orbit, tmp_path, monkeypatch, capfd):
+    """``memory://`` lives as long as the process: a run's artifacts would vanish at exit.
+    Refused in one line by each command that opens the store, given as ``--store`` or as
+    FACECAP_STORE; no result is written."""
+    from flows.cli import main
+
+    root, out = tmp_path / "dataset", tmp_path / "out"
+    (root / "anna").mkdir(parents=True)
+    (root / "anna" / "take.mp4").write_bytes(orbit.read_bytes())
+    commands = [["reconstruct", orbit, "--out", out], ["dataset", root, "--out", out],
+                ["evaluate-dataset", root, "--out", out], ["forget", "anna", "--out", out],
+                ["store", "prune", "--older-than-days", "1"]]
+    for argv in commands:
+        for flag in (["--store", "memory://x"], []):
+            monkeypatch.setenv("FACECAP_STORE", "" if flag else "memory://y")
+            code = main([str(a) for a in argv + flag])
+            err = capfd.readouterr().err
+            lines = err.strip().splitlines()
+            assert code == 2 and len(lines) == 1, (argv, err)
+            assert lines[0] == (f"facecap: error: the store memory://{'x' if flag else 'y'} "
+                                "is held in this process's memory, so its artifacts would "
+                                "vanish when facecap exits; give a folder or an "
+                                "s3://bucket/prefix URL (--store or FACECAP_STORE)"), argv
+    assert not out.exists() or not any(out.iterdir())  # the dataset command made it, empty
+
+
+# --------------------------------------------------------------------------- bugs
+
+
+def test_a_bug_on_a_full_disk_is_still_one_line(tmp_path, monkeypatch, capsys):
+    """The crash log cannot be written (no space left): the line still says it is a bug,
+    what was raised, and that the traceback could not be saved, and why."""
+    import errno
+    import os
+
+    from facecap_core import evaluation
+    from flows import cli
+
+    def broken(*args, **kwargs):
+        raise ZeroDivisionError("float division by zero")
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
+    monkeypatch.setattr(evaluation, "evaluate", broken)
+    monkeypatch.setattr(Path, "write_text", full)
+    mesh = tmp_path / "m.ply"
+    mesh.write_bytes(b"ply")
+    code = cli.main(["evaluate", str(mesh), "--scan", str(mesh)])
+    err = capsys.readouterr().err
+    assert code == 1 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith("facecap: internal error (a bug in facecap, not a problem with your "
+                          "input): ZeroDivisionError: float division by zero; "), err
+    assert "the traceback could not be saved (No space left on device)" in err
+    assert not list((tmp_path / "home" / "logs").glob("crash-*.log"))  # no empty log left
+
+
+# --------------------------------------------------------------------------- FACECAP_HOME
+
+
+@pytest.mark.parametrize("home", ["/dev/null", "file", "file/sub"])
+def test_a_facecap_home_that_is_not_a_folder_is_one_line(home, orbit, tmp_path, monkeypatch,
+                                                         capfd):
+    """Before anything: not the traceback of the first folder made under it (the assets,
+    the crash log)."""
+    from flows.cli import main
+
+    (tmp_path / "file").write_text("a file")
+    value = home if home.startswith("/") else str(tmp_path / home)
+    monkeypatch.setenv("FACECAP_HOME", value)
+    for argv in (["assets"], ["reconstruct", str(orbit), "--out", str(tmp_path / "out")]):
+        code = main(argv)
+        err = capfd.readouterr().err
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1, err
+        assert lines[0].startswith(f"facecap: error: invalid FACECAP_HOME={value!r} in the "
+                                   "environment: "), err
+        assert "not a folder" in lines[0], err
+        assert lines[0].endswith("; set FACECAP_HOME to a writable folder, or unset it for "
+                                 "the default (~/.cache/facecap)"), err
+    assert not (tmp_path / "out").exists()

@@ -320,7 +320,8 @@ def test_preview_is_the_heat_map_with_a_scan_and_the_coloured_mesh_without(head,
     v, f, lm = head
     colours = np.where(v[:, :1] > 0, [[220, 30, 30]], [[30, 30, 220]]).astype(np.uint8)
     trimesh.Trimesh(v, f, vertex_colors=colours, process=False).export(tmp_path / "mesh.ply")
-    img = cv2.imread(str(mesh_preview(tmp_path)))  # BGR
+    img = cv2.imread(str(mesh_preview({"mesh.ply": tmp_path / "mesh.ply"},
+                                      tmp_path / "preview.png")))  # BGR
     assert img.shape == (320, 3 * 320, 3)  # three views, no colour bar
     front = img[:, :320].astype(int)
     red = (front[..., 2] > front[..., 0] + 60).sum()
@@ -330,7 +331,9 @@ def test_preview_is_the_heat_map_with_a_scan_and_the_coloured_mesh_without(head,
     cols = np.arange(320)[None, :]
     assert ((front[..., 2] > front[..., 0] + 60) * cols).sum() / red > 160
     heat = error_heatmap(v, f, np.abs(v[:, 0]) / 15.0, tmp_path / "heatmap_metric.png")
-    assert mesh_preview(tmp_path).read_bytes() == heat.read_bytes()
+    results = {"mesh.ply": tmp_path / "mesh.ply", "heatmap_metric.png": heat}
+    assert mesh_preview(results, tmp_path / "p.png").read_bytes() == heat.read_bytes()
+    assert mesh_preview({}, tmp_path / "none.png") is None  # no mesh, no preview
 
 
 def test_paper_table_conventions():
@@ -477,3 +480,26 @@ def test_config_is_validated_and_documented():
     with pytest.raises(ValidationError):
         EvaluationConfig(radius_factr=1.2)
     assert all(fi.description for fi in EvaluationConfig.model_fields.values())
+
+
+@pytest.mark.parametrize("what", ["mesh", "scan"])
+def test_a_mesh_of_degenerate_triangles_is_refused_not_scored(what, head_files, tmp_path):
+    """Triangles that are points or lines have no surface: scored, such a mesh made of the
+    scan's own vertices would be perfectly accurate (1e-14 mm). Refused for the mesh and
+    for the scan; a few degenerate triangles among real ones are not."""
+    mesh, scan, scan_lm, mesh_lm = head_files
+    vertices = trimesh.load(scan, process=False).vertices
+    index = np.arange(len(vertices))
+    degenerate = tmp_path / "degenerate.ply"
+    trimesh.Trimesh(vertices, np.column_stack([index, index, np.roll(index, 1)]),
+                    process=False).export(degenerate)
+    files = {"mesh": mesh, "scan": scan, what: degenerate}
+    with pytest.raises(InputError) as refused:
+        evaluate(files["mesh"], files["scan"], scan_lm)
+    assert str(refused.value) == (f"{what} file {degenerate} has no triangle with an area "
+                                  "(every one is a point or a line); repair the mesh")
+    some = tmp_path / "some.ply"
+    head = trimesh.load(scan, process=False)
+    trimesh.Trimesh(head.vertices, np.vstack([head.faces, [[0, 0, 0], [1, 1, 2]]]),
+                    process=False).export(some)
+    assert evaluate(some, scan, scan_lm, protocols=("metric",))["metric"].accuracy.mean < 1e-6

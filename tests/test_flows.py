@@ -167,6 +167,37 @@ def test_tail_reconstructs_the_capture(first_run, capture):
     assert np.array_equal(mesh.faces, template.faces)
 
 
+def test_the_capture_page_shows_the_fitted_face(first_run, tmp_path):
+    """The run's ``index.html`` and ``mesh.glb``, exported as a capture run exports them,
+    looked at in headless Chromium: the face is drawn, the heat map of its accuracy changes
+    the picture, the cameras show, the figures are the report's, no console error."""
+    from flows.capture import _export, _figures, _page, _stage_report
+    from tasks.outputs import ResultWriter
+    from tests.browser import look_at_page
+    from tests.test_page import SHOTS
+
+    keys = first_run["keys"]
+    runs = {name: (key, True) for name, key in keys.items()
+            if name not in ("video", "scan", "scan_landmarks")}
+    report = {"subject": "subject", "capture": "capture", "computed": len(runs), "cached": 0,
+              "wall_seconds": 1.0, "until": "evaluation",
+              "stages": _stage_report(first_run["store"], runs),
+              "figures": _figures(first_run["store"], runs)}
+    out = tmp_path / "out"
+    with ResultWriter(out) as writer:
+        results = _export(first_run["store"], keys, writer, tmp_path)
+        writer.add("index.html", _page(first_run["store"], keys, report, results))
+        writer.commit()
+    assert (out / "mesh.glb").stat().st_size > 0
+    seen = look_at_page(out / "index.html", SHOTS / "capture")
+    assert seen["errors"] == [] and seen["ready"], seen
+    assert seen["drawn"] > 0.2 and seen["accuracy_change"] > 3.0, seen
+    assert seen["cameras_change"] > 0.2, seen
+    metric = report["figures"]["evaluation"]["metric"]["accuracy"]
+    assert seen["figures"]["evaluation_metric"].startswith(
+        f"mean {metric['mean']:.3f} mm, median {metric['median']:.3f} mm")
+
+
 def test_rerun_is_all_cached(first_run, capture):
     store = ArtifactStore(first_run["store"])
     before = set(store.keys())
@@ -276,7 +307,7 @@ def test_the_results_link_of_a_local_store_is_the_output_folder(first_run, tmp_p
 
     @flow(name="publish")
     def publish() -> None:
-        publish_capture(report, out, "subject a/video (1)")
+        publish_capture(report, out, "subject a/video (1)", {})
 
     publish()
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey

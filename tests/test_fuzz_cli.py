@@ -10,13 +10,18 @@ Generated inputs, each handed to ``facecap`` in this process as a user would:
 * artifact store URLs: unknown and chained protocols, HTTP and FTP URLs, paths through a
   file, S3 buckets without credentials;
 * meshes and landmark files for ``facecap evaluate``: damaged PLY and OBJ files, JSON of any
-  shape.
+  shape;
+* photo folders: photos of random sizes, damaged photos, empty files, text under a photo's
+  name, sub-folders, links out of the folder and dangling links, under names that include
+  results' (``preview.png``, ``report.json``) and hidden ones;
+* output folders around a photo folder: the store, a folder inside it, the photo folder
+  itself, links to the store, to a file, dangling and looping.
 
 Every run must end either in success or in exit code 2 with exactly one stderr line
 ``facecap: error: ...`` and no traceback; never an internal error. The reconstruct runs are
 built so that none can start a flow (the output folder is a file, or the store is refused):
-a refusal is the only right answer for them, and the store the runs name must stay as it
-was. About a minute on the 2-core machine; hypothesis prints the failing input's smallest
+a refusal is the only right answer for them, and the store the runs name and the photo
+folder must stay as they were. About a minute on the 2-core machine; hypothesis prints the failing input's smallest
 form if one fails.
 """
 
@@ -29,6 +34,7 @@ import shutil
 from pathlib import Path
 
 import av
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -194,6 +200,73 @@ landmark_documents = st.one_of(
 )
 
 
+PHOTO_NAMES = st.sampled_from(["IMG_0001.jpg", "IMG_0002.JPG", "b.jpeg", "c.png", "d.heic",
+                                "preview.png", "report.json", ".hidden.jpg", "Zoë 1.jpg",
+                                "e.tif", "notes.txt"])
+
+
+@st.composite
+def photo_folders(draw, world) -> list[tuple[str, str, bytes]]:
+    """A photo folder's entries: (name, kind, bytes) with kinds valid JPEG/PNG photos of
+    random sizes, damaged photos, empty files, text under a photo's name, sub-folders,
+    links to a file outside and dangling links."""
+    frame = orbit_frames(1)[0]
+    entries = []
+    for name in draw(st.lists(PHOTO_NAMES, max_size=8, unique=True)):
+        kind = draw(st.sampled_from(["photo", "photo", "photo", "damaged", "empty", "text",
+                                     "folder", "link", "dangling"]))
+        data = b""
+        if kind in ("photo", "damaged"):
+            side = draw(st.integers(8, 400))
+            image = cv2.resize(frame, (side, max(8, side * 9 // 16)))
+            ok, encoded = cv2.imencode(".png" if name.endswith(".png") else ".jpg", image)
+            data = encoded.tobytes()
+            if kind == "damaged":
+                data = draw(damaged(data))
+        elif kind == "text":
+            data = b"not a photo"
+        entries.append((name, kind, data))
+    return entries
+
+
+OUT_PLACES = {"store": "keeps for itself", "inside store": "keeps for itself",
+              "photos": "is the input folder", "link to store": "keeps for itself",
+              "link to a file": "is a file", "link loop": "leads back to itself",
+              "file": "is a file"}
+"""Where a generated ``--out`` points (the folder itself or a link to it), and the words
+of its refusal."""
+
+
+def _make_photo_folder(folder: Path, entries: list, outside: Path) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, kind, data in entries:
+        path = folder / name
+        if kind == "folder":
+            path.mkdir()
+        elif kind == "link":
+            path.symlink_to(outside)
+        elif kind == "dangling":
+            path.symlink_to(folder / "nowhere")
+        else:
+            path.write_bytes(data)
+
+
+def _out_place(place: str, world, scratch: Path) -> Path:
+    store = world["store"]
+    if place == "store":
+        return store
+    if place == "inside store":
+        return next((store / "artifacts").iterdir())
+    if place == "photos":
+        return scratch / "photos"
+    if place == "file":
+        return world["file"]
+    link = scratch / "out-link"
+    target = {"link to store": store, "link to a file": world["file"], "link loop": link}[place]
+    link.symlink_to(target)
+    return link
+
+
 # --------------------------------------------------------------------------- the property
 
 
@@ -218,10 +291,23 @@ def _cases(world):
                      ["evaluate", world["scan"], "--scan", world["scan"], "--scan-landmarks",
                       "{input}", "--json"]),
         landmark_documents)
-    return st.one_of(video_argv, config_argv, store_argv, mesh_argv, landmark_argv)
+    photos_argv = st.builds(
+        lambda entries: ("photos", entries, ["reconstruct", "{photos}", "--out", f, "--store",
+                                             store]),
+        photo_folders(world))
+    # A photo folder of good photos and an --out around it: each place is refused for
+    # what it is (the store is a real one: only the output place can refuse the run).
+    out_argv = st.builds(
+        lambda place: ("out", place, ["reconstruct", "{photos}", "--out", "{out}", "--store",
+                                      store]),
+        st.sampled_from(sorted(OUT_PLACES)))
+    return st.one_of(video_argv, config_argv, store_argv, mesh_argv, landmark_argv,
+                     photos_argv, out_argv)
 
 
 OUTCOMES: dict[str, int] = {}
+GOOD_PHOTOS = [(f"IMG_{i:04d}.jpg", "photo", cv2.imencode(".jpg", frame)[1].tobytes())
+               for i, frame in enumerate(orbit_frames(6))]
 
 
 def test_no_input_ends_in_a_traceback(world, tmp_path_factory, capfd, monkeypatch):
@@ -244,12 +330,19 @@ def test_no_input_ends_in_a_traceback(world, tmp_path_factory, capfd, monkeypatc
     def run(case):
         kind, made, argv = case
         scratch = Path(tmp_path_factory.mktemp(kind))
-        path = None
-        if made is not None:
+        path, photos, out = None, scratch / "photos", None
+        if kind == "photos":
+            _make_photo_folder(photos, made, world["file"])
+        elif kind == "out":
+            _make_photo_folder(photos, GOOD_PHOTOS, world["file"])
+            out = _out_place(made, world, scratch)
+        elif made is not None:
             suffix, data = made
             path = scratch / f"input{suffix}"
             path.write_bytes(data)
-        argv = [str(path) if a == "{input}" else str(a) for a in argv]
+        photos_before = snapshot(photos) if photos.is_dir() else {}
+        fill = {"{input}": path, "{photos}": photos, "{out}": out}
+        argv = [str(fill[a]) if a in fill else str(a) for a in argv]
         code = main(argv)
         _, err = capfd.readouterr()
         assert "Traceback" not in err, (argv, err)
@@ -259,8 +352,11 @@ def test_no_input_ends_in_a_traceback(world, tmp_path_factory, capfd, monkeypatc
             assert len(lines) == 1 and lines[0].startswith("facecap: error: "), (argv, err)
         if argv[0] == "reconstruct":
             assert code == 2, (argv, err)  # no reconstruct case may start a flow
+        if kind == "out":
+            assert OUT_PLACES[made] in err, (made, err)
         OUTCOMES[f"{kind} {'refused' if code else 'accepted'}"] = \
             OUTCOMES.get(f"{kind} {'refused' if code else 'accepted'}", 0) + 1
+        assert (snapshot(photos) if photos.is_dir() else {}) == photos_before, argv
         shutil.rmtree(scratch, ignore_errors=True)
         assert snapshot(world["store"]) == before, argv
 

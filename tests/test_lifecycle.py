@@ -192,8 +192,10 @@ def test_the_commands_say_what_they_removed(world, capsys, tmp_path):
         assert "is not an age" in capsys.readouterr().err
     assert main(["store", "prune", "--unreferenced", "--store", world["store"]]) == 2
     assert "give them with --out" in capsys.readouterr().err
-    # bob is forgotten; results elsewhere name none of alice's artifacts.
-    (tmp_path / "elsewhere").mkdir()
+    # bob is forgotten; results elsewhere (carol's) name none of alice's artifacts.
+    (tmp_path / "elsewhere" / "carol" / "take1").mkdir(parents=True)
+    (tmp_path / "elsewhere" / "carol" / "take1" / "report.json").write_text(json.dumps(
+        {"stages": {"keyframes": {"key": "keyframes-" + "0" * 32}}}))
     code = main(["store", "prune", "--unreferenced", "--older-than-days", "0", "--out",
                  str(world["out"]), "--out", str(tmp_path / "elsewhere"), "--store",
                  world["store"]])
@@ -201,3 +203,51 @@ def test_the_commands_say_what_they_removed(world, capsys, tmp_path):
     code = main(["store", "prune", "--unreferenced", "--older-than-days", "0", "--out",
                  str(tmp_path / "elsewhere"), "--store", world["store"]])
     assert code == 0 and "removed 3 artifacts" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("created", ["2026-01-01T02:00:00", "last week"],
+                         ids=["no time zone", "not a time"])
+def test_prune_keeps_an_artifact_whose_manifest_is_damaged_and_says_so(created, world,
+                                                                       capsys):
+    """Its age cannot be known: it is neither removed as old nor allowed to stop the prune;
+    the command names it, and what to do, on its own line."""
+    store = ArtifactStore(world["store"])
+    alice, bob = world["keys"]["alice"], world["keys"]["bob"]
+    path = Path(world["store"]) / "artifacts" / alice["poses"] / "manifest.json"
+    doc = json.loads(path.read_text())
+    path.write_text(json.dumps({**doc, "created": created}))
+    removal = prune(store, datetime.now(UTC))
+    assert set(removal.artifacts) == {alice["video"], alice["keyframes"], *bob.values()}
+    assert set(store.keys()) == {alice["poses"]}
+    assert list(removal.damaged) == [alice["poses"]]
+    assert "is not a valid manifest" in removal.damaged[alice["poses"]]
+    for argv in (["--older-than-days", "0"], ["--unreferenced", "--older-than-days", "0",
+                                              "--out", str(world["out"])]):
+        assert main(["store", "prune", *argv, "--store", world["store"]]) == 0
+        out = capsys.readouterr().out
+        assert out.startswith("removed 0 artifacts"), out
+        assert (f"kept a damaged artifact, whose age cannot be read: artifact {alice['poses']} "
+                "is corrupt: file 'manifest.json' is not a valid manifest; delete ") in out
+    assert set(store.keys()) == {alice["poses"]}
+
+
+def test_prune_unreferenced_refuses_a_folder_without_results(world, tmp_path, capfd):
+    """The dataset folder given as --out by mistake names no artifact: the whole store would
+    go. A folder holding no report facecap wrote is refused, before anything is removed
+    (a dry run too)."""
+    from tests.test_bad_inputs import assert_one_line_error, facecap
+
+    store = ArtifactStore(world["store"])
+    before = set(store.keys())
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "report.json").write_text('{"title": "not a run report"}')
+    for folder in (world["root"], tmp_path / "notes"):
+        with pytest.raises(InputError) as refused:
+            prune_unreferenced(store, [world["out"], folder], datetime.now(UTC))
+        assert str(refused.value) == (f"{folder} holds no facecap results (no report.json "
+                                      "under it); give the results folder the runs wrote (--out)")
+        for dry_run in ([], ["--dry-run"]):
+            code, _, err = facecap(capfd, "store", "prune", "--unreferenced", "--older-than-days",
+                                   "0", "--out", folder, "--store", world["store"], *dry_run)
+            assert_one_line_error(code, err, [f"{folder} holds no facecap results"])
+    assert set(store.keys()) == before

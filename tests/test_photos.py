@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import struct
+import warnings
+import zlib
+
 import numpy as np
 import pytest
 from PIL import Image
+from PIL.TiffImagePlugin import IFDRational
 
 from facecap_core.errors import InputError
 from facecap_core.photos import probe_photos, read_photo
@@ -12,7 +17,8 @@ from facecap_core.video import iter_frames, probe, read_frames
 from tasks.store import input_key
 
 
-def _photos(folder, sizes, orientation=None, exif_focal_35mm=None):
+def _photos(folder, sizes, orientation=None, exif_focal_35mm=None, exif_ifd=None):
+    """Random photos of ``sizes``; ``exif_ifd``: tags of their EXIF sub-IFD (0x8769)."""
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(0)
     for i, (w, h) in enumerate(sizes):
@@ -22,8 +28,23 @@ def _photos(folder, sizes, orientation=None, exif_focal_35mm=None):
             exif[0x0112] = orientation
         if exif_focal_35mm:
             exif.get_ifd(0x8769)[0xA405] = exif_focal_35mm
+        exif.get_ifd(0x8769).update(exif_ifd or {})
         image.save(folder / f"img_{i:03d}.jpg", exif=exif)
     return folder
+
+
+def png_claiming(path, width: int, height: int):
+    """An 8x8 PNG whose header says ``width`` x ``height`` (its IHDR chunk rewritten, the
+    chunk's CRC with it): a reader that trusts the header sees a photo of that size."""
+    import io
+
+    buffer = io.BytesIO()
+    Image.new("L", (8, 8)).save(buffer, "PNG")
+    data = bytearray(buffer.getvalue())
+    data[16:24] = struct.pack(">II", width, height)  # after the signature, length and type
+    data[29:33] = struct.pack(">I", zlib.crc32(bytes(data[12:29])))
+    path.write_bytes(bytes(data))
+    return path
 
 
 def test_photos_are_frames_in_name_order_turned_upright(tmp_path):
@@ -68,12 +89,78 @@ def test_mixed_sizes_and_too_few_photos_are_refused(tmp_path):
         read_photo(cut / "img_002.jpg")
 
 
+def test_a_png_cut_short_is_named_when_probed(tmp_path):
+    """Found by the fuzz test: a PNG's EXIF may follow its pixels, so reading it decodes
+    them, and a PNG cut short fails while the folder is probed: in one message."""
+    folder = tmp_path / "p"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(5):
+        Image.fromarray(rng.integers(0, 255, (48, 64, 3), np.uint8)).save(folder / f"{i}.png")
+    whole = (folder / "2.png").read_bytes()
+    (folder / "2.png").write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(InputError, match=r"2.png cannot be decoded \(OSError\); the file is "
+                                         "damaged or truncated"):
+        probe_photos(folder)
+
+
 def test_a_photo_folder_key_follows_its_content(tmp_path):
     folder = _photos(tmp_path / "p", [(64, 48)] * 5)
     key = input_key(folder)
     assert input_key(_photos(tmp_path / "same", [(64, 48)] * 5)) == key
     (folder / "img_003.jpg").rename(folder / "img_099.jpg")  # same bytes, other order
     assert input_key(folder) != key
+
+
+FOCAL_TAGS = {0x920A: IFDRational(26, 10), 0xA20E: IFDRational(4000, 1), 0xA210: 2}
+"""A 2.6 mm focal length on a sensor of 4000 pixels per inch (FocalLength,
+FocalPlaneXResolution, FocalPlaneResolutionUnit 2: inches)."""
+
+
+@pytest.mark.parametrize("tag", [0x920A, 0xA20E], ids=["FocalLength", "FocalPlaneXResolution"])
+def test_an_exif_focal_length_that_is_no_number_is_ignored(tmp_path, tag):
+    """A rational of denominator 0 reads as NaN: it is no focal length, and the photos get
+    the pose stage's default guess instead, as photos without EXIF do."""
+    good = probe_photos(_photos(tmp_path / "good", [(64, 48)] * 5, exif_ifd=FOCAL_TAGS))
+    assert good.focal_px == pytest.approx(2.6 * 4000 / 25.4)
+    bad = {**FOCAL_TAGS, tag: IFDRational(1, 0)}
+    assert probe_photos(_photos(tmp_path / "bad", [(64, 48)] * 5, exif_ifd=bad)).focal_px is None
+    # A photo with the broken tag among good ones: the good ones give the focal length.
+    mixed = _photos(tmp_path / "mixed", [(64, 48)] * 5, exif_ifd=FOCAL_TAGS)
+    _photos(tmp_path / "one", [(64, 48)], exif_ifd=bad)
+    (tmp_path / "one" / "img_000.jpg").replace(mixed / "img_002.jpg")
+    assert probe_photos(mixed).focal_px == pytest.approx(good.focal_px)
+
+
+def test_a_photo_over_the_size_limit_is_refused_from_its_header(tmp_path):
+    """A header that says 100000x100000 (Pillow's decompression-bomb error) or a real
+    8000x12000 photo (96 megapixels: Pillow's warning) is refused in one message naming
+    the photo, its size and the limit (FACECAP_MAX_SIDE_PX), without a warning."""
+    folder = _photos(tmp_path / "p", [(64, 48)] * 4)
+    png_claiming(folder / "img_huge.png", 100_000, 100_000)
+    with pytest.raises(InputError, match=r"img_huge.png is 100000x100000 pixels, larger than "
+                                         r"the limit of 8192 on the long side; give photos"):
+        probe_photos(folder)
+    (folder / "img_huge.png").unlink()
+    Image.new("1", (8000, 12000)).save(folder / "img_big.png")  # 12 kB: one colour
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        for read in (probe_photos, lambda f: read_photo(f / "img_big.png")):
+            with pytest.raises(InputError, match="img_big.png is 8000x12000 pixels"):
+                read(folder)
+    assert [str(w.message) for w in seen] == []
+
+
+def test_pillow_warnings_about_a_photo_are_not_shown(tmp_path):
+    """A photo Pillow warns about (a palette PNG whose transparency is given per entry) is
+    read without a warning: what is wrong with a photo is said in one line, or not at all."""
+    image = Image.new("P", (64, 48))
+    image.putpalette([0, 0, 0, 255, 0, 0] * 128)
+    image.save(tmp_path / "palette.png", transparency=bytes([0, 255] * 128))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        assert read_photo(tmp_path / "palette.png", grey=True).shape == (48, 64)
+    assert [str(w.message) for w in seen] == []
 
 
 def test_empty_frame_list_reads_nothing_from_a_video(tmp_path):

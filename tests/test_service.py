@@ -170,6 +170,75 @@ def test_served_dataset_and_evaluation_runs_are_bounded_too(worker, prefect_serv
              root=str(worker["inputs"]), out=out, store="memory://elsewhere")
 
 
+def test_a_served_run_refuses_a_path_it_cannot_compare(worker, prefect_server):
+    """A NUL byte (no file name holds one) or a path given as bytes: one line, not the
+    ValueError or TypeError of resolving it."""
+    from flows.capture import reconstruct_capture
+    from flows.service import guard
+
+    out = str(worker["outputs"] / "anna")
+    take = str(worker["inputs"] / "anna" / "take.mp4")
+    _refused(reconstruct_capture, [f"the video path {take + chr(0) + '.txt'!r} holds a NUL "
+                                   "byte; give the path without it"],
+             video=take + "\0.txt", out=out)
+    _refused(guard, [f"the output folder path {out + chr(0)!r} holds a NUL byte"],
+             out=out + "\0", store=None, video=take)
+    _refused(guard, [f"the video {os.fsencode(take)!r} is bytes, not a path; give the path "
+                     "as text"], out=out, store=None, video=os.fsencode(take))
+    assert not any(worker["store"].iterdir())
+
+
+def test_a_served_run_reads_a_tilde_as_the_flow_does(worker, prefect_server, monkeypatch,
+                                                     videos):
+    """``~`` is not expanded when a served run opens its video, so the guard does not expand
+    it either: ``~/anna/take.mp4`` is the folder ``~`` of the worker's working directory,
+    here outside the roots (though ``$HOME/anna/take.mp4`` lies inside them)."""
+    from flows.capture import reconstruct_capture
+
+    monkeypatch.setenv("HOME", str(worker["inputs"]))
+    monkeypatch.chdir(worker["elsewhere"])
+    (worker["elsewhere"] / "~" / "anna").mkdir(parents=True)
+    (worker["elsewhere"] / "~" / "anna" / "take.mp4").write_bytes(videos["short"].read_bytes())
+    _refused(reconstruct_capture, ["the video ~/anna/take.mp4 is outside the folders this "
+                                   "service reads from"],
+             video="~/anna/take.mp4", out=str(worker["outputs"] / "anna"))
+
+
+def test_a_served_run_refuses_a_hard_link_out_of_the_roots(worker, prefect_server, videos):
+    """A hard link is the file itself, wherever its other names are: an input with more
+    than one (a video, a config, each photo of a photo folder) is refused; a copy is not."""
+    from flows.capture import reconstruct_capture
+
+    out = str(worker["outputs"] / "anna")
+    secret = worker["elsewhere"] / "short.mp4"
+    secret.write_bytes(videos["short"].read_bytes())
+    linked = worker["inputs"] / "anna" / "linked.mp4"
+    os.link(secret, linked)
+    _refused(reconstruct_capture, [f"the video {linked} has other hard links; copy it into "
+                                   "the input folder instead"], video=str(linked), out=out)
+    (worker["elsewhere"] / "pipeline.yaml").write_text("{}\n")
+    os.link(worker["elsewhere"] / "pipeline.yaml", worker["inputs"] / "pipeline.yaml")
+    _refused(reconstruct_capture, ["the config", "has other hard links"], out=out,
+             video=str(worker["inputs"] / "anna" / "take.mp4"),
+             config=str(worker["inputs"] / "pipeline.yaml"))
+    photos = worker["inputs"] / "anna" / "photos"
+    photos.mkdir()
+    (photos / "a.jpg").write_bytes(b"a photo of its own")
+    (worker["elsewhere"] / "face.jpg").write_bytes(b"a photo outside the roots")
+    os.link(worker["elsewhere"] / "face.jpg", photos / "b.jpg")
+    _refused(reconstruct_capture, [f"the photo {photos / 'b.jpg'} has other hard links"],
+             video=str(photos), out=out)
+    assert not any(worker["store"].iterdir())
+
+
+def test_a_refused_store_url_is_shown_without_its_password(worker):
+    from flows.service import ServicePolicy
+
+    message = _refused(ServicePolicy.from_env().check_store, ["s3://user:***@host/bucket"],
+                       store="s3://user:secret@host/bucket")
+    assert "secret" not in message
+
+
 def test_a_deployment_without_roots_reads_and_writes_nothing(monkeypatch, tmp_path):
     """The worker's settings unset: a served run's policy admits no path at all."""
     from flows.service import ServicePolicy

@@ -166,3 +166,108 @@ def test_an_invalid_value_names_its_variable(variable, monkeypatch):
     assert "\n" not in message
     assert f"invalid {variable}={value!r}" in message and reason in message
     assert "correct it or unset it" in message
+
+
+@pytest.mark.parametrize("home", ["/dev/null", "file", "file/sub", "read-only", "read-only/sub"])
+def test_a_facecap_home_facecap_cannot_write_in_is_refused(home, tmp_path, monkeypatch):
+    """Every command writes below FACECAP_HOME (assets, store, locks, crash logs): a file, a
+    device or a folder it may not write in is named where the variable is read, not found
+    by the first folder made under it. A folder still to be made is fine."""
+    import os
+
+    (tmp_path / "file").write_text("a file")
+    (tmp_path / "read-only").mkdir()
+    value = home if home.startswith("/") else str(tmp_path / home)
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: (  # tests run as root
+        "read-only" not in str(path) and real_access(path, mode, **kw)))
+    monkeypatch.setenv("FACECAP_HOME", value)
+    with pytest.raises(InputError) as refused:
+        settings()
+    message = str(refused.value)
+    assert message.startswith(f"invalid FACECAP_HOME={value!r} in the environment: "), message
+    assert message.endswith("; set FACECAP_HOME to a writable folder, or unset it for the "
+                            "default (~/.cache/facecap)"), message
+    assert "\n" not in message
+    monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "new" / "home"))
+    assert settings().home == tmp_path / "new" / "home"
+
+
+# --------------------------------------------------------------------------- config files
+
+
+def test_a_config_file_reads_yaml_as_pyyaml_does_but_base_60():
+    """The config loader resolves every scalar as PyYAML's safe loader does, except YAML
+    1.1's base-60 numbers: ``1:30`` stays a string (PyYAML reads 90), for a number field to
+    refuse."""
+    import yaml
+
+    from facecap_core.config import parse_yaml
+
+    same = ["1", "-1", "+7", "0", "017", "0b101", "0x1F", "1_000", "1.5", "1.", "-.5", ".5",
+            "1.0e+5", "1.0e-05", ".inf", "-.Inf", ".nan", "2001-12-14", "true", "no", "on",
+            "null", "~", "abc", "1.2.3", "6.0"]
+    for scalar in same:
+        assert repr(parse_yaml(f"v: {scalar}")) == repr(yaml.safe_load(f"v: {scalar}")), scalar
+    for scalar in ["1:30", "-1:30", "1:30.5", "190:20:30"]:
+        assert parse_yaml(f"v: {scalar}") == {"v": scalar}
+    assert parse_yaml("") is None
+
+
+def test_a_key_given_twice_is_named_by_its_path():
+    """A key given twice in one mapping (PyYAML keeps the last silently) is refused with its
+    dotted path and line; a merge key's keys may be overridden, and a document that refers
+    to itself is checked once."""
+    from facecap_core.config import DuplicateKeyError, parse_yaml
+
+    with pytest.raises(DuplicateKeyError) as twice:
+        parse_yaml("fitting:\n  levels:\n    - {stiffness: 1, 'stiffness': 2}\n")
+    assert (twice.value.key, twice.value.line) == ("fitting.levels.0.stiffness", 3)
+    assert parse_yaml("a: &base {x: 1}\nb: {<<: *base, x: 2}\n")["b"] == {"x": 2}
+    assert parse_yaml("1: one\n'1': another\n") == {1: "one", "1": "another"}
+    loop = parse_yaml("a: &loop [*loop]\n")["a"]
+    assert loop[0] is loop
+
+
+def _fields():
+    from facecap_core import config
+
+    models = [m for m in vars(config).values() if isinstance(m, type)
+              and issubclass(m, config.StrictModel) and m is not config.StrictModel]
+    return [(model, name, field) for model in models for name, field in model.model_fields.items()]
+
+
+@pytest.mark.parametrize("model, name, field", _fields(),
+                         ids=[f"{m.__name__}.{n}" for m, n, _ in _fields()])
+def test_true_is_a_value_of_bool_settings_only(model, name, field):
+    """A boolean given for a number (``iterations: true``, ``[1.0, on]``) is refused, though
+    pydantic's lax mode reads it as 1; bool settings take it."""
+    from facecap_core.config import build
+
+    if field.annotation is bool:
+        assert getattr(build(model, {name: True}), name) is True
+        return
+    values, default = [True], field.get_default(call_default_factory=True)
+    if isinstance(default, list | tuple) and default:
+        values.append([True, *default[1:]])
+    for value in values:
+        with pytest.raises(InputError, match=rf"{name}: "):
+            build(model, {name: value})
+
+
+def test_numbers_of_flow_parameters_and_json_are_taken_as_before():
+    """What a served run's parameters and the UI give: ints for float fields, and the
+    lists and strings that pydantic turns into tuples and paths."""
+    import json
+
+    from facecap_core.config import PipelineConfig, SynthConfig, load_pipeline_config
+
+    values = {"mvs": {"depth": {"iterations": 4}}, "coarse": {"ipd_mm": 63, "iris_cue": False},
+              "fitting": {"stiffness": [50, 10, 2], "landmark_weight": [5, 1, 1]}}
+    for config in (load_pipeline_config(values),
+                   PipelineConfig.model_validate_json(json.dumps(values))):
+        assert config.coarse.ipd_mm == 63.0 and config.fitting.stiffness == [50.0, 10.0, 2.0]
+        assert config.mvs.depth.iterations == 4 and config.coarse.iris_cue is False
+    synth = SynthConfig.model_validate_json(json.dumps(
+        {"fps": 30, "k1_range": [-1, 0], "ict_model": "/models/ict.npz", "bayer": True}))
+    assert synth.k1_range == (-1.0, 0.0) and synth.ict_model == Path("/models/ict.npz")

@@ -395,3 +395,82 @@ def test_remote_delete_drops_the_cached_copy(memory_url):
     folder = store.get(mesh_key())
     store.delete(mesh_key())
     assert not folder.exists()
+
+
+# --------------------------------------------------------------------------- damaged manifests
+
+
+@pytest.mark.parametrize("created", ["yesterday", "2026-01-01T02:00:00", "",
+                                     "2026-13-01T00:00:00+00:00"],
+                         ids=["words", "no time zone", "empty", "month 13"])
+def test_a_manifest_whose_creation_time_is_not_a_time_is_corrupt(created, store, store_url):
+    """``created`` dates an artifact for ``facecap store prune``: a manifest whose time is not
+    an ISO time with its zone is damaged, reported as any damaged manifest is."""
+    import json
+
+    manifest = put_mesh(store, {"mesh.ply": b"ply"})
+    doc = json.loads(manifest.model_dump_json())
+    doc["created"] = created
+    with fsspec.open(f"{store_url}/artifacts/{mesh_key()}/manifest.json", "w") as f:
+        f.write(json.dumps(doc))
+    with pytest.raises(CorruptArtifactError) as caught:
+        store.manifest(mesh_key())
+    assert str(caught.value).startswith(f"artifact {mesh_key()} is corrupt: file "
+                                        "'manifest.json' is not a valid manifest; delete ")
+
+
+def test_the_creation_time_is_kept_as_written(store):
+    manifest = put_mesh(store, {"mesh.ply": b"ply"})
+    assert manifest.created.endswith("+00:00")
+    assert store.manifest(mesh_key()).created == manifest.created
+    assert store.manifest(mesh_key()).created_at.utcoffset().total_seconds() == 0
+
+
+# --------------------------------------------------------------------------- credentials
+
+
+SECRET_URLS = {
+    "s3://user:secret@host/bucket/x": "s3://user:***@host/bucket/x",
+    "S3://user:p%40ss:w@host:9000/bucket": "S3://user:***@host:9000/bucket",
+    "s3://user@host/bucket": "s3://user@host/bucket",  # no password
+    "s3://bucket/prefix": "s3://bucket/prefix",
+    "/data/store": "/data/store",
+}
+
+
+def test_a_store_url_is_shown_without_its_password(memory_url):
+    """Whatever names a store in a message hides the password in its URL, in the URL and
+    where a library's own message quotes it (a bucket name)."""
+    from tasks.runner import store_unreachable
+    from tasks.store.base import redact
+
+    for url, shown in SECRET_URLS.items():
+        assert redact(url) == shown
+    assert redact('Invalid bucket name "user:secret@host": must match') == (
+        'Invalid bucket name "user:***@host": must match')
+    # Secret keys hold '/' and '+', passwords '@': hidden up to the authority's last '@'.
+    assert redact("s3://AKIA:abc/def+ghi@host/b") == "s3://AKIA:***@host/b"
+    assert redact("s3://u:p@ss@host/b x") == "s3://u:***@host/b x"
+    assert redact(repr("s3://u:p@host/b")) == "'s3://u:***@host/b'"
+    assert redact("at 12:30@noon") == "at 12:30@noon"  # not a URL: unchanged
+    for url in ("ftp://user:secret@host/x", "s3://user:secret@host/b::x"):
+        with pytest.raises(InputError) as refused:
+            ArtifactStore(url)
+        assert "secret" not in str(refused.value) and "user:***@host" in str(refused.value)
+    assert "secret" not in repr(ArtifactStore("s3://user:secret@host/bucket"))
+    secret = memory_url.replace("memory://", "memory://user:secret@")
+    store = ArtifactStore(secret)
+    with pytest.raises(ArtifactNotFoundError) as missing:
+        store.manifest(mesh_key())
+    put_mesh(store, {"mesh.ply": b"ply"})
+    with pytest.raises(ArtifactNotFoundError) as no_file:
+        store.read_bytes(mesh_key(), "nope")
+    messages = [str(missing.value), str(no_file.value),
+                str(store._corrupt(mesh_key(), "mesh.ply", "is missing")),
+                str(store._write_error(mesh_key(), store.url, OSError(28, "No space left"))),
+                str(store_unreachable("s3://user:secret@host/b",
+                                      ValueError('Invalid bucket name "user:secret@host"'))),
+                str(store_unreachable("s3://user:secret@host/b", PermissionError("denied")))]
+    for message in messages:
+        assert "secret" not in message and "user:***@" in message, message
+    store.delete(mesh_key())

@@ -136,26 +136,36 @@ def test_a_store_folder_that_is_a_file_fails_its_first_task_at_once(tmp_path):
 
 def test_results_are_exported_only_as_they_were_committed(tmp_path):
     """The output folder shows this run's results only (an earlier run's heat map goes, the
-    user's own files stay); a stored result changed after its commit (fx 500 -> 999 in
-    cameras.json) is refused when exported, not handed to the user."""
+    user's own files stay, one named like a result too); a stored result changed after its
+    commit (fx 500 -> 999 in cameras.json) is refused when exported, not handed to the user."""
     from flows.capture import _export
+    from tasks.graph import OUTPUT_NAMES
+    from tasks.outputs import ResultWriter, write_results
     from tasks.store import artifact_key
 
     store = ArtifactStore(str(tmp_path / "store"))
     key = artifact_key("poses", {"video": "input-x"}, {}, "1")
     store.put(key, {"cameras.json": b'{"fx": 500}'}, stage="poses", inputs={"video": "input-x"},
               config={}, version="1")
-    # An earlier run's heat map and preview, which this run (no scan, no mesh) did not make.
-    (tmp_path / "out").mkdir()
-    for stale in ("heatmap_metric.png", "preview.png"):
-        (tmp_path / "out" / stale).write_bytes(b"an earlier run")
-    (tmp_path / "out" / "notes.txt").write_text("the user's own file")
-    _export(str(tmp_path / "store"), {"poses": key}, tmp_path / "out")
-    assert (tmp_path / "out" / "cameras.json").read_bytes() == b'{"fx": 500}'
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["cameras.json", "notes.txt"]
+    out = tmp_path / "out"
+    # An earlier run's heat maps, which this run (no scan, no mesh) did not make; the user
+    # has since put a file of their own under one of those names.
+    write_results(out, {"heatmap_metric.png": b"an earlier run",
+                        "heatmap_similarity.png": b"an earlier run"})
+    (out / "heatmap_similarity.png").write_bytes(b"the user's own file")
+    (out / "notes.txt").write_text("the user's own file")
+    with ResultWriter(out) as writer:
+        _export(str(tmp_path / "store"), {"poses": key}, writer, tmp_path)
+        writer.commit(stale=OUTPUT_NAMES)
+    assert (out / "cameras.json").read_bytes() == b'{"fx": 500}'
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [
+        "cameras.json", "heatmap_similarity.png", "notes.txt"]
+    assert (out / "heatmap_similarity.png").read_bytes() == b"the user's own file"
     (store.get(key) / "cameras.json").write_bytes(b'{"fx": 999}')
-    with pytest.raises(CorruptArtifactError, match="cameras.json"):
-        _export(str(tmp_path / "store"), {"poses": key}, tmp_path / "again")
+    with pytest.raises(CorruptArtifactError, match="cameras.json"), \
+            ResultWriter(tmp_path / "again") as writer:
+        _export(str(tmp_path / "store"), {"poses": key}, writer, tmp_path)
+        writer.commit()
     assert not (tmp_path / "again" / "cameras.json").exists()
 
 

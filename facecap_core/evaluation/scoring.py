@@ -155,6 +155,24 @@ def score_json(score: Score) -> dict:
                      "completion": side(score.ears.completion)}}
 
 
+SLIVER = 1e-12
+"""A triangle whose area is below this fraction of the squared extent of its mesh is a
+point or a line (float rounding leaves a collinear triangle ~1e-16 of it)."""
+
+
+def check_surface(vertices: np.ndarray, faces: np.ndarray, path: str | Path, what: str) -> None:
+    """Refuse a mesh none of whose triangles has an area: distances to it are distances to
+    its vertices, so a cloud of the scan's own points would score 1e-14 mm."""
+    v = np.asarray(vertices, float)
+    corners = v[np.asarray(faces, np.int64).reshape(-1, 3)]
+    areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
+                                          corners[:, 2] - corners[:, 0]), axis=1)
+    extent = float(np.ptp(v, axis=0).max()) if len(v) else 0.0
+    if not np.any(areas > SLIVER * extent ** 2):
+        raise InputError(f"{what} file {path} has no triangle with an area (every one is a "
+                         "point or a line); repair the mesh")
+
+
 def evaluate(mesh_path: str | Path, scan_path: str | Path,
              scan_landmarks_path: str | Path | None = None,
              mesh_landmarks_path: str | Path | None = None,
@@ -174,7 +192,9 @@ def evaluate(mesh_path: str | Path, scan_path: str | Path,
         raise InputError(f"scan {scan_path} has no landmarks: pass --scan-landmarks FILE "
                          "(68 points, iBUG order) so the face region can be cut")
     mesh = load_mesh(mesh_path, "mesh")
+    check_surface(mesh.vertices, mesh.faces, mesh_path, "mesh")
     scan = load_mesh(scan_path, "scan")
+    check_surface(scan.vertices, scan.faces, scan_path, "scan")
     scan_lm = load_landmarks(scan_landmarks_path, expected=68)
     if scan_lm.shape[1] != 3:
         raise InputError(f"scan landmark file {scan_landmarks_path} holds 2-D points; the face "

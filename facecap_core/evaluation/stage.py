@@ -6,6 +6,8 @@ import json
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from facecap_core.errors import InputError
 from facecap_core.evaluation.alignment import EvaluationConfig
 from facecap_core.evaluation.figures import error_heatmap
@@ -13,6 +15,9 @@ from facecap_core.evaluation.scoring import evaluate, score_json
 from facecap_core.meshio import load_mesh
 
 EVALUATION_JSON = "evaluation.json"
+ACCURACY_NPY = "accuracy_{protocol}.npy"
+"""Each mesh vertex's distance to the scan (mm; nan outside the scored region), per protocol:
+the heat map on the mesh of the capture's page."""
 
 
 def find_file(folder: str | Path, suffixes: Sequence[str], what: str) -> Path:
@@ -28,7 +33,8 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
                    scan_landmarks: str | Path | None = None,
                    config: EvaluationConfig | None = None) -> Path:
     """Score the fitting stage's ``mesh.ply`` against a scan; writes ``evaluation.json``
-    (:func:`score_json` per protocol) and ``heatmap_<protocol>.png``; returns the JSON."""
+    (:func:`score_json` per protocol), ``heatmap_<protocol>.png`` and
+    ``accuracy_<protocol>.npy`` (per vertex); returns the JSON."""
     from facecap_core.fitting.run import MESH_LANDMARKS, MESH_PLY
 
     mesh_path = Path(mesh_dir) / MESH_PLY
@@ -53,6 +59,8 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
     for name, sc in scores.items():
         error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces, sc.accuracy_per_vertex,
                       out / f"heatmap_{name}.png")
+        np.save(out / ACCURACY_NPY.format(protocol=name),
+                np.asarray(sc.accuracy_per_vertex, np.float32))
     path = out / EVALUATION_JSON
     path.write_text(json.dumps({p: score_json(s) for p, s in scores.items()}, indent=1))
     return path

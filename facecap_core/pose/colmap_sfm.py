@@ -8,6 +8,7 @@ full-resolution pixels.
 
 from __future__ import annotations
 
+import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +47,17 @@ COLMAP's quadratic overlap (pairs i, i+1, ..., i+overlap and i+2, i+4, i+8, ...)
 links distant parts of a sweep."""
 
 
+
+def _unwritable(path: Path) -> OSError:
+    """OpenCV says only that a write failed: a full disk is the usual cause, told apart
+    by the free space left."""
+    import errno
+
+    full = shutil.disk_usage(path.parent).free < 64 * 2**20
+    code = errno.ENOSPC if full else errno.EIO
+    return OSError(code, os.strerror(code), str(path))
+
+
 def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tuple[int, int],
             overlap: int = 10, refine_principal_point: bool = False,
             threads: int = 1, seed: int = 0, ordered: bool = True,
@@ -71,7 +83,8 @@ def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tup
     names = {}
     for index, img in sorted(images.items()):
         name = f"frame_{index:06d}.png"
-        cv2.imwrite(str(img_dir / name), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        if not cv2.imwrite(str(img_dir / name), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
+            raise _unwritable(img_dir / name)
         names[name] = index
     h, w = next(iter(images.values())).shape[:2]
     db = work / "database.db"

@@ -325,9 +325,7 @@ def make_subject(config: SynthConfig) -> Subject:
 
         # --ict-model, else $FACECAP_ICT_MODEL, else the trimmed model in the package.
         model = config.ict_model or default_ict_model()
-        arg = spec[4:]
-        if arg != "mean" and not arg.lstrip("-").isdigit():
-            raise InputError(f"subject {spec!r}: expected ict:SEED (an integer) or ict:mean")
+        arg = spec[4:]  # ict:mean or ict:SEED, as SynthConfig checked
         return ict_subject(model, None if arg == "mean" else int(arg), config.ict_identity_sigma,
                            config.skin_detail)
     if config.skin_detail != 1.0:

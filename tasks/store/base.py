@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -11,6 +12,7 @@ from typing import Any
 import fsspec
 from fsspec.core import url_to_fs
 from fsspec.implementations.local import LocalFileSystem
+from fsspec.implementations.memory import MemoryFileSystem
 from pydantic import BaseModel, ValidationError
 
 from facecap_core.errors import InputError
@@ -45,6 +47,23 @@ commit a manifest create-only, and a store URL must never make a worker send req
 whatever host it names."""
 
 
+_PASSWORDS = (re.compile(r"(?P<head>[A-Za-z][A-Za-z0-9+.-]*://+[^\s/@:'\"]*):[^\s'\"]*@"),
+              re.compile(r"(?P<head>[\"'][^\s/@:'\"]*):(?!//)[^\s'\"]*@"))
+"""``user:password@`` of a URL's authority (the password up to the last ``@``: secret keys
+hold ``/`` and ``+``), also where a library's message quotes it without the URL around it
+(s3fs takes ``user:password@host`` for a bucket name)."""
+
+
+def redact(text: str | os.PathLike[str]) -> str:
+    """``text`` (a store URL, or a message naming one) with every password of a URL in it
+    shown as ``***``: ``s3://user:***@host/bucket``. Every message that names a store passes
+    its URL through here: messages reach terminals, logs and the Prefect UI."""
+    text = os.fspath(text)
+    for pattern in _PASSWORDS:
+        text = pattern.sub(r"\g<head>:***@", text)
+    return text
+
+
 def scheme(url: str | os.PathLike[str]) -> str:
     """The URL's protocol: ``file`` for a plain path."""
     text = os.fspath(url)
@@ -54,18 +73,18 @@ def scheme(url: str | os.PathLike[str]) -> str:
 def _filesystem(url: str | os.PathLike[str]) -> tuple[fsspec.AbstractFileSystem, str]:
     """The fsspec filesystem and root of a store URL; anything else is bad input."""
     if "::" in os.fspath(url):  # fsspec's URL chaining: the chained protocols go unchecked
-        raise InputError(f"the store {os.fspath(url)} chains protocols (::), which a store "
+        raise InputError(f"the store {redact(url)} chains protocols (::), which a store "
                          "cannot do; give a folder or an s3://bucket/prefix URL (--store or "
                          "FACECAP_STORE)")
     if scheme(url) not in SCHEMES:
-        raise InputError(f"the store {os.fspath(url)} uses the protocol {scheme(url)!r}, which "
+        raise InputError(f"the store {redact(url)} uses the protocol {scheme(url)!r}, which "
                          "cannot hold artifacts; give a folder or an s3://bucket/prefix URL "
                          "(--store or FACECAP_STORE)")
     try:
         return url_to_fs(_expand(url))
     except (ImportError, ValueError) as exc:  # a malformed URL or a missing backend
-        raise InputError(f"the store {os.fspath(url)} cannot be opened "
-                         f"({' '.join(str(exc).split())}); give a folder or an "
+        raise InputError(f"the store {redact(url)} cannot be opened "
+                         f"({redact(' '.join(str(exc).split()))}); give a folder or an "
                          "s3://bucket/prefix URL") from None
 
 
@@ -104,12 +123,22 @@ class ArtifactStore:
         return self._root if self.is_local else self._fs.unstrip_protocol(self._root)
 
     @property
+    def shown_url(self) -> str:
+        """:attr:`url` as messages show it: without a password (:func:`redact`)."""
+        return redact(self.url)
+
+    @property
+    def outlives_process(self) -> bool:
+        """Whether the artifacts outlast this process (``memory://`` goes with it)."""
+        return not isinstance(self._fs, MemoryFileSystem)
+
+    @property
     def fs(self) -> fsspec.AbstractFileSystem:
         """The fsspec filesystem holding the store."""
         return self._fs
 
     def __repr__(self) -> str:
-        return f"ArtifactStore({self.url!r})"
+        return f"ArtifactStore({self.shown_url!r})"
 
     # ----------------------------------------------------------------- paths
 
@@ -145,7 +174,8 @@ class ArtifactStore:
         try:
             data = self._fs.cat_file(self._manifest_path(key))
         except FileNotFoundError:
-            raise ArtifactNotFoundError(f"artifact {key} not found in store {self.url}") from None
+            raise ArtifactNotFoundError(f"artifact {key} not found in store "
+                                        f"{self.shown_url}") from None
         try:
             manifest = Manifest.model_validate_json(data)
         except ValidationError as exc:
@@ -270,7 +300,7 @@ class ArtifactStore:
         entry = manifest.files.get(name)
         if entry is None:
             raise ArtifactNotFoundError(
-                f"artifact {manifest.key} in store {self.url} has no file {name!r} "
+                f"artifact {manifest.key} in store {self.shown_url} has no file {name!r} "
                 f"(it has: {', '.join(sorted(manifest.files)) or 'no files'})"
             )
         return entry
@@ -287,12 +317,12 @@ class ArtifactStore:
     def _corrupt(self, key: str, name: str, problem: str) -> CorruptArtifactError:
         return CorruptArtifactError(
             f"artifact {key} is corrupt: file {name!r} {problem}; "
-            f"delete {self._location(key)} so that it is recomputed"
+            f"delete {redact(self._location(key))} so that it is recomputed"
         )
 
     def _write_error(self, key: str, where: str, exc: OSError) -> StoreWriteError:
         return StoreWriteError(
-            f"could not write artifact {key} to {where}: {reason(exc)}; "
+            f"could not write artifact {key} to {redact(where)}: {redact(reason(exc))}; "
             "check that the location is writable and has free space, then retry"
         )
 

@@ -13,7 +13,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, field_validator
 
 from facecap_core.errors import FacecapError, InputError
 
@@ -57,6 +57,24 @@ class Manifest(BaseModel):
     folder: str | None = None
     """Remote stores: the writer's sub-folder of the artifact folder that holds the files;
     None where the files lie in the artifact folder itself (the local backend)."""
+
+    @field_validator("created")
+    @classmethod
+    def _check_created(cls, value: str) -> str:
+        # Pruning compares it with the time now: a manifest it cannot date is a damaged one
+        # (CorruptArtifactError where it is read), not one to remove as old.
+        try:
+            zone = datetime.fromisoformat(value).utcoffset()
+        except ValueError:
+            raise ValueError(f"created {value!r} is not an ISO-8601 time") from None
+        if zone is None:
+            raise ValueError(f"created {value!r} has no time zone")
+        return value
+
+    @property
+    def created_at(self) -> datetime:
+        """When the artifact was committed (``created``, with its time zone)."""
+        return datetime.fromisoformat(self.created)
 
 
 def manifest_bytes(manifest: Manifest) -> bytes:

@@ -53,7 +53,7 @@ class RemoteStore(ArtifactStore):
         check_key(key)
         folder = self._artifact_path(key)
         if not self._fs.exists(folder):
-            raise ArtifactNotFoundError(f"artifact {key} not found in store {self.url}")
+            raise ArtifactNotFoundError(f"artifact {key} not found in store {self.shown_url}")
         if self._fs.exists(self._manifest_path(key)):
             self._fs.rm_file(self._manifest_path(key))
         self._fs.rm(folder, recursive=True)

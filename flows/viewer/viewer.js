@@ -1,0 +1,143 @@
+// The capture page's 3D view: the fitted mesh (glTF) to turn, zoom and light, in its own
+// colours, plain, or coloured by its accuracy against the scan; the fused cloud and the
+// keyframe cameras on demand. Reads the page's JSON (id "facecap-data"); THREE is the
+// vendored three.js bundle. Sets window.facecap = {ready, reason, mode, setMode, toggle}:
+// ready once the mesh is shown, reason when it cannot be.
+(function () {
+  "use strict";
+  const data = JSON.parse(document.getElementById("facecap-data").textContent);
+  const bytes = (b64) => Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+  const canvas = document.getElementById("canvas");
+  const renderer = new THREE.WebGLRenderer({canvas, antialias: true, preserveDrawingBuffer: true});
+  renderer.setPixelRatio(window.devicePixelRatio || 1);
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color(0xf4f4f4);
+  const camera = new THREE.PerspectiveCamera(30, 1, 1, 1e5);
+  scene.add(camera);
+  scene.add(new THREE.HemisphereLight(0xffffff, 0x606060, 1.6));
+  const headlight = new THREE.DirectionalLight(0xffffff, 1.8);
+  headlight.position.set(0.4, 0.6, 1.0);  // follows the viewer: the side facing it is lit
+  camera.add(headlight);
+  const controls = new THREE.OrbitControls(camera, canvas);
+  controls.enableDamping = true;
+  const state = {ready: false, mode: "colour", setMode, toggle};
+  window.facecap = state;
+
+  function resize() {
+    const w = canvas.clientWidth, h = canvas.clientHeight;
+    if (canvas.width !== Math.round(w * renderer.getPixelRatio()) ||
+        canvas.height !== Math.round(h * renderer.getPixelRatio())) {
+      renderer.setSize(w, h, false);
+      camera.aspect = w / Math.max(h, 1);
+      camera.updateProjectionMatrix();
+    }
+  }
+
+  function buffer(b64, Type) {
+    const raw = bytes(b64);
+    return new Type(raw.buffer, raw.byteOffset, raw.byteLength / Type.BYTES_PER_ELEMENT);
+  }
+
+  let mesh = null, colours = null;
+  const materials = {
+    colour: new THREE.MeshStandardMaterial({vertexColors: true, roughness: 0.8}),
+    plain: new THREE.MeshStandardMaterial({color: 0xd9c4b0, roughness: 0.7}),
+    accuracy: new THREE.MeshStandardMaterial({vertexColors: true, roughness: 0.9}),
+  };
+  const extras = {};
+
+  function setMode(mode) {
+    if (!mesh || !(mode in materials) || (mode === "accuracy" && !data.accuracy)) return false;
+    const attribute = mode === "accuracy" ? "heat" : "original";
+    if (mode !== "plain") mesh.geometry.setAttribute("color", colours[attribute]);
+    mesh.material = materials[mode];
+    document.getElementById("colourbar").hidden = mode !== "accuracy";
+    for (const button of document.querySelectorAll("[data-mode]"))
+      button.setAttribute("aria-pressed", String(button.dataset.mode === mode));
+    state.mode = mode;
+    return true;
+  }
+
+  function toggle(name) {
+    if (!(name in extras)) return false;
+    extras[name].visible = !extras[name].visible;
+    if (name === "cameras" && extras.cameras.visible) {
+      // Step back far enough to see the cameras around the head.
+      const offset = camera.position.clone().sub(controls.target);
+      offset.setLength(Math.max(offset.length(), 1.8 * data.cameras.distance));
+      camera.position.copy(controls.target).add(offset);
+    }
+    document.querySelector(`[data-toggle="${name}"]`)
+      .setAttribute("aria-pressed", String(extras[name].visible));
+    return extras[name].visible;
+  }
+
+  function addExtras() {
+    if (data.cloud) {
+      const geometry = new THREE.BufferGeometry();
+      geometry.setAttribute("position", new THREE.BufferAttribute(buffer(data.cloud.positions, Float32Array), 3));
+      geometry.setAttribute("color", new THREE.BufferAttribute(buffer(data.cloud.colours, Uint8Array), 3, true));
+      extras.cloud = new THREE.Points(geometry, new THREE.PointsMaterial(
+        {size: 2, sizeAttenuation: false, vertexColors: true}));
+    }
+    if (data.cameras) {
+      const geometry = new THREE.BufferGeometry();
+      geometry.setAttribute("position", new THREE.BufferAttribute(buffer(data.cameras.lines, Float32Array), 3));
+      extras.cameras = new THREE.LineSegments(geometry, new THREE.LineBasicMaterial({color: 0x2060c0}));
+    }
+    for (const object of Object.values(extras)) {
+      object.visible = false;
+      scene.add(object);
+    }
+  }
+
+  function frame(geometry) {
+    geometry.computeBoundingSphere();
+    const sphere = geometry.boundingSphere;
+    // Face the viewer the way the capture's cameras faced the head (their mean direction).
+    const towards = new THREE.Vector3(...(data.view_direction || [0, 0, 1])).normalize();
+    const distance = sphere.radius / Math.sin(THREE.MathUtils.degToRad(camera.fov / 2)) * 1.1;
+    camera.position.copy(sphere.center).addScaledVector(towards, distance);
+    camera.up.set(...(data.view_up || [0, 1, 0]));
+    camera.near = distance / 100;
+    camera.far = distance * 100;
+    camera.updateProjectionMatrix();
+    controls.target.copy(sphere.center);
+    controls.update();
+  }
+
+  new THREE.GLTFLoader().parse(bytes(data.mesh_glb).buffer, "", (gltf) => {
+    gltf.scene.traverse((object) => { if (object.isMesh && !mesh) mesh = object; });
+    const geometry = mesh.geometry;
+    geometry.computeVertexNormals();
+    const count = geometry.getAttribute("position").count;
+    colours = {original: geometry.getAttribute("color") ||
+               new THREE.BufferAttribute(new Float32Array(count * 3).fill(0.8), 3)};
+    if (data.accuracy) colours.heat = new THREE.BufferAttribute(buffer(data.accuracy.colours, Uint8Array), 3, true);
+    // The mesh alone, in world coordinates (mm), as the cameras and the cloud are.
+    mesh.removeFromParent();
+    mesh.position.set(0, 0, 0);
+    mesh.rotation.set(0, 0, 0);
+    mesh.scale.set(1, 1, 1);
+    scene.add(mesh);
+    addExtras();
+    setMode("colour");
+    resize();
+    frame(geometry);
+    state.ready = true;
+  }, (error) => {
+    state.reason = "the mesh could not be read";
+    console.error("facecap: the mesh could not be read", error);
+  });
+
+  for (const button of document.querySelectorAll("[data-mode]"))
+    button.addEventListener("click", () => setMode(button.dataset.mode));
+  for (const button of document.querySelectorAll("[data-toggle]"))
+    button.addEventListener("click", () => toggle(button.dataset.toggle));
+  (function loop() {
+    resize();
+    controls.update();
+    renderer.render(scene, camera);
+    requestAnimationFrame(loop);
+  })();
+})();

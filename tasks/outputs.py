@@ -1,0 +1,336 @@
+"""The one way facecap writes into a user's output folder.
+
+A results folder is a place other things live in too: the user's photos (``--out`` the photo
+folder), links someone planted there (a served run's output folder is shared), the store
+(``--out`` inside it), files of the user's own that happen to have a result's name. So every
+result goes through :class:`ResultWriter`, which
+
+* writes each file under a fresh temporary name in its final folder and renames it into
+  place only when every file of the batch is written (``os.replace``): a full disk or a kill
+  leaves the earlier results whole, never a half-written set;
+* walks the folders below ``--out`` through file descriptors that refuse links
+  (``O_NOFOLLOW``), and creates files with ``O_EXCL``: nothing is written through a link,
+  and a link in the folder is replaced by the file rather than followed;
+* refuses to replace a file that is one of the run's inputs (same inode: the same directory
+  entry or a hard link to it);
+* removes a result an earlier run wrote and this run did not make only when the folder's
+  record (:data:`RECORD_NAME`) says facecap wrote that very content.
+
+:func:`check_output_place` refuses an output folder inside the artifact store or
+facecap's own folders, or equal to an input folder, before anything runs.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import re
+import secrets
+import stat
+from collections.abc import Iterable
+from pathlib import Path, PurePosixPath
+
+from facecap_core.errors import FacecapError, InputError
+
+RECORD_NAME = ".facecap-results.json"
+"""What facecap last wrote into the folder (name -> sha256): the only files it removes."""
+
+_DIR_FLAGS = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+_NEW_FILE_FLAGS = (os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW
+                   | getattr(os, "O_CLOEXEC", 0))
+_DISK_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+MAX_RECORD_BYTES = 16 * 2**20
+"""A record larger than this is not facecap's: it is read as empty (nothing is removed)."""
+_TEMPORARY = re.compile(r"^\..+\.[0-9a-f]{12}\.part$")
+"""The name a result is staged under (:meth:`ResultWriter.add`)."""
+ABANDONED_S = 3600
+"""A staged file this old was left by a writer that was killed (a batch takes seconds)."""
+
+
+class OutputWriteError(FacecapError):
+    """The output folder cannot take the results (full, read-only, gone)."""
+
+
+def _relative(name: str) -> PurePosixPath:
+    path = PurePosixPath(name)
+    if path.is_absolute() or not path.parts or any(p in ("", ".", "..") for p in path.parts):
+        raise ValueError(f"a result's name must be a plain relative path, not {name!r}")
+    return path
+
+
+def _inode(found: os.stat_result) -> tuple[int, int]:
+    return found.st_dev, found.st_ino
+
+
+def input_inodes(paths: Iterable[str | os.PathLike | None]) -> dict[tuple[int, int], str]:
+    """(device, inode) of every existing input file (each photo of a photo folder)."""
+    found = {}
+    for path in paths:
+        if path is None:
+            continue
+        path = Path(path)
+        files = sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
+        for file in files:
+            try:
+                found[_inode(file.stat())] = str(file)
+            except OSError:
+                continue
+    return found
+
+
+class ResultWriter:
+    """A batch of results for one output folder: :meth:`add` each, then :meth:`commit`
+    (or leave the ``with`` block by an exception: nothing is replaced)."""
+
+    def __init__(self, folder: str | os.PathLike, inputs: Iterable[str | os.PathLike | None] = ()):
+        self.folder = Path(folder)
+        self._inputs = input_inodes(inputs)
+        self._staged: list[tuple[PurePosixPath, str, str]] = []  # (name, temporary, sha256)
+        self._fds: dict[PurePosixPath, int] = {}
+        self._record_missing = False
+
+    # ------------------------------------------------------------------ folders
+
+    def _dir_fd(self, parent: PurePosixPath, create: bool = True) -> int:
+        """An open descriptor of ``folder/parent``, created as needed (``create``), never
+        through a link."""
+        if parent in self._fds:
+            return self._fds[parent]
+        if parent == PurePosixPath("."):
+            self.folder.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.folder, os.O_RDONLY | os.O_DIRECTORY | getattr(os, "O_CLOEXEC", 0))
+        else:
+            above = self._dir_fd(parent.parent, create)
+            try:
+                if create:
+                    os.mkdir(parent.name, dir_fd=above)
+            except FileExistsError:
+                pass
+            try:
+                fd = os.open(parent.name, _DIR_FLAGS, dir_fd=above)
+            except OSError as exc:
+                if exc.errno in (errno.ELOOP, errno.ENOTDIR):
+                    raise InputError(f"{self.folder / parent} is a link or a file where facecap "
+                                     "writes a folder of results; remove it or give another "
+                                     "--out") from None
+                raise
+        self._fds[parent] = fd
+        _remove_abandoned(fd)
+        return fd
+
+    # ------------------------------------------------------------------ writing
+
+    def add(self, name: str, data: bytes | None = None, source: str | os.PathLike | None = None
+            ) -> None:
+        """Stage the result ``name`` (relative to the folder) from ``data`` or a file."""
+        path = _relative(name)
+        if (data is None) == (source is None):
+            raise ValueError("give a result's data or its source file, not both or neither")
+        try:
+            if source is not None:
+                data = Path(source).read_bytes()
+            fd = self._dir_fd(path.parent)
+            self._check_target(fd, path)
+            temporary = f".{path.name}.{secrets.token_hex(6)}.part"
+            handle = os.open(temporary, _NEW_FILE_FLAGS, 0o644, dir_fd=fd)
+            self._staged.append((path, temporary, hashlib.sha256(data).hexdigest()))
+            with os.fdopen(handle, "wb") as target:
+                target.write(data)
+        except BaseException as exc:  # nothing of a batch that failed is left behind
+            self.abort()
+            if isinstance(exc, OSError):
+                raise self._write_error(exc) from None
+            raise
+
+    def _check_target(self, fd: int, path: PurePosixPath) -> None:
+        """What the result will replace: never an input, never a folder."""
+        try:
+            existing = os.stat(path.name, dir_fd=fd, follow_symlinks=False)
+        except FileNotFoundError:
+            return
+        if stat.S_ISDIR(existing.st_mode):
+            raise InputError(f"{self.folder / path} is a folder where facecap writes a result "
+                             "file; move it away or give another --out")
+        if _inode(existing) in self._inputs:
+            raise InputError(f"the result {self.folder / path} would replace the input "
+                             f"{self._inputs[_inode(existing)]}; give another --out")
+
+    def _write_error(self, exc: OSError) -> FacecapError:
+        reason = exc.strerror or type(exc).__name__
+        what = ("free space there" if exc.errno in _DISK_FULL
+                else "choose a writable folder (--out)")
+        return OutputWriteError(f"could not write the results into {self.folder} ({reason}); "
+                                f"{what} and run again")
+
+    def commit(self, stale: Iterable[str] = ()) -> None:
+        """Rename every staged file into place; then remove those of ``stale`` that the
+        folder's record says an earlier run wrote (and that still hold what it wrote). A
+        folder without a record (results of a version before the record) loses every plain
+        file of ``stale`` that is not an input, as it did then."""
+        record = self._read_record()
+        for path, temporary, _ in self._staged:
+            fd = self._fds[path.parent]
+            try:
+                os.replace(temporary, path.name, src_dir_fd=fd, dst_dir_fd=fd)
+            except OSError as exc:  # changed since it was checked: what is left is dropped
+                self.abort()
+                raise self._write_error(exc) from None
+        written = {str(path) for path, _, _ in self._staged}
+        for name in sorted(set(stale) - written):
+            self._remove_if_ours(_relative(name), None if record is None else record.get(name))
+        record = {} if record is None else {k: v for k, v in record.items() if k not in stale}
+        record.update({str(path): digest for path, _, digest in self._staged})
+        self._staged = []
+        self._write_record(record)
+        self.close()
+
+    def _remove_if_ours(self, path: PurePosixPath, digest: str | None) -> None:
+        """Remove an earlier result: the file the record names with these bytes, or with no
+        record at all (``digest`` None) a plain file that is not an input."""
+        try:
+            fd = self._dir_fd(path.parent, create=False)
+            found = os.stat(path.name, dir_fd=fd, follow_symlinks=False)
+            if not stat.S_ISREG(found.st_mode) or _inode(found) in self._inputs:
+                return
+            if digest is None and self._record_missing or (
+                    digest is not None and _sha256_at(fd, path.name) == digest):
+                os.unlink(path.name, dir_fd=fd)
+        except (OSError, InputError):
+            pass
+
+    def _read_record(self) -> dict[str, str] | None:
+        """The folder's record; None where it has none (a folder an earlier version wrote,
+        or a new one)."""
+        fd = self._dir_fd(PurePosixPath("."))
+        self._record_missing = False
+        try:
+            handle = os.open(RECORD_NAME, os.O_RDONLY | os.O_NOFOLLOW, dir_fd=fd)
+        except FileNotFoundError:
+            self._record_missing = True
+            return None
+        except OSError:
+            return {}
+        try:
+            with os.fdopen(handle, "rb") as source:
+                record = json.loads(source.read(MAX_RECORD_BYTES))
+        except (OSError, ValueError):
+            return {}
+        if not isinstance(record, dict):
+            return {}
+        return {k: v for k, v in record.items() if isinstance(k, str) and isinstance(v, str)}
+
+    def _write_record(self, record: dict[str, str]) -> None:
+        fd = self._dir_fd(PurePosixPath("."))
+        temporary = f".{RECORD_NAME}.{secrets.token_hex(6)}.part"
+        try:
+            handle = os.open(temporary, _NEW_FILE_FLAGS, 0o644, dir_fd=fd)
+            with os.fdopen(handle, "w") as target:
+                json.dump(record, target, indent=1, sort_keys=True)
+            os.replace(temporary, RECORD_NAME, src_dir_fd=fd, dst_dir_fd=fd)
+        except OSError:  # the results are in place; without a record nothing is removed later
+            _unlink_quietly(temporary, fd)
+
+    def abort(self) -> None:
+        """Remove the staged files; the folder keeps what it held."""
+        for path, temporary, _ in self._staged:
+            _unlink_quietly(temporary, self._fds.get(path.parent))
+        self._staged = []
+        self.close()
+
+    def close(self) -> None:
+        for fd in self._fds.values():
+            os.close(fd)
+        self._fds = {}
+
+    def __enter__(self) -> ResultWriter:
+        return self
+
+    def __exit__(self, kind, exc, tb) -> None:
+        if self._staged:
+            self.abort()
+        self.close()
+
+
+def _sha256_at(fd: int, name: str) -> str:
+    handle = os.open(name, os.O_RDONLY | os.O_NOFOLLOW, dir_fd=fd)
+    digest = hashlib.sha256()
+    with os.fdopen(handle, "rb") as source:
+        for chunk in iter(lambda: source.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _remove_abandoned(fd: int) -> None:
+    """Remove the staged files a killed writer left in the folder (they may hold a mesh)."""
+    import time
+
+    try:
+        names = os.listdir(fd)
+    except OSError:
+        return
+    for name in names:
+        if not _TEMPORARY.match(name):
+            continue
+        try:
+            found = os.stat(name, dir_fd=fd, follow_symlinks=False)
+            if stat.S_ISREG(found.st_mode) and time.time() - found.st_mtime > ABANDONED_S:
+                os.unlink(name, dir_fd=fd)
+        except OSError:
+            continue
+
+
+def _unlink_quietly(name: str, fd: int | None) -> None:
+    if fd is None:
+        return
+    try:
+        os.unlink(name, dir_fd=fd)
+    except OSError:
+        pass
+
+
+def write_results(folder: str | os.PathLike, files: dict[str, bytes],
+                  inputs: Iterable[str | os.PathLike | None] = ()) -> None:
+    """Write a few results into ``folder`` as one batch (see :class:`ResultWriter`)."""
+    with ResultWriter(folder, inputs) as writer:
+        for name, data in files.items():
+            writer.add(name, data)
+        writer.commit()
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    return path == folder or folder in path.parents
+
+
+def check_output_place(out: str | os.PathLike, store: str | None,
+                       inputs: Iterable[str | os.PathLike | None] = ()) -> None:
+    """Refuse an output folder that lies in the artifact store or in facecap's own folders
+    (results would replace committed files), or that is an input folder (a photo folder)."""
+    from facecap_core.settings import settings
+    from tasks.store.remote import cache_root
+
+    try:
+        target = Path(out).resolve()
+    except RuntimeError:  # pathlib's word for a link that leads back to itself
+        raise InputError(f"the output folder {out} is a link that leads back to itself; give "
+                         "the path of a folder (--out)") from None
+    except OSError as exc:
+        raise InputError(f"the output folder {out} cannot be looked up ({exc.strerror}); give "
+                         "the path of a folder (--out)") from None
+    home = settings().home.resolve()
+    own = [home / "store", home / "store-cache", cache_root().resolve(), home / "work",
+           home / "scratch", home / "assets", home / "locks", home / "logs"]
+    if store and "://" not in store:
+        own.append(Path(store).expanduser().resolve())
+    elif store and store.startswith("file://"):
+        own.append(Path(store.removeprefix("file://")).resolve())
+    for folder in own:
+        if _inside(target, folder):
+            raise InputError(f"the output folder {out} lies inside {folder}, which facecap "
+                             "keeps for itself (the artifact store or its own files); give "
+                             "another --out")
+    for path in inputs:
+        if path is not None and Path(path).is_dir() and Path(path).resolve() == target:
+            raise InputError(f"the output folder {out} is the input folder {path}, whose files "
+                             "results could replace; give another --out")

@@ -1,0 +1,103 @@
+"""Where a facecap process keeps its temporary files: one folder of its own under
+``$FACECAP_HOME/scratch``, never the system's temp folder.
+
+A capture's scratch holds faces (the pose stage's frames, COLMAP's database, depth maps in
+the making), so it must stay inside what ``forget`` and ``prune`` look after. Each process
+gets ``$FACECAP_HOME/scratch/<host>-<pid>-<start>/``: Python's :mod:`tempfile`, COLMAP's
+glog files and the stages' work folders all go there; it is removed when the process exits,
+and a folder whose process is gone (killed: its lock on the folder went with it) is removed
+by the next ``facecap`` command that runs flows, ``forget`` or ``prune``
+(:func:`remove_orphans`). The name says whose folder it is (host, pid, start), for people.
+"""
+
+from __future__ import annotations
+
+import atexit
+import fcntl
+import os
+import shutil
+import socket
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from facecap_core.assets import facecap_home
+
+SCRATCH = "scratch"
+ALIVE = ".alive"
+GRACE_S = 60.0
+"""A scratch folder younger than this is left alone: its process may not hold its lock yet."""
+
+_folder: Path | None = None
+_alive_lock = None
+
+
+def start_ticks(pid: int) -> str:
+    """When the process started (clock ticks since boot): a pid that was reused has other
+    ticks. '0' where ``/proc`` is not there to say."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return "0"
+    return stat.rsplit(")", 1)[1].split()[19]
+
+
+def _host() -> str:
+    return "".join(c if c.isalnum() or c in "-." else "_" for c in socket.gethostname())
+
+
+def process_scratch() -> Path:
+    """This process's scratch folder, created (and made the temp folder of Python and of
+    COLMAP's glog) on first use, removed at exit. The process holds an exclusive lock on
+    its ``.alive`` file for as long as it lives: that lock, not the folder's name, tells a
+    live process's folder from a killed one's."""
+    global _folder, _alive_lock
+    if _folder is not None and _folder.is_dir():
+        return _folder
+    pid = os.getpid()
+    folder = facecap_home() / SCRATCH / f"{_host()}-{pid}-{start_ticks(pid)}"
+    folder.mkdir(parents=True, exist_ok=True)
+    _alive_lock = open(folder / ALIVE, "a")  # noqa: SIM115 - held until the process ends
+    fcntl.flock(_alive_lock, fcntl.LOCK_EX)
+    os.environ["TMPDIR"] = str(folder)  # child processes, and libraries that read it
+    os.environ.setdefault("GLOG_log_dir", str(folder))  # read when glog first loads
+    tempfile.tempdir = str(folder)
+    if "pycolmap" in sys.modules:  # loaded already: its log files are opened at first use
+        sys.modules["pycolmap"].logging.log_dir = str(folder)
+    if _folder is None:
+        atexit.register(shutil.rmtree, folder, True)
+    _folder = folder
+    return folder
+
+
+def _abandoned(folder: Path) -> bool:
+    """No process holds the folder's ``.alive`` lock, and it is older than a process needs
+    to take it after making the folder."""
+    try:
+        if time.time() - folder.stat().st_mtime < GRACE_S:
+            return False
+        handle = open(folder / ALIVE, "a")  # noqa: SIM115 - closed below
+    except OSError:
+        return False
+    with handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            return False
+        return True
+
+
+def remove_orphans(home: Path | None = None) -> list[Path]:
+    """Remove the scratch folders whose process is gone (killed); returns them."""
+    root = (home or facecap_home()) / SCRATCH
+    try:
+        entries = sorted(p for p in root.iterdir() if p.is_dir() and not p.is_symlink())
+    except OSError:
+        return []
+    removed = []
+    for entry in entries:
+        if _abandoned(entry):
+            shutil.rmtree(entry, ignore_errors=True)
+            removed.append(entry)
+    return removed

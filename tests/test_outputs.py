@@ -1,0 +1,460 @@
+"""The output folder: results land by rename, never through a link, never onto an input or
+into the store (:mod:`tasks.outputs`); and what a run leaves outside it.
+
+Each case of the careless-user and attacker list in docs/robustness.md ("Outputs") is a
+test here: first at the writer, then through the ``facecap`` command as a user types it.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from facecap_core.errors import InputError
+from tasks.outputs import (
+    RECORD_NAME,
+    OutputWriteError,
+    ResultWriter,
+    check_output_place,
+    write_results,
+)
+from tests import test_bad_inputs
+from tests.test_bad_inputs import (
+    CHEAP_POSES,
+    assert_kept,
+    assert_one_line_error,
+    facecap,
+    orbit_frames,
+    snapshot,
+)
+
+# The bad-input corpus's fixtures: its media, a FACECAP_HOME, kept results, a test server.
+media, home, kept = test_bad_inputs.media, test_bad_inputs.home, test_bad_inputs.kept
+prefect_server = test_bad_inputs.prefect_server
+
+
+def _tree(folder: Path) -> dict[str, str]:
+    """Every file and link under ``folder`` (links by target, files by sha256)."""
+    found = {}
+    for path in sorted(folder.rglob("*")):
+        if path.is_symlink():
+            found[str(path)] = "-> " + os.readlink(path)
+        elif path.is_file():
+            found[str(path)] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return found
+
+
+# --------------------------------------------------------------------------- the writer
+
+
+def test_a_link_in_the_output_folder_is_replaced_not_followed(tmp_path):
+    """Case 1: ``out/report.json`` and ``out/.cameras.json.part`` are links to files
+    elsewhere; the results land in ``out`` and the files elsewhere keep their bytes."""
+    elsewhere, out = tmp_path / "elsewhere", tmp_path / "out"
+    elsewhere.mkdir()
+    out.mkdir()
+    (elsewhere / "victim").write_bytes(b"precious")
+    (elsewhere / "v2").write_bytes(b"also precious")
+    (out / "report.json").symlink_to(elsewhere / "victim")
+    (out / ".cameras.json.part").symlink_to(elsewhere / "v2")
+    before = _tree(elsewhere)
+    write_results(out, {"report.json": b"{}", "cameras.json": b"[]"})
+    assert _tree(elsewhere) == before
+    assert not (out / "report.json").is_symlink()
+    assert (out / "report.json").read_bytes() == b"{}"
+    assert (out / "cameras.json").read_bytes() == b"[]"
+
+
+def test_a_linked_sub_folder_is_refused(tmp_path):
+    """``out/colmap`` a link to a folder elsewhere: nothing is written into it."""
+    elsewhere, out = tmp_path / "elsewhere", tmp_path / "out"
+    elsewhere.mkdir()
+    out.mkdir()
+    (out / "colmap").symlink_to(elsewhere, target_is_directory=True)
+    with pytest.raises(InputError, match="colmap is a link or a file"):
+        write_results(out, {"report.json": b"{}", "colmap/cameras.txt": b"# cameras"})
+    assert list(elsewhere.iterdir()) == []
+    assert not (out / "report.json").exists()  # the batch is all or nothing
+
+
+def test_a_result_never_replaces_an_input(tmp_path):
+    """Case 3 at the writer: an input file (here a photo named ``preview.png``, and a hard
+    link to the scan) is never replaced."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    cv2.imwrite(str(photos / "preview.png"), np.full((8, 8, 3), 200, np.uint8))
+    scan = tmp_path / "scan.ply"
+    scan.write_bytes(b"ply scan")
+    out = tmp_path / "out"
+    out.mkdir()
+    os.link(scan, out / "mesh.ply")
+    before = _tree(tmp_path)
+    with pytest.raises(InputError, match="would replace the input"):
+        write_results(photos, {"preview.png": b"png"}, inputs=(photos,))
+    with pytest.raises(InputError, match="would replace the input .*scan.ply"):
+        write_results(out, {"mesh.ply": b"ply mesh"}, inputs=(scan,))
+    assert _tree(tmp_path) == before
+
+
+def test_only_what_facecap_wrote_is_removed(tmp_path):
+    """Results of an earlier run that this run did not make go; a file of the user's own
+    with a result's name, or one changed since facecap wrote it, stays."""
+    out = tmp_path / "out"
+    write_results(out, {"heatmap_metric.png": b"earlier", "heatmap_similarity.png": b"earlier",
+                        "evaluation.json": b"earlier"})
+    (out / "heatmap_similarity.png").write_bytes(b"edited by the user")
+    (out / "preview.png").write_bytes(b"the user's own")
+    with ResultWriter(out) as writer:
+        writer.add("mesh.ply", b"mesh")
+        writer.commit(stale={"heatmap_metric.png", "heatmap_similarity.png", "preview.png"})
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [RECORD_NAME, "evaluation.json", "heatmap_similarity.png", "mesh.ply",
+                     "preview.png"]
+    assert set(json.loads((out / RECORD_NAME).read_text())) == {"evaluation.json", "mesh.ply"}
+
+
+def test_a_folder_without_a_record_loses_its_stale_plain_files_only(tmp_path):
+    """Results an earlier version wrote (no record): a stale result goes as it did then,
+    but not a link of that name, nor an input."""
+    out, scan = tmp_path / "out", tmp_path / "scan.ply"
+    out.mkdir()
+    scan.write_bytes(b"scan")
+    (out / "heatmap_metric.png").write_bytes(b"an earlier version's")
+    (out / "heatmap_similarity.png").symlink_to(scan)
+    os.link(scan, out / "evaluation.json")
+    with ResultWriter(out, inputs=(scan,)) as writer:
+        writer.add("mesh.ply", b"mesh")
+        writer.commit(stale={"heatmap_metric.png", "heatmap_similarity.png",
+                             "evaluation.json"})
+    assert not (out / "heatmap_metric.png").exists()
+    assert (out / "heatmap_similarity.png").is_symlink()
+    assert (out / "evaluation.json").read_bytes() == b"scan"
+
+
+def test_a_killed_writers_staged_files_are_removed_later(tmp_path):
+    """A staged file an hour old was left by a killed writer (it may hold a mesh): the
+    next writer into that folder removes it; a fresh one (a writer at work) stays."""
+    out = tmp_path / "out"
+    out.mkdir()
+    abandoned, fresh = out / ".mesh.ply.0123456789ab.part", out / ".mesh.ply.ba9876543210.part"
+    abandoned.write_bytes(b"a mesh")
+    fresh.write_bytes(b"a mesh")
+    old = time.time() - 2 * 3600
+    os.utime(abandoned, (old, old))
+    write_results(out, {"report.json": b"{}"})
+    assert not abandoned.exists() and fresh.exists()
+
+
+def test_the_preview_is_made_from_the_runs_own_mesh(tmp_path):
+    """A link planted in ``--out`` under a result's name (``heatmap_metric.png`` pointing
+    at a file elsewhere) is not read into the preview: the preview comes from the run's
+    artifacts in the store."""
+    import trimesh
+
+    from flows.capture import _export
+    from tasks.store import ArtifactStore, artifact_key
+
+    store = ArtifactStore(tmp_path / "store")
+    key = artifact_key("fitting", {"fusion": "fusion-x"}, {}, "1")
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=80.0)
+    store.put(key, {"mesh.ply": mesh.export(file_type="ply")}, stage="fitting",
+              inputs={"fusion": "fusion-x"}, config={}, version="1")
+    secret = tmp_path / "secret.png"
+    cv2.imwrite(str(secret), np.full((40, 40, 3), 7, np.uint8))
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "heatmap_metric.png").symlink_to(secret)
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    with ResultWriter(out) as writer:
+        results = _export(str(tmp_path / "store"), {"fitting": key}, writer, scratch)
+        writer.commit()
+    assert set(results) == {"mesh.ply", "mesh.glb", "preview.png"}
+    assert (out / "preview.png").read_bytes() != secret.read_bytes()
+    assert cv2.imread(str(out / "preview.png")).shape == (320, 960, 3)
+
+
+def test_a_full_disk_leaves_the_earlier_results_whole(tmp_path, monkeypatch):
+    """ENOSPC on the second file of a batch: one-line error, the first file's earlier
+    version still in place, no temporary file left behind."""
+    out = tmp_path / "out"
+    write_results(out, {"mesh.ply": b"earlier mesh", "report.json": b"earlier report"})
+    real_open, calls = os.open, []
+
+    def failing_open(path, flags, *args, **kwargs):
+        if flags & os.O_CREAT and str(path).startswith(".report.json"):
+            calls.append(path)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_open(path, flags, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", failing_open)
+    with pytest.raises(OutputWriteError, match=r"No space left on device\); free space"):
+        write_results(out, {"mesh.ply": b"new mesh", "report.json": b"new report"})
+    monkeypatch.undo()
+    assert calls
+    assert (out / "mesh.ply").read_bytes() == b"earlier mesh"
+    assert sorted(p.name for p in out.iterdir()) == [RECORD_NAME, "mesh.ply", "report.json"]
+
+
+def test_an_output_folder_in_the_store_or_an_input_folder_is_refused(tmp_path, home):
+    store = tmp_path / "store"
+    (store / "artifacts" / "poses-x").mkdir(parents=True)
+    for out in (store, store / "artifacts" / "poses-x", home / "store", home / "scratch" / "a"):
+        with pytest.raises(InputError, match="keeps for itself"):
+            check_output_place(out, str(store))
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    with pytest.raises(InputError, match="is the input folder"):
+        check_output_place(photos / ".", str(store), (photos,))
+    check_output_place(tmp_path / "results", str(store), (photos,))  # anywhere else is fine
+
+
+NAMES = st.sampled_from(["report.json", "mesh.ply", "colmap", "colmap/cameras.txt",
+                         ".report.json.part", "preview.png", RECORD_NAME])
+
+
+@settings(max_examples=60, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(plants=st.lists(st.tuples(NAMES, st.sampled_from(["file", "link-file", "link-dir",
+                                                           "dir", "hard-link", "input"])),
+                       max_size=6),
+       results=st.lists(NAMES.filter(lambda n: n not in ("colmap", RECORD_NAME)), min_size=1,
+                        max_size=4, unique=True))
+def test_fuzz_writes_stay_in_the_output_folder(tmp_path_factory, plants, results):
+    """Whatever files, links (to files, folders, inputs) and folders lie in ``out`` under
+    the names facecap writes, a batch either lands in ``out`` or is refused in one line:
+    nothing outside ``out`` and no input changes, and a refused batch changes nothing."""
+    tmp = tmp_path_factory.mktemp("fuzz")
+    elsewhere, inputs, out = tmp / "elsewhere", tmp / "inputs", tmp / "out"
+    for folder in (elsewhere, inputs, out):
+        folder.mkdir()
+    (elsewhere / "victim").write_bytes(b"victim")
+    (inputs / "scan.ply").write_bytes(b"scan")
+    for name, kind in plants:
+        path = out / name
+        if path.exists() or path.is_symlink() or not path.parent.is_dir():
+            continue
+        if kind == "file":
+            path.write_bytes(b"planted")
+        elif kind == "link-file":
+            path.symlink_to(elsewhere / "victim")
+        elif kind == "link-dir":
+            path.symlink_to(elsewhere, target_is_directory=True)
+        elif kind == "dir":
+            path.mkdir()
+        elif kind == "hard-link":
+            os.link(elsewhere / "victim", path)
+        else:
+            os.link(inputs / "scan.ply", path)
+    outside, out_before = _tree(elsewhere) | _tree(inputs), _tree(out)
+    try:
+        write_results(out, {name: b"result " + name.encode() for name in results},
+                      inputs=(inputs / "scan.ply",))
+    except (InputError, OutputWriteError) as exc:
+        assert "\n" not in str(exc)
+        assert _tree(out) == out_before
+    else:
+        for name in results:
+            assert (out / name).read_bytes() == b"result " + name.encode()
+            assert not (out / name).is_symlink()
+    assert _tree(elsewhere) | _tree(inputs) == outside
+
+
+# --------------------------------------------------------------------------- the command
+
+
+def test_reconstruct_into_the_store_is_refused(media, kept, tmp_path, capfd):
+    """Case 2: ``--out STORE/artifacts/<key>`` (it would delete the artifact's files)."""
+    artifact = next((kept["store"] / "artifacts").iterdir())
+    before = snapshot(kept["store"])
+    code, _, err = facecap(capfd, "reconstruct", media["orbit"], "--out", artifact, "--store",
+                           kept["store"], "--until", "keyframes")
+    assert_one_line_error(code, err, ["lies inside", "another --out"])
+    assert_kept(before, snapshot(kept["store"]))
+
+
+def test_reconstruct_into_the_photo_folder_is_refused(kept, tmp_path, capfd):
+    """Case 3: ``--out`` the photo folder, which holds photos named like results."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    frames = orbit_frames(12)
+    for i, frame in enumerate(frames[:10]):
+        cv2.imwrite(str(photos / f"IMG_{i:04d}.jpg"), frame)
+    cv2.imwrite(str(photos / "preview.png"), frames[10])
+    cv2.imwrite(str(photos / "heatmap_metric.png"), frames[11])
+    before = _tree(photos)
+    code, _, err = facecap(capfd, "reconstruct", photos, "--out", photos, "--store",
+                           kept["store"])
+    assert_one_line_error(code, err, ["is the input folder", "another --out"])
+    assert _tree(photos) == before
+
+
+@pytest.mark.slow
+def test_a_run_writes_through_no_link_in_its_output_folder(media, kept, tmp_path, capfd,
+                                                           prefect_server):
+    """Case 1 through the command: links planted in ``--out`` under a result's name and
+    under the temporary name the export used to write first."""
+    elsewhere, out = tmp_path / "elsewhere", tmp_path / "linked"
+    elsewhere.mkdir()
+    out.mkdir()
+    (elsewhere / "victim").write_bytes(b"precious")
+    (elsewhere / "v2").write_bytes(b"also precious")
+    (out / "report.json").symlink_to(elsewhere / "victim")
+    (out / ".cameras.json.part").symlink_to(elsewhere / "v2")
+    before = _tree(elsewhere)
+    code, _, err = facecap(capfd, "reconstruct", media["orbit"], "--out", out, "--store",
+                           kept["store"], "--until", "keyframes")
+    assert code == 0, err
+    assert _tree(elsewhere) == before
+    assert json.loads((out / "report.json").read_text())["until"] == "keyframes"
+
+
+def _children(pid: int) -> set[int]:
+    import psutil
+
+    try:
+        return {p.pid for p in psutil.Process(pid).children(recursive=True)}
+    except psutil.NoSuchProcess:
+        return set()
+
+
+def _alive(pids: set[int]) -> set[int]:
+    import psutil
+
+    return {p for p in pids if psutil.pid_exists(p)
+            and psutil.Process(p).status() != psutil.STATUS_ZOMBIE}
+
+
+@pytest.mark.slow
+def test_a_killed_run_leaves_nothing_outside_facecap_home(media, tmp_path, home):
+    """Case 4: ``facecap reconstruct`` killed (SIGKILL) in its pose stage, with no Prefect
+    server named: its server stops, nothing is in the system's temp folder, and the next
+    command removes the killed run's scratch folder (frames, COLMAP's database)."""
+    system_tmp = tmp_path / "system-tmp"
+    system_tmp.mkdir()
+    (tmp_path / "cheap.yaml").write_text(CHEAP_POSES)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API")}
+    env.update(TMPDIR=str(system_tmp), FACECAP_HOME=str(home), PREFECT_HOME=str(tmp_path / "ph"))
+    command = [sys.executable, "-m", "flows.cli", "reconstruct", str(media["orbit"]), "--out",
+               str(tmp_path / "out"), "--store", str(tmp_path / "store"), "--config",
+               str(tmp_path / "cheap.yaml"), "--until", "poses"]
+    proc = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    scratch, children, deadline = home / "scratch", set(), time.monotonic() + 240
+    while time.monotonic() < deadline and proc.poll() is None:
+        children |= _children(proc.pid)
+        if any(scratch.glob("*/work/poses-*")):
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, "the run ended before its pose stage"
+    children |= _children(proc.pid)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert children, "no server process was seen"
+    deadline = time.monotonic() + 30
+    while _alive(children) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not _alive(children), "the killed run's server lives on"
+    assert list(system_tmp.iterdir()) == []
+    (left,) = scratch.iterdir()  # the killed run's, frames and all
+    old = time.time() - 3600  # as if the next command came an hour later
+    os.utime(left, (old, old))
+    code = subprocess.run([sys.executable, "-m", "flows.cli", "store", "prune",
+                           "--older-than-days", "1", "--store", str(tmp_path / "store")],
+                          env=env, capture_output=True, text=True)
+    assert code.returncode == 0, code.stderr
+    assert list(scratch.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_a_prune_during_a_run_keeps_what_the_run_reads(media, kept, tmp_path, capfd,
+                                                       prefect_server, monkeypatch):
+    """Case 5: ``store prune`` of everything (an age of zero) while a capture's keyframe
+    stage runs. Without leases it removed the run's video from the store and the run failed
+    with a false "video not found"; now the video is kept (and said so), the run ends well,
+    and a prune after the run removes it."""
+    from datetime import UTC, datetime, timedelta
+
+    from facecap_core import keyframes
+    from tasks import lifecycle
+    from tasks.store import ArtifactStore
+
+    store = ArtifactStore(kept["store"])
+    seen, select = {}, keyframes.main
+
+    def pruning_first(*args, **kwargs):
+        seen["removal"] = lifecycle.prune(store, datetime.now(UTC) + timedelta(days=1))
+        return select(*args, **kwargs)
+
+    monkeypatch.setattr(keyframes, "main", pruning_first)
+    out = tmp_path / "pruned"
+    code, _, err = facecap(capfd, "reconstruct", media["orbit"], "--out", out, "--store",
+                           kept["store"], "--until", "keyframes")
+    assert code == 0, err
+    removal = seen["removal"]
+    assert [k for k in removal.in_use if k.startswith("input-")], removal
+    assert not [k for k in removal.artifacts if k.startswith("input-")], removal
+    assert [k for k in removal.artifacts if k.startswith("fitting-")]  # not this run's: gone
+    after = lifecycle.prune(store, datetime.now(UTC) + timedelta(days=1))
+    assert [k for k in after.artifacts if k.startswith("input-")] and not after.in_use
+
+
+@pytest.mark.slow
+def test_a_full_facecap_home_is_one_line(media, kept, tmp_path, capfd, prefect_server,
+                                         monkeypatch):
+    """A stage whose scratch files (under FACECAP_HOME) meet a full disk: one line naming
+    the folder and what to do, exit 2, the earlier results in ``--out`` untouched."""
+    from facecap_core import keyframes
+
+    def disk_full(video, out_dir, config):
+        raise OSError(errno.ENOSPC, "No space left on device", str(out_dir / "frames.npz"))
+
+    monkeypatch.setattr(keyframes, "main", disk_full)
+    before = snapshot(kept["out"])
+    code, _, err = facecap(capfd, "reconstruct", media["static"], "--out", kept["out"],
+                           "--store", kept["store"], "--until", "keyframes")
+    assert_one_line_error(code, err, ["keyframes stage could not write", "no space left",
+                                      "free space there", "FACECAP_HOME"])
+    assert_kept(before, snapshot(kept["out"]))
+
+
+@pytest.mark.slow
+def test_the_local_server_logs_to_a_file_and_dies_with_its_command(tmp_path):
+    """The server a command starts for itself writes to ``logs/server.log`` (its shutdown
+    traceback never reaches the console), and a SIGKILL of the command stops it."""
+    script = ("import sys, time\nfrom flows.local_server import start_local_server\n"
+              "print(start_local_server(), flush=True)\ntime.sleep(600)\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API")}
+    env.update(FACECAP_HOME=str(tmp_path / "home"), PREFECT_HOME=str(tmp_path / "ph"),
+               PREFECT_SERVER_ANALYTICS_ENABLED="false",
+               PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS="180")
+    proc = subprocess.Popen([sys.executable, "-c", script], env=env, stdout=subprocess.PIPE,
+                            text=True)
+    server = None
+    try:
+        server = int(proc.stdout.readline())
+        log = os.readlink(f"/proc/{server}/fd/2")
+    finally:
+        proc.kill()
+        proc.wait()
+    deadline = time.monotonic() + 30
+    while _alive({server}) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    alive = _alive({server})
+    if alive:
+        os.kill(server, signal.SIGKILL)
+    assert not alive, "the server outlived its command"
+    assert log == str(tmp_path / "home" / "logs" / "server.log")

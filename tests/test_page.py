@@ -1,0 +1,121 @@
+"""The capture page (``index.html``, :mod:`flows.page`) and ``mesh.glb``, looked at in headless
+Chromium (:mod:`tests.browser`): the face is drawn, the heat map and the cameras change the
+picture, the figures shown are the report's, no console error. A synthetic head here (a
+sphere in two colours, a ring of cameras); the page of a real capture run is looked at in
+``tests/test_flows.py``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from flows.page import build_page, mesh_glb
+from tests.browser import look_at_page
+
+ROOT = Path(__file__).resolve().parents[1]
+SHOTS = ROOT / "out" / "test-artifacts" / "page"
+"""Where the screenshots are kept for a person to look at (out/ is not in git)."""
+
+REPORT = {
+    "subject": "anna <b>", "capture": "take 1", "computed": 12, "cached": 3,
+    "wall_seconds": 81.5, "until": "evaluation",
+    "stages": {"keyframes": {"cached": True, "seconds": 3.9},
+               "depth_00001": {"cached": False, "seconds": 2.0},
+               "depth_00002": {"cached": False, "seconds": 2.5}},
+    "figures": {"metric_scale": 90.8987, "keyframes": 8, "focal_px": 503.84,
+                "scale": {"sigma_pct": 4.0, "used": ["landmarks", "iris"],
+                          "dropped": [{"name": "ears", "reason": "too few points"}]},
+                "evaluation": {"metric": {"accuracy": {"mean": 0.2812, "median": 0.1634},
+                                          "completion": {"mean": 0.97, "median": 0.407}}}},
+}
+EXPECTED = {
+    "metric_scale": "90.9 mm per camera unit, ±4.0 % (1σ) from landmarks + iris; ears "
+                    "dropped (too few points)",
+    "keyframes": "8", "focal_px": "503.8 px",
+    "evaluation_metric": "mean 0.281 mm, median 0.163 mm; completion mean 0.970 mm, median "
+                         "0.407 mm",
+}
+
+
+def _look_at(camera_centre: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera (OpenCV: z forward, y down) of a camera at ``camera_centre``."""
+    z = (target - camera_centre) / np.linalg.norm(target - camera_centre)
+    x = np.cross([0.0, -1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return R, -R @ camera_centre
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory) -> dict[str, Path]:
+    """A head-sized sphere (the subject's left red, right blue), 8 cameras on an arc in
+    front of it, a cloud on its surface."""
+    folder = tmp_path_factory.mktemp("results")
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=80.0)
+    colours = np.where(sphere.vertices[:, :1] > 0, [[220, 40, 40, 255]], [[40, 40, 220, 255]])
+    trimesh.Trimesh(sphere.vertices, sphere.faces, vertex_colors=colours.astype(np.uint8),
+                    process=False).export(folder / "mesh.ply")
+    keyframes = []
+    for angle in np.radians(np.linspace(-60, 60, 8)):
+        R, t = _look_at(np.array([400 * np.sin(angle), 0.0, 400 * np.cos(angle)]), np.zeros(3))
+        keyframes.append({"frame_index": len(keyframes), "R": R.tolist(), "t": t.tolist()})
+    (folder / "cameras.json").write_text(json.dumps({
+        "units": "mm", "keyframes": keyframes,
+        "intrinsics": {"width": 640, "height": 360, "fx": 500.0, "fy": 500.0, "cx": 320.0,
+                       "cy": 180.0}}))
+    points = trimesh.sample.sample_surface(sphere, 5000, seed=0)[0]
+    trimesh.PointCloud(points, colors=np.full((len(points), 4), 120, np.uint8)).export(
+        folder / "cloud.ply")
+    return {name: folder / name for name in ("mesh.ply", "cameras.json", "cloud.ply")}
+
+
+def _accuracy(results) -> np.ndarray:
+    """A heat map that differs from the colours: 0 mm at the top, 5 mm at the bottom."""
+    vertices = trimesh.load(results["mesh.ply"], process=False).vertices
+    return (80.0 - vertices[:, 1]) / 32.0
+
+
+def test_the_page_shows_the_face_the_heat_map_the_cameras_and_the_figures(results, tmp_path):
+    page = tmp_path / "index.html"
+    page.write_bytes(build_page(REPORT, results, mesh_glb(results["mesh.ply"]),
+                                _accuracy(results)))
+    assert page.stat().st_size < 15 * 2**20
+    seen = look_at_page(page, SHOTS / "synthetic")
+    assert seen["errors"] == []
+    assert seen["ready"]
+    assert seen["drawn"] > 0.3, seen  # the sphere fills the middle of the view
+    assert seen["accuracy_change"] > 5.0, seen
+    assert seen["cameras_change"] > 0.2, seen
+    assert seen["figures"] == EXPECTED
+    assert "anna &lt;b&gt;" in page.read_text()  # names are text, never markup
+
+
+def test_a_page_without_its_mesh_or_its_figures_is_seen_to_be_so(results, tmp_path):
+    """What the test above asserts fails where it should: a run that made no mesh shows no
+    viewer (and says why); a report without figures shows none."""
+    no_mesh = tmp_path / "no-mesh.html"
+    no_mesh.write_bytes(build_page({**REPORT, "until": "poses"}, results, None))
+    seen = look_at_page(no_mesh)
+    assert not seen["ready"]
+    assert "made no mesh" in no_mesh.read_text()
+    no_figures = tmp_path / "no-figures.html"
+    no_figures.write_bytes(build_page({**REPORT, "figures": {}}, results,
+                                      mesh_glb(results["mesh.ply"])))
+    seen = look_at_page(no_figures)
+    assert seen["ready"] and seen["figures"] == {}
+    assert seen["accuracy_change"] is None  # no scan, no heat map switch
+
+
+def test_the_glb_holds_the_mesh_and_its_colours(results):
+    import io
+
+    ply = trimesh.load(results["mesh.ply"], process=False)
+    glb = trimesh.load(io.BytesIO(mesh_glb(results["mesh.ply"])), file_type="glb",
+                       force="mesh", process=False)
+    assert np.allclose(glb.vertices, ply.vertices, atol=1e-4)
+    assert np.array_equal(glb.faces, ply.faces)
+    assert np.array_equal(glb.visual.vertex_colors, ply.visual.vertex_colors)
