@@ -45,7 +45,7 @@ class CaptureEntry:
         return inside(Path(out_root), Path(out_root) / self.subject / self.capture)
 
 
-SUMMARY_NAMES = ("dataset.json", "consistency.json", "evaluations")
+SUMMARY_NAMES = ("dataset.json", "consistency.json", "evaluations", "index.html")
 """What the dataset and evaluation flows write at the top of OUT, beside the subjects'
 folders."""
 

@@ -310,8 +310,9 @@ def reconstruct_capture(video: str, out: str, config: ConfigParameter = None,
             _publish(report, out_dir, label, results)
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
-    logger.info(f"{label}: {report['computed']} artifacts computed, {report['cached']} reused; "
-                f"results in {out_dir}")
+    from flows.page import run_summary
+
+    logger.info(f"{label}: {run_summary(report)}; results in {out_dir}")
     return report
 
 

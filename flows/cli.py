@@ -103,9 +103,9 @@ def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
     """The stage table, the accuracy table (after ``baseline_rows``) and, last, where the
     mesh, the report and the preview are."""
     from facecap_core.evaluation import paper_table
+    from flows.page import run_summary
 
-    print(f"{report['subject']}/{report['capture']}: {report['computed']} artifacts computed, "
-          f"{report['cached']} reused, {report['wall_seconds']} s")
+    print(f"{report['subject']}/{report['capture']}: {run_summary(report)}")
     for name, info in report["stages"].items():
         if not name.startswith("depth_"):
             state = "reused" if info["cached"] else "computed"
@@ -132,7 +132,7 @@ def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
         print(f"Face region\n\n{paper_table(rows)}\n\nEar region\n\n"
               f"{paper_table(rows, region='ears')}")
     for name, what in (("mesh.ply", "mesh"), ("report.json", "report"),
-                       ("preview.png", "preview")):
+                       ("preview.png", "preview"), ("index.html", "page")):
         if (out / name).is_file():
             print(f"{what}: {out / name}")
 

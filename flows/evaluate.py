@@ -18,6 +18,7 @@ from prefect import flow, get_run_logger
 from facecap_core.dataset import inside, scan_dataset
 from facecap_core.errors import InputError
 from facecap_core.settings import time_limit
+from flows.dataset_page import rewrite_dataset_page
 from flows.service import guard
 from tasks.outputs import check_output_place, write_results
 from tasks.runner import run_leases
@@ -128,6 +129,7 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
         {"time": stamp, "captures": current, "skipped": skipped, "regressions": flagged,
          "carried": {name: previous[name] for name in without_mesh if name in previous}},
         indent=1).encode()})
+    rewrite_dataset_page(out_root)  # with this evaluation in each capture's history
     rows = [{"capture": name, "accuracy_mean": round(s["accuracy"]["mean"], 3),
              "accuracy_median": round(s["accuracy"]["median"], 3),
              "completion_mean": round(s["completion"]["mean"], 3),

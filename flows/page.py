@@ -94,16 +94,20 @@ def _cloud(cloud_ply: Path, seed: int = 0) -> dict:
     return {"positions": _b64(points), "colours": _b64(colours), "count": int(len(points))}
 
 
-def _figure_rows(report: dict) -> list[tuple[str, str, str]]:
-    """(key, label, text) of the figures that matter, in words."""
+def figure_rows(report: dict) -> list[tuple[str, str, str]]:
+    """(key, label, text) of the figures that matter, in words, rounded, with their units:
+    what the page and the Prefect UI's summary show."""
     fig, rows = report.get("figures", {}), []
     scale = fig.get("scale") or {}
+    parts = []
     if fig.get("metric_scale") is not None:
-        text = f"{fig['metric_scale']:.4g} mm per camera unit"
-        if scale.get("sigma_pct") is not None:
-            text += f", ±{scale['sigma_pct']:.1f} % (1σ) from {' + '.join(scale['used'])}"
-            text += "".join(f"; {d['name']} dropped ({d['reason']})" for d in scale["dropped"])
-        rows.append(("metric_scale", "Metric scale", text))
+        parts.append(f"{fig['metric_scale']:.4g} mm per camera unit")
+    if scale.get("sigma_pct") is not None:
+        parts.append(f"±{scale['sigma_pct']:.1f} % (1σ) from {' + '.join(scale['used'])}"
+                     + "".join(f"; {d['name']} dropped ({d['reason']})"
+                               for d in scale["dropped"]))
+    if parts:
+        rows.append(("metric_scale", "Metric scale", ", ".join(parts)))
     if fig.get("keyframes") is not None:
         rows.append(("keyframes", "Keyframes", str(fig["keyframes"])))
     if fig.get("focal_px") is not None:
@@ -123,6 +127,13 @@ def _figure_rows(report: dict) -> list[tuple[str, str, str]]:
                      f"mean {a['mean']:.3f} mm, median {a['median']:.3f} mm; completion mean "
                      f"{c['mean']:.3f} mm, median {c['median']:.3f} mm"))
     return rows
+
+
+def run_summary(report: dict) -> str:
+    """``3 artifacts computed, 1 reused, 81.5 s``."""
+    computed = report.get("computed", 0)
+    return (f"{computed} artifact{'' if computed == 1 else 's'} computed, "
+            f"{report.get('cached', 0)} reused, {report.get('wall_seconds', 0):.1f} s")
 
 
 def _stage_rows(report: dict) -> str:
@@ -164,7 +175,7 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
             results["cameras.json"], centre)
     title = f"{report.get('subject', '')} / {report.get('capture', '')}"
     figures = "\n".join(f'<dt>{html.escape(label)}</dt><dd data-figure="{key}">'
-                        f"{html.escape(text)}</dd>" for key, label, text in _figure_rows(report))
+                        f"{html.escape(text)}</dd>" for key, label, text in figure_rows(report))
     buttons = ['<button data-mode="colour">Colour</button>',
                '<button data-mode="plain">Plain</button>']
     if accuracy_mm is not None:
@@ -175,9 +186,7 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
     viewer = resources.files("flows") / "viewer"
     page = TEMPLATE.format(
         title=html.escape(title),
-        summary=html.escape(f"{report.get('computed', 0)} artifacts computed, "
-                            f"{report.get('cached', 0)} reused, "
-                            f"{report.get('wall_seconds', 0)} s"),
+        summary=html.escape(run_summary(report)),
         no_mesh="" if glb else '<p class="note">This run made no mesh (it stopped at '
                                f'{html.escape(str(report.get("until", "")))}).</p>',
         buttons="\n".join(buttons), bar=_colour_bar(), max_mm=f"{HEAT_MAX_MM:g}",

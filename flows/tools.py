@@ -105,6 +105,10 @@ def forget(args) -> int:
         print(f"removed {_forget_ui(planned.captures)} UI artifacts of "
               f"{', '.join(planned.captures)}")
     removal = lifecycle.remove(store, planned, args.subject, out, dry_run=args.dry_run)
+    if out is not None and not args.dry_run and (out / "index.html").is_file():
+        from flows.dataset_page import rewrite_dataset_page
+
+        rewrite_dataset_page(out)  # its thumbnails show the faces: the subject's go
     print_removal(removal, args.dry_run)
     return 0
 

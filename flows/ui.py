@@ -81,32 +81,11 @@ def stage_rows(report: dict) -> list[dict]:
 
 
 def capture_markdown(report: dict, out: Path, images: list[tuple[str, Path]]) -> str:
-    lines = [f"# {markdown_text(report['subject'])} / {markdown_text(report['capture'])}", "",
-             f"{report['computed']} artifacts computed, {report['cached']} reused, "
-             f"{report['wall_seconds']} s. Results in {markdown_text(out)}.", ""]
-    fig = report.get("figures", {})
-    for name in ("keyframes", "focal_px", "metric_scale", "fit_seconds"):
-        if name in fig:
-            lines.append(f"- {name}: {fig[name]}")
-    scale = fig.get("scale") or {}
-    if scale.get("sigma_pct") is not None:
-        lines.append(f"- scale uncertainty: ±{scale['sigma_pct']} % (1σ) from "
-                     f"{' + '.join(scale['used'])}"
-                     + "".join(f"; {d['name']} dropped ({markdown_text(d['reason'])})"
-                               for d in scale["dropped"]))
-    if fig.get("ears"):
-        from facecap_core.coarse import ears_summary
+    from flows.page import figure_rows, run_summary
 
-        lines.append(f"- ear points: {markdown_text(ears_summary(fig['ears']))}")
-    rough = fig.get("roughness") or {}
-    if rough.get("bent_share_pct") is not None:
-        lines.append(f"- surface roughness: {rough['bent_share_pct']:.1f} % of the face's edges "
-                     f"bent over {rough['bent_deg']:g}°, median bend {rough['median_bend_deg']:.1f}°"
-                     " (smooth skin: under 7 % and 3°)")
-    for protocol, sc in fig.get("evaluation", {}).items():
-        a, c = sc["accuracy"], sc["completion"]
-        lines.append(f"- {protocol}: accuracy mean {a['mean']:.3f} / median {a['median']:.3f} mm,"
-                     f" completion mean {c['mean']:.3f} / median {c['median']:.3f} mm")
+    lines = [f"# {markdown_text(report['subject'])} / {markdown_text(report['capture'])}", "",
+             f"{run_summary(report)}. Results in {markdown_text(out)}.", ""]
+    lines += [f"- {label}: {markdown_text(text)}" for _, label, text in figure_rows(report)]
     for title, path in images:
         uri = png_data_uri(path)
         if uri:

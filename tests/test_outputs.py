@@ -60,16 +60,22 @@ def _tree(folder: Path) -> dict[str, str]:
 # --------------------------------------------------------------------------- the writer
 
 
-def test_a_link_in_the_output_folder_is_replaced_not_followed(tmp_path):
-    """Case 1: ``out/report.json`` and ``out/.cameras.json.part`` are links to files
-    elsewhere; the results land in ``out`` and the files elsewhere keep their bytes."""
-    elsewhere, out = tmp_path / "elsewhere", tmp_path / "out"
+def _planted_links(elsewhere: Path, out: Path) -> tuple[Path, Path]:
+    """``out/report.json`` and ``out/.cameras.json.part`` (the name the export once wrote
+    first) planted as links to files in ``elsewhere``."""
     elsewhere.mkdir()
     out.mkdir()
     (elsewhere / "victim").write_bytes(b"precious")
     (elsewhere / "v2").write_bytes(b"also precious")
     (out / "report.json").symlink_to(elsewhere / "victim")
     (out / ".cameras.json.part").symlink_to(elsewhere / "v2")
+    return elsewhere, out
+
+
+def test_a_link_in_the_output_folder_is_replaced_not_followed(tmp_path):
+    """Case 1: ``out/report.json`` and ``out/.cameras.json.part`` are links to files
+    elsewhere; the results land in ``out`` and the files elsewhere keep their bytes."""
+    elsewhere, out = _planted_links(tmp_path / "elsewhere", tmp_path / "out")
     before = _tree(elsewhere)
     write_results(out, {"report.json": b"{}", "cameras.json": b"[]"})
     assert _tree(elsewhere) == before
@@ -307,13 +313,7 @@ def test_a_run_writes_through_no_link_in_its_output_folder(media, kept, tmp_path
                                                            prefect_server):
     """Case 1 through the command: links planted in ``--out`` under a result's name and
     under the temporary name the export used to write first."""
-    elsewhere, out = tmp_path / "elsewhere", tmp_path / "linked"
-    elsewhere.mkdir()
-    out.mkdir()
-    (elsewhere / "victim").write_bytes(b"precious")
-    (elsewhere / "v2").write_bytes(b"also precious")
-    (out / "report.json").symlink_to(elsewhere / "victim")
-    (out / ".cameras.json.part").symlink_to(elsewhere / "v2")
+    elsewhere, out = _planted_links(tmp_path / "elsewhere", tmp_path / "linked")
     before = _tree(elsewhere)
     code, _, err = facecap(capfd, "reconstruct", media["orbit"], "--out", out, "--store",
                            kept["store"], "--until", "keyframes")

@@ -119,3 +119,87 @@ def test_the_glb_holds_the_mesh_and_its_colours(results):
     assert np.allclose(glb.vertices, ply.vertices, atol=1e-4)
     assert np.array_equal(glb.faces, ply.faces)
     assert np.array_equal(glb.visual.vertex_colors, ply.visual.vertex_colors)
+
+
+def _dataset_results(out: Path, results: dict[str, Path]) -> None:
+    """OUT of two subjects: anna/take1 reconstructed and evaluated three nights (the last
+    one flagged it), bob/take1 failed."""
+    import shutil
+
+    import cv2
+
+    folder = out / "anna" / "take1"
+    folder.mkdir(parents=True)
+    shutil.copy(results["mesh.ply"], folder / "mesh.ply")
+    (folder / "report.json").write_text(json.dumps(REPORT))
+    (folder / "index.html").write_text("<!doctype html><title>anna/take1</title>")
+    cv2.imwrite(str(folder / "preview.png"), np.full((320, 960, 3), 90, np.uint8))
+    (out / "evaluations").mkdir()
+    for night, median in enumerate((0.20, 0.21, 0.35)):
+        score = {"accuracy": {"mean": median, "median": median},
+                 "completion": {"mean": 1.0, "median": 0.5}}
+        flagged = [{"capture": "anna/take1", "measure": "accuracy_median"}] if night == 2 else []
+        (out / "evaluations" / f"2026010{night + 1}T020000000000Z.json").write_text(json.dumps(
+            {"captures": {"anna/take1": score}, "regressions": flagged}))
+
+
+def test_the_dataset_page_lists_each_capture_with_its_status_and_history(results, tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    from flows.dataset_page import build_dataset_page
+    from tests.browser import ARGS, CHROMIUM
+
+    out = tmp_path / "results"
+    _dataset_results(out, results)
+    page_file = out / "index.html"
+    page_file.write_bytes(build_dataset_page(
+        out, [("bob", "take1"), ("anna", "take1")], {"bob/take1": "no face <found>"}))
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        page = browser.new_page()
+        errors = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(page_file.as_uri())
+        rows = page.query_selector_all("tbody tr")
+        shown = {r.get_attribute("data-capture"): r.inner_text() for r in rows}
+        assert set(shown) == {"anna/take1", "bob/take1"}
+        assert "regressed" in shown["anna/take1"]
+        assert "90.9" in shown["anna/take1"]  # its report's metric scale
+        assert "0.350 mm" in shown["anna/take1"]  # the last night's accuracy
+        assert page.query_selector("tr[data-capture='bob/take1'] a") is None  # no page
+        assert "failed: no face <found>" in shown["bob/take1"]
+        assert page.get_attribute("tr[data-capture='anna/take1'] a", "href") == \
+            "anna/take1/index.html"
+        assert page.query_selector("tr[data-capture='anna/take1'] svg polyline")
+        assert page.query_selector("tr[data-capture='anna/take1'] img")
+        order = lambda: [r.get_attribute("data-capture")  # noqa: E731
+                         for r in page.query_selector_all("tbody tr")]
+        page.click("th:nth-child(2)")  # by name
+        assert order() == ["anna/take1", "bob/take1"]
+        page.click("th:nth-child(2)")  # and back
+        assert order() == ["bob/take1", "anna/take1"]
+        page.screenshot(path=str(SHOTS / "dataset.png"))
+        browser.close()
+    assert errors == []
+
+
+def test_the_dataset_page_loses_a_forgotten_subject(results, tmp_path):
+    """After ``facecap forget`` removed a subject's results (and its entries in
+    dataset.json), the dataset page is written again from what OUT holds: no row, no
+    thumbnail of that subject's face."""
+    import shutil
+
+    from flows.dataset_page import build_dataset_page, rewrite_dataset_page
+
+    out = tmp_path / "results"
+    _dataset_results(out, results)
+    shutil.copytree(out / "anna", out / "carl")
+    (out / "dataset.json").write_text(json.dumps({"failed": {"bob/take1": "no face"}}))
+    (out / "index.html").write_bytes(build_dataset_page(
+        out, [("anna", "take1"), ("bob", "take1"), ("carl", "take1")], {"bob/take1": "no face"}))
+    shutil.rmtree(out / "anna")  # what forget removes
+    rewrite_dataset_page(out)
+    text = (out / "index.html").read_text()
+    assert 'data-capture="anna/take1"' not in text
+    assert 'data-capture="carl/take1"' in text and 'data-capture="bob/take1"' in text
+    assert text.count("data:image/png") == 1  # carl's thumbnail alone

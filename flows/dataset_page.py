@@ -1,0 +1,200 @@
+"""``OUT/index.html``: a dataset's results at a glance, one row per capture.
+
+Written by the dataset flow when its captures are done and again by each nightly evaluation:
+a thumbnail of each capture (its preview), its figures (keyframes, metric scale, surface,
+accuracy), its status (done, failed and why, regressed), a link to its own page
+(``<subject>/<capture>/index.html``, :mod:`flows.page`) and the history of its accuracy
+over the nightly evaluations as a small plot. The table sorts by any column (a click on its
+heading). Self-contained like the capture pages: it opens from disk.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from pathlib import Path
+from urllib.parse import quote
+
+import numpy as np
+
+THUMB_WIDTH = 160
+
+
+def _thumbnail(preview: Path) -> str:
+    """The capture's preview, its front view cut out and shrunk, as a data URI ('' without)."""
+    import cv2
+
+    image = cv2.imread(str(preview), cv2.IMREAD_COLOR)
+    if image is None:
+        return ""
+    front = image[:, : image.shape[0]] if image.shape[1] >= 3 * image.shape[0] else image
+    h = int(round(front.shape[0] * THUMB_WIDTH / front.shape[1]))
+    ok, png = cv2.imencode(".png", cv2.resize(front, (THUMB_WIDTH, h),
+                                              interpolation=cv2.INTER_AREA))
+    return "data:image/png;base64," + base64.b64encode(png.tobytes()).decode() if ok else ""
+
+
+def _history(out: Path) -> tuple[dict[str, list[float]], set[str]]:
+    """Each capture's accuracy median (similarity, mm) over the nightly evaluations, oldest
+    first, and the captures the latest one flagged as regressed."""
+    series: dict[str, list[float]] = {}
+    regressed: set[str] = set()
+    files = sorted((out / "evaluations").glob("*.json"))
+    for i, path in enumerate(files):
+        try:
+            doc = json.loads(path.read_text())
+            captures = doc.get("captures") or {}
+            for name, score in captures.items():
+                series.setdefault(name, []).append(float(score["accuracy"]["median"]))
+            if i == len(files) - 1:
+                regressed = {f["capture"] for f in doc.get("regressions") or []}
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            continue  # check_history refuses a damaged history before a run: not this page's
+    return series, regressed
+
+
+def _sparkline(values: list[float]) -> str:
+    """An inline SVG of the values (newest on the right), with the newest as a dot."""
+    if not values:
+        return ""
+    w, h, pad = 120, 28, 3
+    v = np.asarray(values, float)
+    low, high = float(v.min()), float(v.max())
+    span = high - low or 1.0
+    xs = np.linspace(pad, w - pad, len(v)) if len(v) > 1 else np.array([w / 2])
+    ys = h - pad - (v - low) / span * (h - 2 * pad)
+    points = " ".join(f"{x:.1f},{y:.1f}" for x, y in zip(xs, ys, strict=True))
+    return (f'<svg width="{w}" height="{h}" role="img" aria-label="accuracy median over '
+            f'{len(v)} evaluations, now {v[-1]:.3f} mm"><polyline fill="none" '
+            f'stroke="#2060c0" stroke-width="1.5" points="{points}"/><circle cx="{xs[-1]:.1f}" '
+            f'cy="{ys[-1]:.1f}" r="2.5" fill="#2060c0"/></svg>')
+
+
+def _cell(text: str, sort: str | float | None = None) -> str:
+    key = "" if sort is None else f' data-sort="{html.escape(str(sort))}"'
+    return f"<td{key}>{text}</td>"
+
+
+def build_dataset_page(out: Path, captures: list[tuple[str, str]],
+                       failed: dict[str, str] | None = None) -> bytes:
+    """The page of the results folder ``out`` for the dataset's ``captures`` (subject,
+    capture); ``failed`` maps ``subject/capture`` to why it failed."""
+    failed = failed or {}
+    series, regressed = _history(out)
+    rows = []
+    for subject, capture in sorted(captures):
+        name = f"{subject}/{capture}"
+        folder = out / subject / capture
+        try:
+            report = json.loads((folder / "report.json").read_text())
+        except (OSError, ValueError):
+            report = {}
+        fig = report.get("figures", {}) if isinstance(report, dict) else {}
+        if name in failed:
+            status, order = f"failed: {html.escape(failed[name])}", 0
+        elif name in regressed:
+            status, order = "regressed", 1
+        elif report:
+            status, order = "done", 2
+        else:
+            status, order = "not run", 3
+        thumb = _thumbnail(folder / "preview.png")
+        link = quote(f"{subject}/{capture}/index.html")
+        picture = (f'<a href="{link}"><img src="{thumb}" width="{THUMB_WIDTH}" alt=""></a>'
+                   if thumb else "")
+        accuracy = (fig.get("evaluation") or {}).get("similarity", {}).get("accuracy", {})
+        median = accuracy.get("median", (series.get(name) or [None])[-1])
+        rough = (fig.get("roughness") or {}).get("bent_share_pct")
+        scale = fig.get("metric_scale")
+        cells = [
+            _cell(picture),
+            _cell(f'<a href="{link}">{html.escape(name)}</a>' if (folder / "index.html").is_file()
+                  else html.escape(name), name),
+            _cell(status, order),
+            _cell(str(fig.get("keyframes", "–")), fig.get("keyframes")),
+            _cell(f"{scale:.4g}" if scale is not None else "–", scale),
+            _cell(f"{rough:.1f} %" if rough is not None else "–", rough),
+            _cell(f"{median:.3f} mm" if median is not None else "–", median),
+            _cell(_sparkline(series.get(name, [])), series.get(name, [None])[-1]),
+        ]
+        css = ' class="bad"' if order < 2 else ""
+        rows.append(f'<tr data-capture="{html.escape(name)}"{css}>' + "".join(cells) + "</tr>")
+    title = html.escape(out.resolve().name)
+    return DATASET_TEMPLATE.format(title=title, count=len(captures), rows="\n".join(rows),
+                                   failed=len(failed), regressed=len(regressed)).encode()
+
+
+def rewrite_dataset_page(out: Path) -> None:
+    """``OUT/index.html`` again from what ``out`` holds now (after ``facecap forget``): the
+    captures with results there and the failures ``dataset.json`` still records."""
+    from facecap_core.dataset import SUMMARY_NAMES
+    from tasks.outputs import write_results
+
+    captures = sorted((subject.name, capture.name) for subject in out.iterdir()
+                      if subject.is_dir() and not subject.is_symlink()
+                      and subject.name not in SUMMARY_NAMES and not subject.name.startswith(".")
+                      for capture in subject.iterdir() if (capture / "report.json").is_file())
+    try:
+        failed = json.loads((out / "dataset.json").read_text()).get("failed") or {}
+    except (OSError, ValueError, AttributeError):
+        failed = {}
+    failed = failed if isinstance(failed, dict) else {}
+    captures += sorted({tuple(name.split("/", 1)) for name in failed} - set(captures))
+    write_results(out, {"index.html": build_dataset_page(out, captures, failed)})
+
+
+DATASET_TEMPLATE = """<!doctype html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<title>{title} · facecap</title>
+<style>
+  body {{ margin: 16px; font: 15px/1.45 system-ui, sans-serif; color: #222; }}
+  table {{ border-collapse: collapse; }}
+  th {{ text-align: left; cursor: pointer; border-bottom: 2px solid #999; padding: 4px 10px; }}
+  td {{ padding: 4px 10px; border-bottom: 1px solid #ddd; vertical-align: middle; }}
+  tr.bad td {{ background: #fff0e8; }}
+  .wrap {{ overflow-x: auto; }}
+</style>
+</head>
+<body>
+<h1>{title}</h1>
+<p>{count} captures; {failed} failed; {regressed} regressed in the last evaluation. Accuracy:
+median distance to the scan (similarity protocol). A click on a heading sorts by it.</p>
+<div class="wrap"><table id="captures">
+<thead><tr><th></th><th>capture</th><th>status</th><th>keyframes</th>
+<th>metric scale (mm per unit)</th><th>surface (edges bent &gt; 20°)</th>
+<th>accuracy median</th><th>accuracy over the nightly evaluations</th></tr></thead>
+<tbody>
+{rows}
+</tbody>
+</table></div>
+<script>
+(function () {{
+  const table = document.getElementById("captures");
+  table.querySelectorAll("th").forEach((th, column) => th.addEventListener("click", () => {{
+    const rows = Array.from(table.tBodies[0].rows);
+    const value = (row) => {{
+      const cell = row.cells[column];
+      const key = cell.dataset.sort;
+      if (key === undefined || key === "None" || key === "") return null;
+      const number = Number(key);
+      return Number.isNaN(number) ? key : number;
+    }};
+    const down = th.dataset.order !== "up";
+    th.dataset.order = down ? "up" : "down";
+    rows.sort((a, b) => {{
+      const x = value(a), y = value(b);
+      if (x === null) return 1;
+      if (y === null) return -1;
+      return (x < y ? -1 : x > y ? 1 : 0) * (down ? 1 : -1);
+    }});
+    rows.forEach((row) => table.tBodies[0].appendChild(row));
+  }}));
+}})();
+</script>
+</body>
+</html>
+"""
