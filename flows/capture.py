@@ -110,22 +110,35 @@ def _inputs(stage: Stage, keys: dict[str, str]) -> dict[str, str] | None:
     return inputs
 
 
+WORK_SECONDS = {"keyframes": 7.6, "poses": 106.8, "frames": 2.0, "landmarks": 4.0,
+                "coarse": 1.0, "views": 1.1, "depth": 135.0, "fusion": 3.5, "fitting": 34.2,
+                "evaluation": 3.0}
+"""Each stage's seconds on an 8 s 720p capture on 2 cores (docs/benchmarks.md): the progress
+bar moves with the work done, not with the count of stages (the depth maps and the poses are
+most of a capture)."""
+
+
 class _RunProgress:
     """The capture run's progress artifact in the UI, one per run: advanced after every stage
-    (one share of the bar each, a skipped stage too) and after every depth map (the fan-out's
-    share split among its maps), its description naming the capture and the last step."""
+    (its share of the work, a skipped stage's too) and after every depth map (the fan-out's
+    share split among its maps), in whole percents, its description naming the capture and
+    the last step."""
 
-    def __init__(self, label: str, stages: int):
+    def __init__(self, label: str, stages: list[str]):
         from prefect.artifacts import create_progress_artifact
 
-        self.label, self.stages, self.done = label, max(stages, 1), 0
+        self.label, self.stages, self.done = label, len(stages), 0
+        self.weights = [WORK_SECONDS.get(name, 1.0) for name in stages]
+        self.total = sum(self.weights) or 1.0
         self.id = create_progress_artifact(0.0, description=f"{label}: started")
 
     def update(self, what: str, fraction: float = 0.0) -> None:
         """``what`` happened; ``fraction`` of the stage in progress is done."""
         from prefect.artifacts import update_progress_artifact
 
-        percent = min(100.0, 100.0 * (self.done + fraction) / self.stages)
+        current = self.weights[self.done] if self.done < self.stages else 0.0
+        work = sum(self.weights[: self.done]) + fraction * current
+        percent = float(min(100, round(100.0 * work / self.total)))
         update_progress_artifact(self.id, percent, description=f"{self.label}: {what}")
 
     def stage_done(self, name: str, outcome: str = "done") -> None:
@@ -171,7 +184,7 @@ def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str
     (key, computed)}``. The run's progress artifact follows the stages and the depth maps.
     Every stage ends by the capture's ``deadline`` (``time.monotonic()``) too."""
     stages = list(stages)
-    run_progress = _RunProgress(label, len(stages))
+    run_progress = _RunProgress(label, [stage.name for stage in stages])
     runs: dict[str, tuple[str, bool]] = {}
     for stage in stages:
         inputs = _inputs(stage, keys)

@@ -74,3 +74,28 @@ def test_a_forgotten_subjects_ui_pages_are_deleted_and_no_one_elses():
         assert forget_artifacts(["alice/take1", "alice/take 2"]) == 3 * 3 + 1
         assert asyncio.run(keys_on_server()) == sorted(
             ["capture-alice-take1", *(k for label in others for k in artifact_keys(label))])
+
+
+def test_the_progress_bar_follows_the_work_in_whole_percents(monkeypatch):
+    """The depth maps and the poses are most of a capture's time: with the poses done and
+    17 of 40 depth maps made, the bar is near half way, not at 80 % as when each stage was an
+    equal share; it shows whole percents and ends at 100."""
+    import prefect.artifacts
+
+    from flows.capture import _RunProgress
+
+    shown = []
+    monkeypatch.setattr(prefect.artifacts, "create_progress_artifact", lambda *a, **k: "id")
+    monkeypatch.setattr(prefect.artifacts, "update_progress_artifact",
+                        lambda _id, percent, description: shown.append(percent))
+    stages = ["keyframes", "poses", "frames", "landmarks", "coarse", "views", "depth",
+              "fusion", "fitting", "evaluation"]
+    progress = _RunProgress("s/c", stages)
+    for name in stages[:6]:
+        progress.stage_done(name)
+    progress.update("depth map 17 of 40", 17 / 40)
+    assert 40 <= shown[-1] <= 60, shown
+    for name in stages[6:]:
+        progress.stage_done(name)
+    assert shown[-1] == 100
+    assert all(p == int(p) for p in shown) and shown == sorted(shown)
