@@ -18,6 +18,7 @@ from pathlib import Path
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 from prefect.futures import PrefectFuture
+from prefect.states import Completed, State
 
 from facecap_core.errors import FacecapError
 from facecap_core.settings import settings
@@ -45,12 +46,19 @@ def _stage_task(name: str):
     def body(store: str, inputs: dict[str, str], config: dict, params: dict | None = None,
              label: str = "") -> tuple[str, bool]:
         send_core_logs_to_runs()  # again, should a logging setup since the import have undone it
-        return run_stage(store, stage, inputs, config, params)
+        key, computed = run_stage(store, stage, inputs, config, params)
+        if computed:
+            return key, computed
+        # A reused artifact takes no time: the task run says so in the UI ("Reused") rather
+        # than looking like instant work.
+        return Completed(data=(key, False), name="Reused",
+                         message=f"{key} was in the store: reused, nothing computed")
 
     body.__name__ = f"{name}_task"
     template = f"{name}[{{index}}] {{label}}" if stage.per_keyframe else f"{name} {{label}}"
     return task(
-        body, name=name, cache_policy=NO_CACHE, retries=2, retry_delay_seconds=[2, 10, 30],
+        body, name=name, cache_policy=NO_CACHE, persist_result=False, retries=2,
+        retry_delay_seconds=[2, 10, 30],
         retry_jitter_factor=0.5, retry_condition_fn=retry_condition,
         task_run_name=_run_name(template),
     )
@@ -123,7 +131,8 @@ def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: 
         value = tuple(result.result())
     else:
         try:
-            value = tuple(result())
+            value = result()
+            value = tuple(value.result() if isinstance(value, State) else value)
         except Exception as exc:
             # Prefect stops a stage by raising in its thread, and code that catches and
             # rewraps errors (pycolmap's import does) can turn that into another one: an

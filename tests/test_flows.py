@@ -199,13 +199,22 @@ def test_the_capture_page_shows_the_fitted_face(first_run, tmp_path):
 
 
 def test_rerun_is_all_cached(first_run, capture):
+    """A rerun computes nothing, and its task runs say so in the UI: each stage's task run
+    ends in a state named Reused."""
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+
     store = ArtifactStore(first_run["store"])
     before = set(store.keys())
-    keys, computed = run_tail(first_run["tail"], first_run["store"], first_run["seeded"],
-                              small_config(), capture)
-    assert keys == first_run["keys"]
+    result = tail_result(first_run["tail"], first_run["store"], first_run["seeded"],
+                         small_config(), capture)
+    assert result["keys"] == first_run["keys"]
     assert set(store.keys()) == before
-    assert computed == set()
+    assert result["computed"] == []
+    runs = read_api(lambda c: c.read_task_runs(flow_run_filter=FlowRunFilter(
+        id=FlowRunFilterId(any_=[result["flow_run_id"]]))))
+    stages = [run for run in runs if not run.name.startswith("ingest")]
+    assert stages and {run.state.name for run in stages} == {"Reused"}, \
+        sorted((run.name, run.state.name) for run in stages)
 
 
 def test_fusion_change_recomputes_only_fusion_fitting_evaluation(first_run, capture):
