@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from prefect import task
+from prefect import get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 from prefect.futures import PrefectFuture
 from prefect.states import Completed, State
@@ -40,6 +40,20 @@ def _run_name(template: str):
     return name
 
 
+def _headline(stage, store: str, key: str) -> str:
+    """The figure a stage's log line gives: the metric scale of the coarse stage."""
+    if stage.name != "coarse" or stage.figures is None:
+        return ""
+    from tasks.runner import open_store
+
+    scale = stage.figures(open_store(store).get(key)).get("scale") or {}
+    if scale.get("metric_scale") is None:
+        return ""
+    sigma = f" ±{scale['sigma_pct']:.1f} %" if scale.get("sigma_pct") is not None else ""
+    return (f": metric scale {scale['metric_scale']:.4g} mm per camera unit{sigma} from "
+            f"{' + '.join(scale.get('used') or [])}")
+
+
 def _stage_task(name: str):
     stage = BY_NAME[name]
 
@@ -47,6 +61,10 @@ def _stage_task(name: str):
              label: str = "") -> tuple[str, bool]:
         send_core_logs_to_runs()  # again, should a logging setup since the import have undone it
         key, computed = run_stage(store, stage, inputs, config, params)
+        where = f"{name}[{params['index']}]" if params and "index" in params else name
+        # The UI's log list shows messages without their task: each names its stage.
+        get_run_logger().info(f"{label + ': ' if label else ''}{where} "
+                              f"{'computed' if computed else 'reused'}{_headline(stage, store, key)}")
         if computed:
             return key, computed
         # A reused artifact takes no time: the task run says so in the UI ("Reused") rather

@@ -283,6 +283,17 @@ def test_core_logs_are_in_the_runs_log(first_run):
     assert sorted(int(log.message.split()[4].rstrip(":")) for log in depth) == KEYFRAMES
     assert len({log.task_run_id for log in depth}) == len(KEYFRAMES)  # each in its task run
     assert "MVS references" in by_module["facecap_core.mvs.views"][0].message
+    # Every stage's task run says in its own words which stage it is (the UI's log list
+    # shows messages alone): "t: depth[3] computed", "t: fitting computed".
+    for _ in range(60):
+        runs = [log.message for log in read_api(lambda c: c.read_logs(log_filter=log_filter))
+                if log.name == "prefect.task_runs" and " computed" in log.message]
+        if any(message.startswith("t: evaluation computed") for message in runs):  # the last
+            break
+        time.sleep(0.5)
+    for stage in ("frames", "views", "fusion", "fitting", "evaluation",
+                  *(f"depth[{i}]" for i in KEYFRAMES)):
+        assert any(message.startswith(f"t: {stage} computed") for message in runs), (stage, runs)
 
 
 def test_one_progress_artifact_reaches_100(first_run):
