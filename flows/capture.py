@@ -41,6 +41,7 @@ from tasks.graph import (
     OUTPUT_NAMES,
     STAGES,
     STEPS,
+    UNTIL_ALIASES,
     Stage,
     capture_input_name,
     producer,
@@ -51,8 +52,8 @@ from tasks.runner import default_store_url, open_store, run_leases
 from tasks.scratch import process_scratch
 from tasks.stages import call_ingest, call_stage, stage_result
 
-Step = Literal[STEPS]
-"""What ``until`` can stop after, in order: the steps of the stage graph."""
+Step = Literal[STEPS + tuple(UNTIL_ALIASES)]
+"""What ``until`` can stop after, in order: the stages of the graph (``mvs`` is fusion)."""
 ConfigParameter = PipelineConfig | str | None
 """A run's pipeline settings: given as such (the UI's Run form shows every field with its
 description, and the server refuses an out-of-range value before the run is created), or the

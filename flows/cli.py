@@ -299,7 +299,9 @@ def _usage_error(message: str, command: str) -> UsageError:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from tasks.graph import STEPS
+    from tasks.graph import STEPS, UNTIL_ALIASES
+
+    until = [*STEPS, *UNTIL_ALIASES]
 
     p = _Parser(
         prog="facecap",
@@ -344,7 +346,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "folder of photos of it (JPEG/PNG/HEIC, one camera, any order)")
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--config", help="PipelineConfig YAML (any subset of the stages' settings)")
-    r.add_argument("--until", choices=list(STEPS), default="evaluation",
+    r.add_argument("--until", choices=until, default="evaluation",
                    help="last stage to run")
     r.add_argument("--ipd-mm", type=float, help="the subject's interpupillary distance in mm "
                                                  "as an optician measures it (far PD): a scale "
@@ -361,7 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--out", required=True, help="results go to OUT/<subject>/<capture>/")
     ds.add_argument("--config", help="PipelineConfig YAML")
     ds.add_argument("--store", help="artifact store (see reconstruct)")
-    ds.add_argument("--until", choices=list(STEPS), default="evaluation",
+    ds.add_argument("--until", choices=until, default="evaluation",
                     help="last stage to run for every capture")
     ds.set_defaults(func=_cmd_dataset)
 

@@ -250,8 +250,11 @@ INPUT_VERSION = "1"
 """Version of the raw-input artifacts (a copy of the user's file)."""
 ALIASES = {"mesh": "fitting"}
 """Input names that differ from the stage that makes them."""
-STEPS = tuple(dict.fromkeys(stage.step for stage in STAGES))
-"""What ``--until`` can stop after, in order."""
+STEPS = tuple(stage.name for stage in STAGES)
+"""What ``--until`` can stop after, in order: the stages, as the report, the stage table and
+the task runs name them."""
+UNTIL_ALIASES = {"mvs": "fusion"}
+"""Earlier names ``--until`` still takes: ``mvs`` was views, depth and fusion together."""
 EXPORTED = {stage.name: stage.exported for stage in STAGES if stage.exported}
 OUTPUT_NAMES = frozenset(n for names in EXPORTED.values() for n in names) | {
     "report.json", "preview.png", "index.html", "mesh.glb"}
@@ -264,11 +267,11 @@ def producer(input_name: str) -> str:
 
 
 def stages_until(until: str) -> list[Stage]:
-    """The stages a run stopping after step ``until`` runs."""
+    """The stages a run stopping after stage ``until`` (or an alias) runs."""
+    until = UNTIL_ALIASES.get(until, until)
     if until not in STEPS:
         raise ValueError(f"unknown step {until!r}; one of {', '.join(STEPS)}")
-    last = STEPS.index(until)
-    return [stage for stage in STAGES if STEPS.index(stage.step) <= last]
+    return list(STAGES[: STEPS.index(until) + 1])
 
 
 def stage_key(name: str, inputs: dict[str, str], config: dict | None,

@@ -122,10 +122,12 @@ def test_a_changed_field_recomputes_exactly_what_depends_on_it(path, field):
 
 
 def test_until_runs_a_prefix_of_the_graph():
-    assert STEPS == ("keyframes", "poses", "landmarks", "coarse", "mvs", "fitting",
-                     "evaluation")
+    assert STEPS == ("keyframes", "poses", "frames", "landmarks", "coarse", "views", "depth",
+                     "fusion", "fitting", "evaluation")  # the report's and the UI's names
     assert [s.name for s in stages_until("landmarks")] == ["keyframes", "poses", "frames",
                                                            "landmarks"]
+    assert [s.name for s in stages_until("views")][-2:] == ["coarse", "views"]
+    assert stages_until("mvs") == stages_until("fusion")  # the earlier name still works
     assert [s.name for s in stages_until("evaluation")] == [s.name for s in STAGES]
     with pytest.raises(ValueError, match="unknown step"):
         stages_until("everything")
