@@ -3,7 +3,11 @@ installs, driven by Playwright): what a person would see, as numbers a test can 
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -29,55 +33,78 @@ def look_at_page(page_file: Path, shots: Path | None = None) -> dict:
     ``accuracy_change`` and ``cameras_change`` (mean absolute pixel change when the heat map
     or the cameras are switched on), ``figures`` (data-figure key -> text shown), ``errors``
     (console errors and uncaught exceptions). Screenshots go to ``shots`` when given."""
+    found: dict = {"errors": [], "figures": {}}
+    with chromium() as browser:
+        return _look(browser, page_file, shots, found)
+
+
+@contextmanager
+def chromium():
+    """Headless Chromium, its profile and socket in a short folder of its own (a socket's
+    path has at most 107 bytes, which a deep temp folder exceeds)."""
     from playwright.sync_api import sync_playwright
 
-    found: dict = {"errors": [], "figures": {}}
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 1100, "height": 700})
-            page.on("console", lambda m: found["errors"].append(m.text)
-                    if m.type == "error" else None)
-            page.on("pageerror", lambda e: found["errors"].append(str(e)))
-            start = time.perf_counter()
-            page.goto(page_file.resolve().as_uri())
+    short = tempfile.mkdtemp(prefix="page-", dir="/tmp")
+    saved = os.environ.get("TMPDIR")
+    os.environ["TMPDIR"] = short  # the Playwright driver makes the profile in its TMPDIR
+    try:
+        with sync_playwright() as playwright:
+            browser = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             try:
-                page.wait_for_function("window.facecap && (window.facecap.ready || "
-                                       "window.facecap.reason)", timeout=READY_TIMEOUT_MS)
-                found["ready"] = page.evaluate("window.facecap.ready")
-            except Exception:  # noqa: BLE001 - Playwright's timeout: the viewer never got ready
-                found["ready"] = False
-            found["seconds"] = time.perf_counter() - start
-            for element in page.query_selector_all("[data-figure]"):
-                found["figures"][element.get_attribute("data-figure")] = element.inner_text()
-            if not found["ready"]:
-                return found
-            view = page.locator("#canvas")
+                yield browser
+            finally:
+                browser.close()
+    finally:
+        if saved is None:
+            os.environ.pop("TMPDIR", None)
+        else:
+            os.environ["TMPDIR"] = saved
+        shutil.rmtree(short, ignore_errors=True)
 
-            def shot(name: str) -> np.ndarray:
-                page.wait_for_timeout(400)  # the damped controls settle; frames are drawn
-                png = view.screenshot()
-                if shots is not None:
-                    shots.mkdir(parents=True, exist_ok=True)
-                    (shots / f"{name}.png").write_bytes(png)
-                return _pixels(png)
 
-            colour = shot("colour")
-            h, w = colour.shape[:2]
-            middle = colour[h // 4: 3 * h // 4, w // 4: 3 * w // 4]
-            found["drawn"] = float((np.abs(middle - BACKGROUND).sum(axis=2) > 30).mean())
-            found["accuracy_change"] = None
-            if page.query_selector("[data-mode=accuracy]"):
-                page.click("[data-mode=accuracy]")
-                found["accuracy_change"] = float(np.abs(shot("accuracy") - colour).mean())
-                page.click("[data-mode=colour]")
-            found["cameras_change"] = None
-            if page.query_selector("[data-toggle=cameras]"):
-                before = shot("before-cameras")
-                page.click("[data-toggle=cameras]")
-                found["cameras_change"] = float(np.abs(shot("cameras") - before).mean())
-            if shots is not None:
-                page.screenshot(path=str(shots / "page.png"))
-        finally:
-            browser.close()
+def _look(browser, page_file: Path, shots: Path | None, found: dict) -> dict:
+    """What :func:`look_at_page` reports, in ``browser``."""
+    page = browser.new_page(viewport={"width": 1100, "height": 700})
+    page.on("console", lambda m: found["errors"].append(m.text)
+            if m.type == "error" else None)
+    page.on("pageerror", lambda e: found["errors"].append(str(e)))
+    start = time.perf_counter()
+    page.goto(page_file.resolve().as_uri())
+    try:
+        page.wait_for_function("window.facecap && (window.facecap.ready || "
+                               "window.facecap.reason)", timeout=READY_TIMEOUT_MS)
+        found["ready"] = page.evaluate("window.facecap.ready")
+    except Exception:  # noqa: BLE001 - Playwright's timeout: the viewer never got ready
+        found["ready"] = False
+    found["seconds"] = time.perf_counter() - start
+    for element in page.query_selector_all("[data-figure]"):
+        found["figures"][element.get_attribute("data-figure")] = element.inner_text()
+    if not found["ready"]:
+        return found
+    view = page.locator("#canvas")
+
+    def shot(name: str) -> np.ndarray:
+        page.wait_for_timeout(400)  # the damped controls settle; frames are drawn
+        png = view.screenshot()
+        if shots is not None:
+            shots.mkdir(parents=True, exist_ok=True)
+            (shots / f"{name}.png").write_bytes(png)
+        return _pixels(png)
+
+    colour = shot("colour")
+    h, w = colour.shape[:2]
+    middle = colour[h // 4: 3 * h // 4, w // 4: 3 * w // 4]
+    found["drawn"] = float((np.abs(middle - BACKGROUND).sum(axis=2) > 30).mean())
+    found["accuracy_change"] = None
+    if page.query_selector("[data-mode=accuracy]"):
+        page.click("[data-mode=accuracy]")
+        found["accuracy_change"] = float(np.abs(shot("accuracy") - colour).mean())
+        page.click("[data-mode=colour]")
+    found["cameras_change"] = None
+    if page.query_selector("[data-toggle=cameras]"):
+        before = shot("before-cameras")
+        page.click("[data-toggle=cameras]")
+        found["cameras_change"] = float(np.abs(shot("cameras") - before).mean())
+    if shots is not None:
+        page.screenshot(path=str(shots / "page.png"))
     return found

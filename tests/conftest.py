@@ -44,3 +44,21 @@ def live_server(tmp_path_factory) -> str:
         yield url
     finally:
         stop(proc, grace_s=30)
+
+
+@pytest.fixture(autouse=True)
+def _own_temp_folder():
+    """A test that runs ``facecap`` in this process makes that test's FACECAP_HOME scratch
+    folder the process's temp folder (as a command does for itself); the next test gets the
+    temp folder back, rather than one inside an earlier test's files."""
+    import tempfile
+
+    saved = {name: os.environ.get(name) for name in ("TMPDIR", "GLOG_log_dir")}
+    saved_tempdir = tempfile.tempdir
+    yield
+    for name, value in saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
+    tempfile.tempdir = saved_tempdir

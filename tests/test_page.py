@@ -144,18 +144,15 @@ def _dataset_results(out: Path, results: dict[str, Path]) -> None:
 
 
 def test_the_dataset_page_lists_each_capture_with_its_status_and_history(results, tmp_path):
-    from playwright.sync_api import sync_playwright
-
     from flows.dataset_page import build_dataset_page
-    from tests.browser import ARGS, CHROMIUM
+    from tests.browser import chromium
 
     out = tmp_path / "results"
     _dataset_results(out, results)
     page_file = out / "index.html"
     page_file.write_bytes(build_dataset_page(
         out, [("bob", "take1"), ("anna", "take1")], {"bob/take1": "no face <found>"}))
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    with chromium() as browser:
         page = browser.new_page()
         errors = []
         page.on("pageerror", lambda e: errors.append(str(e)))
@@ -179,7 +176,6 @@ def test_the_dataset_page_lists_each_capture_with_its_status_and_history(results
         page.click("th:nth-child(2)")  # and back
         assert order() == ["bob/take1", "anna/take1"]
         page.screenshot(path=str(SHOTS / "dataset.png"))
-        browser.close()
     assert errors == []
 
 
