@@ -248,7 +248,8 @@ def _page(store: str, keys: dict[str, str], report: dict, results: dict[str, Pat
         path = open_store(store).get(keys["evaluation"]) / ACCURACY_NPY.format(protocol="metric")
         accuracy = np.load(path) if path.is_file() else None
     glb = results[GLB_NAME].read_bytes() if GLB_NAME in results else None
-    return build_page(report, results, glb, accuracy)
+    frames = open_store(store).get(keys["frames"]) if "frames" in keys else None
+    return build_page(report, results, glb, accuracy, frames)
 
 
 def _stage_report(store: str, runs: dict[str, tuple[str, bool]]) -> dict:

@@ -23,6 +23,8 @@ PAGE_NAME = "index.html"
 GLB_NAME = "mesh.glb"
 HEAT_MAX_MM = 5.0
 """The heat map's scale: 0 (blue) to this many mm (red) and beyond, as in the PNG heat maps."""
+KEYFRAME_SIDE = 480
+"""The keyframe images a click on a camera shows are this many pixels on their long side."""
 MAX_CLOUD_POINTS = 60_000
 """The fused cloud is sampled down to this many points: enough to see it, a few MB at most."""
 
@@ -56,9 +58,30 @@ def _colour_bar() -> str:
     return ", ".join(f"rgb({r},{g},{b})" for r, g, b in stops)
 
 
-def _cameras(cameras_json: Path, centre: np.ndarray) -> tuple[dict, list, list]:
-    """Frusta (line segments, mm) of the keyframe cameras, and the direction and up vector
-    from which they saw the head (the viewer starts there)."""
+def _keyframe_image(frames: Path | None, index: int) -> str | None:
+    """A keyframe's image, shrunk to :data:`KEYFRAME_SIDE` on its long side, as a JPEG data
+    URI (None where the frames stage's folder does not hold it)."""
+    import cv2
+
+    from facecap_core.frames import frame_name
+
+    if frames is None:
+        return None
+    image = cv2.imread(str(frames / frame_name(index)), cv2.IMREAD_COLOR)
+    if image is None:
+        return None
+    scale = KEYFRAME_SIDE / max(image.shape[:2])
+    if scale < 1:
+        image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 80])
+    return "data:image/jpeg;base64," + base64.b64encode(jpeg.tobytes()).decode() if ok else None
+
+
+def _cameras(cameras_json: Path, centre: np.ndarray, frames: Path | None = None
+             ) -> tuple[dict, list, list]:
+    """Frusta (line segments, mm) of the keyframe cameras with their centres and images (a
+    click on a camera shows what it saw), and the direction and up vector from which they saw
+    the head (the viewer starts there)."""
     doc = json.loads(cameras_json.read_text())
     intr, keyframes = doc["intrinsics"], doc["keyframes"]
     rotations = np.array([k["R"] for k in keyframes], float)
@@ -76,7 +99,10 @@ def _cameras(cameras_json: Path, centre: np.ndarray) -> tuple[dict, list, list]:
     direction = centres.mean(axis=0) - centre
     up = -rotations[:, 1, :].mean(axis=0)  # OpenCV cameras look along +z with y down
     data = {"lines": _b64(np.asarray(lines, np.float32)), "count": len(keyframes),
-            "distance": float(np.median(np.linalg.norm(centres - centre, axis=1)))}
+            "distance": float(np.median(np.linalg.norm(centres - centre, axis=1))),
+            "centres": _b64(centres.astype(np.float32)),
+            "frames": [int(k["frame_index"]) for k in keyframes],
+            "images": [_keyframe_image(frames, k["frame_index"]) for k in keyframes]}
     return data, direction.tolist(), up.tolist()
 
 
@@ -154,10 +180,11 @@ def _stage_rows(report: dict) -> str:
 
 
 def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
-               accuracy_mm: np.ndarray | None = None) -> bytes:
+               accuracy_mm: np.ndarray | None = None, frames: Path | None = None) -> bytes:
     """The page of one capture run: ``report`` (as in ``report.json``), ``results`` (name ->
     this run's file: cameras.json, cloud.ply, ...), the mesh's glTF bytes (None without a
-    mesh) and the per-vertex accuracy in mm (nan outside the scored region) if scored."""
+    mesh), the per-vertex accuracy in mm (nan outside the scored region) if scored, and the
+    frames stage's folder (the keyframe images) if there is one."""
     data: dict = {"mesh_glb": base64.b64encode(glb).decode("ascii") if glb else None}
     centre = None
     if glb:
@@ -172,7 +199,7 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
         data["cloud"] = _cloud(results["cloud.ply"])
     if "cameras.json" in results and centre is not None:
         data["cameras"], data["view_direction"], data["view_up"] = _cameras(
-            results["cameras.json"], centre)
+            results["cameras.json"], centre, frames)
     title = f"{report.get('subject', '')} / {report.get('capture', '')}"
     figures = "\n".join(f'<dt>{html.escape(label)}</dt><dd data-figure="{key}">'
                         f"{html.escape(text)}</dd>" for key, label, text in figure_rows(report))
@@ -224,6 +251,11 @@ TEMPLATE = """<!doctype html>
   table {{ border-collapse: collapse; margin-top: 12px; font-size: 14px; }}
   td {{ padding: 2px 10px 2px 0; }}
   .note {{ color: #a04000; }}
+  #keyframe {{ position: absolute; right: 8px; top: 52px; margin: 0; max-width: 45%;
+               background: #fff; padding: 6px; border: 1px solid #999; border-radius: 6px;
+               cursor: pointer; }}
+  #keyframe img {{ width: 100%; display: block; }}
+  #keyframe figcaption {{ font-size: 13px; }}
 </style>
 </head>
 <body>
@@ -233,6 +265,7 @@ TEMPLATE = """<!doctype html>
   <div id="controls">
 {buttons}
   </div>
+  <figure id="keyframe" hidden><img alt=""><figcaption></figcaption></figure>
   <div id="colourbar" hidden><div></div><span>0 mm</span>
     <span style="float: right">{max_mm} mm and more (grey: not scored)</span></div>
 </div>

@@ -31,7 +31,8 @@ def look_at_page(page_file: Path, shots: Path | None = None) -> dict:
     """Open ``page_file`` from disk and report: ``ready`` (the viewer read the mesh) and the
     seconds until then, ``drawn`` (share of the view's middle that is not background),
     ``accuracy_change`` and ``cameras_change`` (mean absolute pixel change when the heat map
-    or the cameras are switched on), ``figures`` (data-figure key -> text shown), ``errors``
+    or the cameras are switched on), ``keyframe_opened`` (a click on a camera showed its
+    image), ``figures`` (data-figure key -> text shown), ``errors``
     (console errors and uncaught exceptions). Screenshots go to ``shots`` when given."""
     found: dict = {"errors": [], "figures": {}}
     with chromium() as browser:
@@ -60,6 +61,23 @@ def chromium():
         else:
             os.environ["TMPDIR"] = saved
         shutil.rmtree(short, ignore_errors=True)
+
+
+def _open_a_keyframe(page, view) -> bool | None:
+    """Click the first camera inside the view: whether its keyframe image opened (None when
+    no camera is inside the view)."""
+    box = view.bounding_box()
+    count = page.evaluate("JSON.parse(document.getElementById('facecap-data').textContent)"
+                          ".cameras.count")
+    for i in range(count):
+        at = page.evaluate(f"window.facecap.cameraOnScreen({i})")
+        if at and 30 < at[0] < box["width"] - 30 and 30 < at[1] < box["height"] - 30:
+            page.mouse.click(box["x"] + at[0], box["y"] + at[1])
+            page.wait_for_timeout(200)
+            figure = page.query_selector("#keyframe")
+            source = page.get_attribute("#keyframe img", "src") or ""
+            return figure.is_visible() and source.startswith("data:image/jpeg")
+    return None
 
 
 def _look(browser, page_file: Path, shots: Path | None, found: dict) -> dict:
@@ -105,6 +123,7 @@ def _look(browser, page_file: Path, shots: Path | None, found: dict) -> dict:
         before = shot("before-cameras")
         page.click("[data-toggle=cameras]")
         found["cameras_change"] = float(np.abs(shot("cameras") - before).mean())
+        found["keyframe_opened"] = _open_a_keyframe(page, view)
     if shots is not None:
         page.screenshot(path=str(shots / "page.png"))
     return found

@@ -54,6 +54,8 @@ def _look_at(camera_centre: np.ndarray, target: np.ndarray) -> tuple[np.ndarray,
 def results(tmp_path_factory) -> dict[str, Path]:
     """A head-sized sphere (the subject's left red, right blue), 8 cameras on an arc in
     front of it, a cloud on its surface."""
+    import cv2
+
     folder = tmp_path_factory.mktemp("results")
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=80.0)
     colours = np.where(sphere.vertices[:, :1] > 0, [[220, 40, 40, 255]], [[40, 40, 220, 255]])
@@ -67,10 +69,14 @@ def results(tmp_path_factory) -> dict[str, Path]:
         "units": "mm", "keyframes": keyframes,
         "intrinsics": {"width": 640, "height": 360, "fx": 500.0, "fy": 500.0, "cx": 320.0,
                        "cy": 180.0}}))
+    (folder / "frames").mkdir()
+    for k in keyframes:  # what each camera saw: a plain picture is enough here
+        cv2.imwrite(str(folder / "frames" / f"frame_{k['frame_index']:06d}.png"),
+                    np.full((360, 640, 3), 30 * k["frame_index"], np.uint8))
     points = trimesh.sample.sample_surface(sphere, 5000, seed=0)[0]
     trimesh.PointCloud(points, colors=np.full((len(points), 4), 120, np.uint8)).export(
         folder / "cloud.ply")
-    return {name: folder / name for name in ("mesh.ply", "cameras.json", "cloud.ply")}
+    return {name: folder / name for name in ("mesh.ply", "cameras.json", "cloud.ply", "frames")}
 
 
 def _accuracy(results) -> np.ndarray:
@@ -82,7 +88,7 @@ def _accuracy(results) -> np.ndarray:
 def test_the_page_shows_the_face_the_heat_map_the_cameras_and_the_figures(results, tmp_path):
     page = tmp_path / "index.html"
     page.write_bytes(build_page(REPORT, results, mesh_glb(results["mesh.ply"]),
-                                _accuracy(results)))
+                                _accuracy(results), results["frames"]))
     assert page.stat().st_size < 15 * 2**20
     seen = look_at_page(page, SHOTS / "synthetic")
     assert seen["errors"] == []
@@ -90,6 +96,7 @@ def test_the_page_shows_the_face_the_heat_map_the_cameras_and_the_figures(result
     assert seen["drawn"] > 0.3, seen  # the sphere fills the middle of the view
     assert seen["accuracy_change"] > 5.0, seen
     assert seen["cameras_change"] > 0.2, seen
+    assert seen["keyframe_opened"], seen  # a click on a camera shows what it saw
     assert seen["figures"] == EXPECTED
     assert "anna &lt;b&gt;" in page.read_text()  # names are text, never markup
 

@@ -52,7 +52,45 @@
     if (mode !== "plain") mesh.geometry.setAttribute("color", colours[attribute]);
     mesh.material = materials[mode];
     document.getElementById("colourbar").hidden = mode !== "accuracy";
-    for (const button of document.querySelectorAll("[data-mode]"))
+    // A click (not a drag) near a camera, while the cameras are shown, opens what it saw.
+  const centres = data.cameras ? buffer(data.cameras.centres, Float32Array) : null;
+  function cameraOnScreen(i) {
+    const p = new THREE.Vector3(centres[3 * i], centres[3 * i + 1], centres[3 * i + 2]);
+    p.project(camera);
+    if (p.z > 1) return null;  // behind the viewer
+    return [(p.x + 1) / 2 * canvas.clientWidth, (1 - p.y) / 2 * canvas.clientHeight];
+  }
+  function showKeyframe(i) {
+    const figure = document.getElementById("keyframe");
+    const image = data.cameras.images[i];
+    if (!image) return false;
+    figure.querySelector("img").src = image;
+    figure.querySelector("figcaption").textContent =
+      `keyframe ${i + 1} of ${data.cameras.count} (frame ${data.cameras.frames[i]})`;
+    figure.hidden = false;
+    state.shown = i;
+    return true;
+  }
+  state.cameraOnScreen = cameraOnScreen;
+  let pressed = null;
+  canvas.addEventListener("pointerdown", (e) => { pressed = [e.offsetX, e.offsetY]; });
+  canvas.addEventListener("pointerup", (e) => {
+    if (!pressed || !extras.cameras || !extras.cameras.visible) return;
+    if (Math.hypot(e.offsetX - pressed[0], e.offsetY - pressed[1]) > 4) return;  // a drag
+    let best = -1, nearest = 24;  // px
+    for (let i = 0; i < data.cameras.count; i++) {
+      const at = cameraOnScreen(i);
+      if (!at) continue;
+      const d = Math.hypot(at[0] - e.offsetX, at[1] - e.offsetY);
+      if (d < nearest) { nearest = d; best = i; }
+    }
+    if (best >= 0) showKeyframe(best);
+  });
+  document.getElementById("keyframe").addEventListener("click", (e) => {
+    e.currentTarget.hidden = true;
+  });
+
+  for (const button of document.querySelectorAll("[data-mode]"))
       button.setAttribute("aria-pressed", String(button.dataset.mode === mode));
     state.mode = mode;
     return true;
