@@ -25,6 +25,8 @@ def _thumbnail(preview: Path) -> str:
     """The capture's preview, its front view cut out and shrunk, as a data URI ('' without)."""
     import cv2
 
+    if not preview.is_file():  # a failed capture has none (and OpenCV would warn)
+        return ""
     image = cv2.imread(str(preview), cv2.IMREAD_COLOR)
     if image is None:
         return ""

@@ -65,7 +65,7 @@ def _keyframe_image(frames: Path | None, index: int) -> str | None:
 
     from facecap_core.frames import frame_name
 
-    if frames is None:
+    if frames is None or not (frames / frame_name(index)).is_file():  # OpenCV would warn
         return None
     image = cv2.imread(str(frames / frame_name(index)), cv2.IMREAD_COLOR)
     if image is None:
