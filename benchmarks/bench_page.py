@@ -37,15 +37,18 @@ def main() -> None:
     results = {n: folder / n for n in ("mesh.ply", "cameras.json", "cloud.ply")
                if (folder / n).is_file()}
     store = report.get("store")
-    accuracy = None
-    evaluation = report.get("stages", {}).get("evaluation")
-    if store and evaluation:
+    accuracy, frames = None, None
+    stages = report.get("stages", {})
+    if store:
         from tasks.runner import open_store
 
-        path = open_store(store).get(evaluation["key"]) / "accuracy_metric.npy"
-        accuracy = np.load(path) if path.is_file() else None
+        if "evaluation" in stages:
+            path = open_store(store).get(stages["evaluation"]["key"]) / "accuracy_metric.npy"
+            accuracy = np.load(path) if path.is_file() else None
+        if "frames" in stages:
+            frames = open_store(store).get(stages["frames"]["key"])
     start = time.perf_counter()
-    page = build_page(report, results, mesh_glb(folder / "mesh.ply"), accuracy)
+    page = build_page(report, results, mesh_glb(folder / "mesh.ply"), accuracy, frames)
     built = time.perf_counter() - start
     target = Path("out/bench_page/index.html")
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -53,7 +56,8 @@ def main() -> None:
     loads = [look_at_page(target) for _ in range(args.loads)]
     assert all(seen["ready"] and not seen["errors"] for seen in loads), loads[0]
     print(f"page {len(page) / 2**20:.2f} MiB (heat map: {'yes' if accuracy is not None else 'no'}"
-          f"), built in {built:.2f} s; ready in Chromium: median "
+          f", keyframe images: {'yes' if frames is not None else 'no'}), built in {built:.2f} s; "
+          "ready in Chromium: median "
           f"{statistics.median(s['seconds'] for s in loads):.2f} s over {args.loads} loads "
           f"(min {min(s['seconds'] for s in loads):.2f}, max {max(s['seconds'] for s in loads):.2f})")
 
