@@ -344,6 +344,13 @@ def ears_summary(checks: dict) -> str:
                      f"{side} dropped: {c['reason']}" for side, c in checks.items())
 
 
+def scale_summary(scale: dict) -> str:
+    """One line on the metric scale's uncertainty and its cues (``scale`` as
+    :func:`figures` gives it): ``±4.0 % (1σ) from landmarks + iris; ears dropped (...)``."""
+    return (f"±{scale['sigma_pct']:.1f} % (1σ) from {' + '.join(scale['used'])}"
+            + "".join(f"; {d['name']} dropped ({d['reason']})" for d in scale["dropped"]))
+
+
 def figures(folder: str | Path) -> dict:
     """Headline figures of a coarse artifact: the metric scale, its cues and uncertainty,
     and the angular coverage of the landmarks."""

@@ -243,12 +243,12 @@ def _page(store: str, keys: dict[str, str], report: dict, results: dict[str, Pat
     from facecap_core.evaluation.stage import ACCURACY_NPY
     from flows.page import GLB_NAME, build_page
 
-    accuracy = None
+    st, accuracy = open_store(store), None
     if "evaluation" in keys:
-        path = open_store(store).get(keys["evaluation"]) / ACCURACY_NPY.format(protocol="metric")
+        path = st.get(keys["evaluation"]) / ACCURACY_NPY.format(protocol="metric")
         accuracy = np.load(path) if path.is_file() else None
     glb = results[GLB_NAME].read_bytes() if GLB_NAME in results else None
-    frames = open_store(store).get(keys["frames"]) if "frames" in keys else None
+    frames = st.get(keys["frames"]) if "frames" in keys else None
     return build_page(report, results, glb, accuracy, frames)
 
 

@@ -115,11 +115,10 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
                               description="same subject, two captures: vertex-to-vertex mm")
     summary = {"captures": len(entries), "done": [f"{s}/{c}" for s, c in done],
                "failed": failed, "consistency": rows, "captures_at_once": at_once}
-    from flows.dataset_page import build_dataset_page
+    write_results(out_root, {"dataset.json": json.dumps(summary, indent=1).encode()})
+    from flows.dataset_page import rewrite_dataset_page
 
-    page = build_dataset_page(out_root, [(e.subject, e.capture) for e in entries], failed)
-    write_results(out_root, {"dataset.json": json.dumps(summary, indent=1).encode(),
-                             "index.html": page})
+    rewrite_dataset_page(out_root)  # from what OUT holds now, dataset.json's failures too
     if failed:
         raise FacecapError(f"{len(failed)} of {len(entries)} captures failed: "
                            + "; ".join(f"{k}: {v}" for k, v in failed.items()))

@@ -128,8 +128,9 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
 
 
 def rewrite_dataset_page(out: Path) -> None:
-    """``OUT/index.html`` again from what ``out`` holds now (after ``facecap forget``): the
-    captures with results there and the failures ``dataset.json`` still records."""
+    """``OUT/index.html`` from what ``out`` holds now (after a dataset run, an evaluation or
+    ``facecap forget``): the captures with results there and the failures ``dataset.json``
+    records."""
     from facecap_core.dataset import SUMMARY_NAMES
     from tasks.outputs import write_results
 
@@ -142,7 +143,8 @@ def rewrite_dataset_page(out: Path) -> None:
     except (OSError, ValueError, AttributeError):
         failed = {}
     failed = failed if isinstance(failed, dict) else {}
-    captures += sorted({tuple(name.split("/", 1)) for name in failed} - set(captures))
+    captures += sorted({tuple(name.split("/", 1)) for name in failed if "/" in name}
+                       - set(captures))
     write_results(out, {"index.html": build_dataset_page(out, captures, failed)})
 
 

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from facecap_core.coarse import ears_summary, scale_summary
+
 PAGE_NAME = "index.html"
 GLB_NAME = "mesh.glb"
 HEAT_MAX_MM = 5.0
@@ -129,9 +131,7 @@ def figure_rows(report: dict) -> list[tuple[str, str, str]]:
     if fig.get("metric_scale") is not None:
         parts.append(f"{fig['metric_scale']:.4g} mm per camera unit")
     if scale.get("sigma_pct") is not None:
-        parts.append(f"±{scale['sigma_pct']:.1f} % (1σ) from {' + '.join(scale['used'])}"
-                     + "".join(f"; {d['name']} dropped ({d['reason']})"
-                               for d in scale["dropped"]))
+        parts.append(scale_summary(scale))
     if parts:
         rows.append(("metric_scale", "Metric scale", ", ".join(parts)))
     if fig.get("keyframes") is not None:
@@ -139,8 +139,6 @@ def figure_rows(report: dict) -> list[tuple[str, str, str]]:
     if fig.get("focal_px") is not None:
         rows.append(("focal_px", "Focal length", f"{fig['focal_px']:.1f} px"))
     if fig.get("ears"):
-        from facecap_core.coarse import ears_summary
-
         rows.append(("ears", "Ears", ears_summary(fig["ears"])))
     rough = fig.get("roughness") or {}
     if rough.get("bent_share_pct") is not None:

@@ -89,7 +89,6 @@ class ResultWriter:
         self._inputs = input_inodes(inputs)
         self._staged: list[tuple[PurePosixPath, str, str]] = []  # (name, temporary, sha256)
         self._fds: dict[PurePosixPath, int] = {}
-        self._record_missing = False
 
     # ------------------------------------------------------------------ folders
 
@@ -179,7 +178,8 @@ class ResultWriter:
                 raise self._write_error(exc) from None
         written = {str(path) for path, _, _ in self._staged}
         for name in sorted(set(stale) - written):
-            self._remove_if_ours(_relative(name), None if record is None else record.get(name))
+            if record is None or name in record:
+                self._remove_if_ours(_relative(name), None if record is None else record[name])
         record = {} if record is None else {k: v for k, v in record.items() if k not in stale}
         record.update({str(path): digest for path, _, digest in self._staged})
         self._staged = []
@@ -194,8 +194,7 @@ class ResultWriter:
             found = os.stat(path.name, dir_fd=fd, follow_symlinks=False)
             if not stat.S_ISREG(found.st_mode) or _inode(found) in self._inputs:
                 return
-            if digest is None and self._record_missing or (
-                    digest is not None and _sha256_at(fd, path.name) == digest):
+            if digest is None or _sha256_at(fd, path.name) == digest:
                 os.unlink(path.name, dir_fd=fd)
         except (OSError, InputError):
             pass
@@ -204,11 +203,9 @@ class ResultWriter:
         """The folder's record; None where it has none (a folder an earlier version wrote,
         or a new one)."""
         fd = self._dir_fd(PurePosixPath("."))
-        self._record_missing = False
         try:
             handle = os.open(RECORD_NAME, os.O_RDONLY | os.O_NOFOLLOW, dir_fd=fd)
         except FileNotFoundError:
-            self._record_missing = True
             return None
         except OSError:
             return {}

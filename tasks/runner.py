@@ -185,6 +185,7 @@ SCRATCH_FULL = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS})
 """A stage's scratch folder (under FACECAP_HOME) that cannot take its files: the user's
 disk to free, not a bug."""
 
+
 def _scratch() -> Path:
     folder = process_scratch() / "work"
     folder.mkdir(parents=True, exist_ok=True)

@@ -44,14 +44,14 @@ def _headline(stage, store: str, key: str) -> str:
     """The figure a stage's log line gives: the metric scale of the coarse stage."""
     if stage.name != "coarse" or stage.figures is None:
         return ""
+    from facecap_core.coarse import scale_summary
     from tasks.runner import open_store
 
     scale = stage.figures(open_store(store).get(key)).get("scale") or {}
     if scale.get("metric_scale") is None:
         return ""
-    sigma = f" ±{scale['sigma_pct']:.1f} %" if scale.get("sigma_pct") is not None else ""
-    return (f": metric scale {scale['metric_scale']:.4g} mm per camera unit{sigma} from "
-            f"{' + '.join(scale.get('used') or [])}")
+    sigma = f", {scale_summary(scale)}" if scale.get("sigma_pct") is not None else ""
+    return f": metric scale {scale['metric_scale']:.4g} mm per camera unit{sigma}"
 
 
 def _stage_task(name: str):
