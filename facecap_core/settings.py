@@ -97,6 +97,13 @@ class FacecapSettings(BaseSettings):
     evaluation_timeout_s: float = Field(21600.0, gt=0)
     """The longest a dataset evaluation run (the nightly one) may take, in seconds, before
     it ends Failed: a hung night must not make the later ones skip. Default 21600 (6 hours)."""
+    pages_url: str | None = None
+    """Address at which ``facecap pages`` (or ``facecap serve``) serves a local store's
+    results pages over HTTP, as the Prefect UI's browser reaches it, e.g.
+    ``http://facecap-host:4280``: a run links its UI page to its results page there, by a link
+    that lasts a day. Default unset: ``facecap serve`` sets it to its own page server; a run
+    elsewhere links to its output folder (a ``file://`` address a web page cannot open). An S3
+    store needs none: its links are S3's own."""
     fault: str | None = None
     """Fault injection for the robustness tests, ``STAGE[:N[:HOW]]``: the N-th computation
     (default 1) of STAGE in a process fails before its commit; HOW is ``exit`` (default),
@@ -138,6 +145,20 @@ class FacecapSettings(BaseSettings):
         if value is None or "://" in value:
             return value
         return os.path.expanduser(value)
+
+    @field_validator("pages_url")
+    @classmethod
+    def _check_pages_url(cls, value: str | None) -> str | None:
+        from urllib.parse import urlsplit
+
+        if value is None:
+            return value
+        parts = urlsplit(value)
+        if parts.scheme not in ("http", "https") or not parts.hostname or parts.query \
+                or parts.fragment or parts.username or parts.password:
+            raise ValueError("expected the address of the page server, "
+                             "http(s)://HOST[:PORT][/PATH], with no query or credentials")
+        return value.rstrip("/")
 
     @field_validator("fault")
     @classmethod

@@ -319,8 +319,12 @@ def reconstruct_capture(video: str, out: str, config: ConfigParameter = None,
         try:
             with ResultWriter(out_dir, inputs) as writer:
                 results = _export(store, keys, writer, scratch)
+                from flows.page import store_page
+
+                page = _page(store, keys, report, results)
+                report["page"] = {"key": store_page(open_store(store), report, page)}
                 writer.add("report.json", json.dumps(report, indent=1).encode())
-                writer.add("index.html", _page(store, keys, report, results))
+                writer.add("index.html", page)
                 writer.commit(stale=OUTPUT_NAMES)
             _publish(report, out_dir, label, results)
         finally:

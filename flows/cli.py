@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from facecap_core.errors import FacecapError
+from facecap_core.errors import FacecapError, InputError
 from flows import tools
 
 
@@ -221,12 +221,36 @@ def _cmd_serve(args) -> int:
     if configured.output_root is None:
         os.environ[OUTPUT_ROOT_ENV] = str(Path(args.out).resolve())
     _prefect_env("INFO")  # a server's console is its log
+    _serve_pages(args.pages_host, args.pages_port)
     from deploy.serve import serve
 
     print(f"serving reconstruct-dataset, reconstruct-capture and nightly-evaluation "
           f"({args.cron}, {args.timezone}); Ctrl-C stops")
     serve(args.root, args.out, args.cron, args.timezone, args.limit)
     return 0
+
+
+def _serve_pages(host: str, port: int) -> None:
+    """Serve a local store's pages beside the deployments, and have the served runs link to
+    them (unless FACECAP_PAGES_URL names a server already)."""
+    import os
+
+    from facecap_core.settings import env_name, settings
+    from flows.page_server import address, page_server, serve_in_background
+    from tasks.runner import check_store, default_store_url
+
+    store = check_store(default_store_url())
+    if port == 0 or not store.is_local:
+        return
+    try:
+        server = page_server(store, host, port)
+    except OSError as exc:
+        raise InputError(f"cannot serve the results pages on {host}:{port} ({exc.strerror}); "
+                         "choose another --pages-port, or 0 for none") from None
+    serve_in_background(server)
+    if settings().pages_url is None:
+        os.environ[env_name("pages_url")] = address(server)
+    print(f"results pages at {settings().pages_url}")
 
 
 def _cmd_alerts(args) -> int:
@@ -383,6 +407,11 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--cron", default="0 2 * * *", help="nightly schedule (cron)")
     sv.add_argument("--timezone", default="UTC", help="time zone of the schedule (IANA name)")
     sv.add_argument("--limit", type=int, default=1, help="flow runs at once")
+    sv.add_argument("--pages-host", default="127.0.0.1",
+                    help="address the results pages of a local store are served on (default "
+                         "127.0.0.1: this machine only)")
+    sv.add_argument("--pages-port", type=int, default=4280,
+                    help="port of the results pages (default 4280; 0: serve none)")
     sv.set_defaults(func=_cmd_serve)
 
     al = sub.add_parser("alerts", help="notify a webhook when the nightly evaluation regresses "
@@ -405,6 +434,14 @@ def build_parser() -> argparse.ArgumentParser:
     fg.add_argument("--store", help="artifact store (see reconstruct)")
     fg.add_argument("--dry-run", action="store_true", help="list, remove nothing")
     fg.set_defaults(func=tools.forget)
+
+    pg = sub.add_parser("pages", help="serve a local store's results pages over HTTP, for "
+                                      "the links in the Prefect UI")
+    pg.add_argument("--host", default="127.0.0.1",
+                    help="address to listen on (default 127.0.0.1: this machine only)")
+    pg.add_argument("--port", type=int, default=4280, help="port (default 4280)")
+    pg.add_argument("--store", help="artifact store (see reconstruct)")
+    pg.set_defaults(func=tools.pages)
 
     st = sub.add_parser("store", help="look after the artifact store")
     st_sub = st.add_subparsers(dest="store_command", required=True)

@@ -119,6 +119,9 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
     from flows.dataset_page import rewrite_dataset_page
 
     rewrite_dataset_page(out_root)  # from what OUT holds now, dataset.json's failures too
+    from flows.ui import publish_dataset_page
+
+    publish_dataset_page(out_root, store)
     if failed:
         raise FacecapError(f"{len(failed)} of {len(entries)} captures failed: "
                            + "; ".join(f"{k}: {v}" for k, v in failed.items()))

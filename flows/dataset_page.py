@@ -13,6 +13,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+from collections.abc import Callable
 from pathlib import Path
 from urllib.parse import quote
 
@@ -48,7 +49,8 @@ def _history(out: Path) -> tuple[dict[str, list[float]], set[str]]:
             doc = json.loads(path.read_text())
             captures = doc.get("captures") or {}
             for name, score in captures.items():
-                series.setdefault(name, []).append(float(score["accuracy"]["median"]))
+                median = float(score["accuracy"]["median"])
+                series.setdefault(name, []).append(median)
             if i == len(files) - 1:
                 regressed = {f["capture"] for f in doc.get("regressions") or []}
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
@@ -78,10 +80,20 @@ def _cell(text: str, sort: str | float | None = None) -> str:
     return f"<td{key}>{text}</td>"
 
 
+def _relative_link(out: Path, subject: str, capture: str, report: dict) -> str | None:
+    if not (out / subject / capture / "index.html").is_file():
+        return None
+    return quote(f"{subject}/{capture}/index.html")
+
+
 def build_dataset_page(out: Path, captures: list[tuple[str, str]],
-                       failed: dict[str, str] | None = None) -> bytes:
+                       failed: dict[str, str] | None = None,
+                       link: Callable[[Path, str, str, dict], str | None] = _relative_link
+                       ) -> bytes:
     """The page of the results folder ``out`` for the dataset's ``captures`` (subject,
-    capture); ``failed`` maps ``subject/capture`` to why it failed."""
+    capture); ``failed`` maps ``subject/capture`` to why it failed; ``link(out, subject,
+    capture, report)`` is the address of a capture's page (None: it has none), by default
+    relative to ``out``."""
     failed = failed or {}
     series, regressed = _history(out)
     rows = []
@@ -102,23 +114,23 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
         else:
             status, order = "not run", 3
         thumb = _thumbnail(folder / "preview.png")
-        link = quote(f"{subject}/{capture}/index.html")
-        picture = (f'<a href="{link}"><img src="{thumb}" width="{THUMB_WIDTH}" alt=""></a>'
-                   if thumb else "")
+        href = link(out, subject, capture, report if isinstance(report, dict) else {})
+        image = f'<img src="{thumb}" width="{THUMB_WIDTH}" alt="">' if thumb else ""
+        picture = f'<a href="{html.escape(href)}">{image}</a>' if href and thumb else image
         accuracy = (fig.get("evaluation") or {}).get("similarity", {}).get("accuracy", {})
         median = accuracy.get("median", (series.get(name) or [None])[-1])
         rough = (fig.get("roughness") or {}).get("bent_share_pct")
         scale = fig.get("metric_scale")
         cells = [
             _cell(picture),
-            _cell(f'<a href="{link}">{html.escape(name)}</a>' if (folder / "index.html").is_file()
+            _cell(f'<a href="{html.escape(href)}">{html.escape(name)}</a>' if href
                   else html.escape(name), name),
             _cell(status, order),
             _cell(str(fig.get("keyframes", "–")), fig.get("keyframes")),
             _cell(f"{scale:.4g}" if scale is not None else "–", scale),
             _cell(f"{rough:.1f} %" if rough is not None else "–", rough),
             _cell(f"{median:.3f} mm" if median is not None else "–", median),
-            _cell(_sparkline(series.get(name, [])), series.get(name, [None])[-1]),
+            _cell(_sparkline(series.get(name, [])), (series.get(name) or [None])[-1]),
         ]
         css = ' class="bad"' if order < 2 else ""
         rows.append(f'<tr data-capture="{html.escape(name)}"{css}>' + "".join(cells) + "</tr>")
@@ -127,12 +139,9 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
                                    failed=len(failed), regressed=len(regressed)).encode()
 
 
-def rewrite_dataset_page(out: Path) -> None:
-    """``OUT/index.html`` from what ``out`` holds now (after a dataset run, an evaluation or
-    ``facecap forget``): the captures with results there and the failures ``dataset.json``
-    records."""
+def _dataset_contents(out: Path) -> tuple[list[tuple[str, str]], dict[str, str]]:
+    """The captures with results in ``out`` and those ``dataset.json`` records as failed."""
     from facecap_core.dataset import SUMMARY_NAMES
-    from tasks.outputs import write_results
 
     captures = sorted((subject.name, capture.name) for subject in out.iterdir()
                       if subject.is_dir() and not subject.is_symlink()
@@ -145,7 +154,47 @@ def rewrite_dataset_page(out: Path) -> None:
     failed = failed if isinstance(failed, dict) else {}
     captures += sorted({tuple(name.split("/", 1)) for name in failed if "/" in name}
                        - set(captures))
-    write_results(out, {"index.html": build_dataset_page(out, captures, failed)})
+    return captures, failed
+
+
+def rewrite_dataset_page(out: Path) -> None:
+    """``OUT/index.html`` from what ``out`` holds now (after a dataset run, an evaluation or
+    ``facecap forget``): the captures with results there and the failures ``dataset.json``
+    records."""
+    from tasks.outputs import write_results
+
+    write_results(out, {"index.html": build_dataset_page(out, *_dataset_contents(out))})
+
+
+def store_dataset_page(out: Path, store) -> str:
+    """Keep a copy of the dataset page in the store whose links open each capture's page
+    from there (:func:`flows.ui.stored_link`, a day), for the link from the Prefect UI;
+    returns its key. Made from the captures' stored pages: ``forget`` removes it with them."""
+    import hashlib
+
+    from flows.page import PAGE_NAME, PAGE_STAGE
+    from flows.ui import stored_link
+    from tasks.store import artifact_key
+    from tasks.store.keys import KEY_PATTERN
+
+    inputs: dict[str, str] = {}
+
+    def link(out: Path, subject: str, capture: str, report: dict) -> str | None:
+        # The page this store holds, whatever store the report names (a results folder is
+        # anyone's to write: it must not make this store sign for another).
+        page = report.get("page")
+        key = page.get("key") if isinstance(page, dict) else None
+        if not (isinstance(key, str) and KEY_PATTERN.fullmatch(key) and store.exists(key)):
+            return None
+        inputs[f"{subject}/{capture}"] = key  # forget removes this page with that one
+        return stored_link(store, key, PAGE_NAME)
+
+    page = build_dataset_page(out, *_dataset_contents(out), link=link)
+    config = {"sha256": hashlib.sha256(page).hexdigest()}
+    key = artifact_key(PAGE_STAGE, inputs, config, "1")
+    store.put(key, {PAGE_NAME: page}, stage=PAGE_STAGE, inputs=inputs, config=config,
+              version="1")
+    return key
 
 
 DATASET_TEMPLATE = """<!doctype html>
@@ -153,6 +202,7 @@ DATASET_TEMPLATE = """<!doctype html>
 <head>
 <meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1">
+<link rel="icon" href="data:,">
 <title>{title} · facecap</title>
 <style>
   body {{ margin: 16px; font: 15px/1.45 system-ui, sans-serif; color: #222; }}

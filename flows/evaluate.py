@@ -20,6 +20,7 @@ from facecap_core.errors import InputError
 from facecap_core.settings import time_limit
 from flows.dataset_page import rewrite_dataset_page
 from flows.service import guard
+from flows.ui import publish_dataset_page
 from tasks.outputs import check_output_place, write_results
 from tasks.runner import run_leases
 from tasks.stages import call_ingest, call_stage
@@ -130,6 +131,7 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
          "carried": {name: previous[name] for name in without_mesh if name in previous}},
         indent=1).encode()})
     rewrite_dataset_page(out_root)  # with this evaluation in each capture's history
+    publish_dataset_page(out_root, store)
     rows = [{"capture": name, "accuracy_mean": round(s["accuracy"]["mean"], 3),
              "accuracy_median": round(s["accuracy"]["median"], 3),
              "completion_mean": round(s["completion"]["mean"], 3),

@@ -31,6 +31,29 @@ MAX_CLOUD_POINTS = 60_000
 """The fused cloud is sampled down to this many points: enough to see it, a few MB at most."""
 
 
+PAGE_STAGE = "page"
+"""The store keeps each run's page as an artifact of this name, made from the run's stage
+artifacts: what a link from the Prefect UI opens (:func:`flows.ui.results_link`), what
+``forget`` removes with the face it shows, what ``prune --unreferenced`` keeps while a
+``report.json`` names it."""
+
+
+def store_page(store, report: dict, page: bytes) -> str:
+    """Keep ``page`` (this run's ``index.html``) in the store; returns its key."""
+    import hashlib
+
+    from tasks.runner import lease
+    from tasks.store import artifact_key
+
+    inputs = {name: info["key"] for name, info in report.get("stages", {}).items()}
+    config = {"sha256": hashlib.sha256(page).hexdigest()}
+    key = artifact_key(PAGE_STAGE, inputs, config, "1")
+    lease(store, key)
+    store.put(key, {PAGE_NAME: page}, stage=PAGE_STAGE, inputs=inputs, config=config,
+              version="1")
+    return key
+
+
 def mesh_glb(mesh_ply: Path) -> bytes:
     """The mesh as binary glTF with its vertex colours (Blender, three.js, Windows 3D Viewer)."""
     import trimesh
@@ -228,6 +251,7 @@ TEMPLATE = """<!doctype html>
 <head>
 <meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1">
+<link rel="icon" href="data:,">
 <title>{title} · facecap</title>
 <style>
   body {{ margin: 0; font: 15px/1.45 system-ui, sans-serif; color: #222; background: #fff; }}

@@ -167,3 +167,33 @@ def train_ears(args) -> int:
     path = train(args.out, progress=True)
     print(f"ear model written to {path}")
     return 0
+
+
+def pages(args) -> int:
+    """``facecap pages``: serve the store's pages until interrupted."""
+    import logging
+
+    from flows.page_server import address, page_server
+    from tasks.runner import check_store, default_store_url
+
+    store = check_store(args.store or default_store_url())
+    if not store.is_local:
+        raise InputError(f"the store {store.shown_url} is not a folder: its links are S3's "
+                         "own and need no page server")
+    try:
+        server = page_server(store, args.host, args.port)
+    except OSError as exc:
+        raise InputError(f"cannot serve pages on {args.host}:{args.port} ({exc.strerror}); "
+                         "choose another --port or --host") from None
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    here = address(server)
+    print(f"serving the pages of {store.shown_url} at {here}; set FACECAP_PAGES_URL={here} "
+          "(as the Prefect UI's browser reaches it) where runs are started; Ctrl-C stops",
+          flush=True)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.server_close()
+    return 0

@@ -101,29 +101,42 @@ def artifact_keys(label: str) -> list[str]:
 
 
 RESULTS_LINK_SECONDS = 24 * 3600
-"""How long the link to a capture's mesh in an S3 store lasts: whoever has it can download
-the mesh until then, without credentials. A rerun (every stage reused, seconds) publishes a
-fresh one; ``facecap forget`` deletes the link and the mesh."""
+"""How long the link from the Prefect UI to a capture's page lasts: whoever has it can open
+the page (the face in 3D) until then, without credentials. A rerun (every stage reused,
+seconds) publishes a fresh one; ``facecap forget`` deletes the link and the page."""
+
+
+def stored_link(store, key: str | None, name: str) -> str | None:
+    """A link that opens file ``name`` of artifact ``key`` of ``store`` (an ArtifactStore)
+    in a browser for :data:`RESULTS_LINK_SECONDS`: S3's presigned URL, or for a folder store
+    the page server's (``FACECAP_PAGES_URL``); None where the store can make none or does not
+    hold the artifact."""
+    from tasks.runner import network_errors
+    from tasks.store import ArtifactNotFoundError
+    from tasks.store.keys import KEY_PATTERN
+
+    if not isinstance(key, str) or not KEY_PATTERN.fullmatch(key):
+        return None
+    try:
+        return store.presigned_url(key, name, RESULTS_LINK_SECONDS)
+    except (OSError, ArtifactNotFoundError, *network_errors()):
+        return None  # the results are made: a link is not worth failing for
 
 
 def results_link(report: dict, out: Path) -> tuple[str, str]:
-    """``(link, where)`` to a capture run's results: where the store is S3, a presigned URL of
-    the fitted mesh in the store (valid :data:`RESULTS_LINK_SECONDS`); otherwise (a local
-    store, or no mesh: a run ``--until`` an earlier stage) the ``file://`` URI of the output
-    folder."""
-    from facecap_core.fitting.run import MESH_PLY
-    from tasks.runner import network_errors, open_store
+    """``(link, where)`` to a capture run's page (:mod:`flows.page`): a link that opens it
+    from the Prefect UI (:func:`stored_link`), else the ``file://`` address of the page in the
+    output folder, which a browser opens only when typed in."""
+    from flows.page import PAGE_NAME
+    from tasks.runner import open_store
 
-    fitting = report.get("stages", {}).get("fitting")
-    if fitting and report.get("store"):
-        try:
-            url = open_store(report["store"]).presigned_url(fitting["key"], MESH_PLY,
-                                                             RESULTS_LINK_SECONDS)
-        except (OSError, *network_errors()):  # the results are made: a link is not worth failing for
-            url = None
-        if url:
-            return url, f"{MESH_PLY} in the store, for {RESULTS_LINK_SECONDS // 3600} h"
-    return Path(out).resolve().as_uri(), "the output folder"
+    key = (report.get("page") or {}).get("key")
+    link = stored_link(open_store(report["store"]), key, PAGE_NAME) if key else None
+    if link:
+        return link, f"its page, for {RESULTS_LINK_SECONDS // 3600} h"
+    return ((Path(out).resolve() / PAGE_NAME).as_uri(),
+            "its page on the worker's disk: set FACECAP_PAGES_URL and run `facecap pages` "
+            "for a link that opens from here")
 
 
 def _legacy_keys(label: str) -> list[str]:
@@ -205,3 +218,29 @@ def publish_capture(report: dict, out: Path, label: str, results: dict[str, Path
                          "prefect.resource.name": label},
                payload={"out": str(out), "computed": report["computed"],
                         "cached": report["cached"], "figures": report.get("figures", {})})
+
+
+def dataset_link_key(out: Path) -> str:
+    """The key of the UI link to the dataset page of results folder ``out``."""
+    return f"dataset-{_slug(str(Path(out).resolve()))}"
+
+
+def publish_dataset_page(out: Path, store: str) -> None:
+    """Link the Prefect UI to the dataset page of ``out`` (just rewritten): a copy kept in
+    the store whose links open the captures' pages (:func:`flows.dataset_page.
+    store_dataset_page`), for :data:`RESULTS_LINK_SECONDS`; else the page on disk."""
+    from prefect.artifacts import create_link_artifact
+
+    from flows.dataset_page import store_dataset_page
+    from flows.page import PAGE_NAME
+    from tasks.runner import open_store
+
+    st = open_store(store)
+    link = stored_link(st, store_dataset_page(Path(out), st), PAGE_NAME)
+    where = (f"its page, for {RESULTS_LINK_SECONDS // 3600} h" if link else
+             "its page on the worker's disk: set FACECAP_PAGES_URL and run `facecap pages` "
+             "for a link that opens from here")
+    name = Path(out).resolve().name
+    create_link_artifact(link or (Path(out).resolve() / PAGE_NAME).as_uri(),
+                         link_text=f"results of {markdown_text(name)}",
+                         key=dataset_link_key(out), description=f"dataset {name}: ({where})")

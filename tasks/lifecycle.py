@@ -181,6 +181,9 @@ def _reported_keys(folder: Path) -> tuple[set[str], set[str], set[str]]:
     keys, stores, labels = set(), set(), set()
     for doc in _run_reports(folder):
         keys |= {row["key"] for row in doc["stages"].values()}
+        page = doc.get("page")
+        if isinstance(page, dict) and isinstance(page.get("key"), str):
+            keys.add(page["key"])  # the run's page (flows.page.store_page)
         if doc.get("store"):
             stores.add(str(doc["store"]))
         if doc.get("subject") and doc.get("capture"):

@@ -27,9 +27,10 @@ def _pixels(png: bytes) -> np.ndarray:
     return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1].astype(int)
 
 
-def look_at_page(page_file: Path, shots: Path | None = None) -> dict:
-    """Open ``page_file`` from disk and report: ``ready`` (the viewer read the mesh) and the
-    seconds until then, ``drawn`` (share of the view's middle that is not background),
+def look_at_page(page_file: Path | str, shots: Path | None = None) -> dict:
+    """Open ``page_file`` from disk (or from an ``http://`` address) and report: ``ready``
+    (the viewer read the mesh) and the seconds until then, ``drawn`` (share of the view's
+    middle that is not background),
     ``accuracy_change`` and ``cameras_change`` (mean absolute pixel change when the heat map
     or the cameras are switched on), ``keyframe_opened`` (a click on a camera showed its
     image), ``figures`` (data-figure key -> text shown), ``errors``
@@ -80,14 +81,14 @@ def _open_a_keyframe(page, view) -> bool | None:
     return None
 
 
-def _look(browser, page_file: Path, shots: Path | None, found: dict) -> dict:
+def _look(browser, page_file: Path | str, shots: Path | None, found: dict) -> dict:
     """What :func:`look_at_page` reports, in ``browser``."""
     page = browser.new_page(viewport={"width": 1100, "height": 700})
     page.on("console", lambda m: found["errors"].append(m.text)
             if m.type == "error" else None)
     page.on("pageerror", lambda e: found["errors"].append(str(e)))
     start = time.perf_counter()
-    page.goto(page_file.resolve().as_uri())
+    page.goto(page_file if isinstance(page_file, str) else page_file.resolve().as_uri())
     try:
         page.wait_for_function("window.facecap && (window.facecap.ready || "
                                "window.facecap.reason)", timeout=READY_TIMEOUT_MS)

@@ -167,35 +167,91 @@ def test_tail_reconstructs_the_capture(first_run, capture):
     assert np.array_equal(mesh.faces, template.faces)
 
 
-def test_the_capture_page_shows_the_fitted_face(first_run, tmp_path):
-    """The run's ``index.html`` and ``mesh.glb``, exported as a capture run exports them,
-    looked at in headless Chromium: the face is drawn, the heat map of its accuracy changes
-    the picture, the cameras show, the figures are the report's, no console error."""
-    from flows.capture import _export, _figures, _page, _stage_report
-    from tasks.outputs import ResultWriter
-    from tests.browser import look_at_page
-    from tests.test_page import SHOTS
+def _capture_report(first_run) -> dict:
+    from flows.capture import _figures, _stage_report
 
     keys = first_run["keys"]
     runs = {name: (key, True) for name, key in keys.items()
             if name not in ("video", "scan", "scan_landmarks")}
-    report = {"subject": "subject", "capture": "capture", "computed": len(runs), "cached": 0,
-              "wall_seconds": 1.0, "until": "evaluation",
-              "stages": _stage_report(first_run["store"], runs),
-              "figures": _figures(first_run["store"], runs)}
-    out = tmp_path / "out"
+    return {"subject": "subject a", "capture": "video (1)", "store": first_run["store"],
+            "computed": len(runs), "cached": 0, "wall_seconds": 1.0, "until": "evaluation",
+            "stages": _stage_report(first_run["store"], runs),
+            "figures": _figures(first_run["store"], runs)}
+
+
+def _publish_and_read_link(report: dict, out: Path, results: dict) -> tuple[str, str]:
+    """Publish a capture run's UI artifacts as the capture flow does; the results link's
+    address (from the markdown the UI shows) and its description."""
+    from prefect import flow
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    from flows.ui import artifact_keys, publish_capture
+
+    label = f"{report['subject']}/{report['capture']}"
+
+    @flow(name="publish")
+    def publish() -> None:
+        publish_capture(report, out, label, results)
+
+    publish()
+    link_key = artifact_keys(label)[2]
+    link = max(read_api(lambda c: c.read_artifacts(  # the latest version of the link
+        artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=[link_key])))),
+        key=lambda artifact: artifact.created)
+    text, address = link.data.rsplit("](", 1)
+    assert text == "[results of subject a/video \\(1\\)" and address.endswith(")"), link.data
+    return address[:-1], link.description
+
+
+def test_the_ui_link_opens_the_capture_page(first_run, tmp_path, monkeypatch):
+    """The run's ``index.html`` and ``mesh.glb``, exported and kept in the store as a capture
+    run does, opened in headless Chromium through the link the Prefect UI shows (the page
+    server of a folder store): the face is drawn, the heat map of its accuracy changes the
+    picture, the cameras show, the figures are the report's, no console error."""
+    from flows.capture import _export, _page
+    from flows.page import PAGE_NAME, store_page
+    from flows.page_server import address, page_server, serve_in_background
+    from tasks.outputs import ResultWriter
+    from tests.browser import look_at_page
+    from tests.test_page import SHOTS
+
+    keys, report = first_run["keys"], _capture_report(first_run)
+    out = tmp_path / "results (1)"
     with ResultWriter(out) as writer:
         results = _export(first_run["store"], keys, writer, tmp_path)
-        writer.add("index.html", _page(first_run["store"], keys, report, results))
+        page = _page(first_run["store"], keys, report, results)
+        report["page"] = {"key": store_page(ArtifactStore(first_run["store"]), report, page)}
+        writer.add(PAGE_NAME, page)
         writer.commit()
     assert (out / "mesh.glb").stat().st_size > 0
-    seen = look_at_page(out / "index.html", SHOTS / "capture")
+    server = page_server(ArtifactStore(first_run["store"]), "127.0.0.1", 0)
+    serve_in_background(server)
+    monkeypatch.setenv("FACECAP_PAGES_URL", address(server))
+    try:
+        link, where = _publish_and_read_link(report, out, results)
+        assert link.startswith(f"{address(server)}/artifacts/{report['page']['key']}/index.html?")
+        assert where == "subject a/video (1): results (its page, for 24 h)"
+        seen = look_at_page(link, SHOTS / "capture")
+    finally:
+        server.shutdown()
+        server.server_close()
     assert seen["errors"] == [] and seen["ready"], seen
     assert seen["drawn"] > 0.2 and seen["accuracy_change"] > 3.0, seen
     assert seen["cameras_change"] > 0.2 and seen["keyframe_opened"], seen
     metric = report["figures"]["evaluation"]["metric"]["accuracy"]
     assert seen["figures"]["evaluation_metric"].startswith(
         f"mean {metric['mean']:.3f} mm, median {metric['median']:.3f} mm")
+
+
+def test_without_a_page_server_the_ui_link_names_the_page_on_disk(first_run, tmp_path,
+                                                                     monkeypatch):
+    monkeypatch.delenv("FACECAP_PAGES_URL", raising=False)
+    report = {**_capture_report(first_run), "page": {"key": "page-" + "0" * 32}}
+    out = tmp_path / "results (1)"
+    out.mkdir()
+    link, where = _publish_and_read_link(report, out, {})
+    assert link == (out.resolve() / "index.html").as_uri()
+    assert "set FACECAP_PAGES_URL and run `facecap pages`" in where
 
 
 def test_rerun_is_all_cached(first_run, capture):
@@ -311,29 +367,48 @@ def test_one_progress_artifact_reaches_100(first_run):
     assert found[0].description.startswith("t: evaluation done")
 
 
-def test_the_results_link_of_a_local_store_is_the_output_folder(first_run, tmp_path):
+def test_the_ui_link_opens_the_dataset_page_and_its_rows_open_the_captures(first_run,
+                                                                          tmp_path, monkeypatch):
+    """A dataset run's link in the UI opens the dataset page kept in the store, whose row
+    opens the capture's page kept there (the page server of a folder store)."""
+    import html
+    import re
+    import urllib.request
+
     from prefect import flow
-
-    from flows.capture import _stage_report
-    from flows.ui import artifact_keys, publish_capture
-
-    keys = first_run["keys"]
-    runs = {name: (keys[name], False) for name in ("fusion", "fitting", "evaluation")}
-    report = {"subject": "subject a", "capture": "video (1)", "store": first_run["store"],
-              "computed": 0, "cached": 3, "wall_seconds": 1.0,
-              "stages": _stage_report(first_run["store"], runs)}
-    out = tmp_path / "results (1)"
-    out.mkdir()
-
-    @flow(name="publish")
-    def publish() -> None:
-        publish_capture(report, out, "subject a/video (1)", {})
-
-    publish()
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
 
-    link_key = artifact_keys("subject a/video (1)")[2]
-    (link,) = read_api(lambda c: c.read_artifacts(
-        artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=[link_key]))))
-    assert link.data == f"[results of subject a/video \\(1\\)]({out.resolve().as_uri()})"
-    assert link.description == "subject a/video (1): results (the output folder)"
+    from flows.page import store_page
+    from flows.page_server import address, page_server, serve_in_background
+    from flows.ui import dataset_link_key, publish_dataset_page
+
+    store = ArtifactStore(first_run["store"])
+    report = _capture_report(first_run)
+    page = b"<!doctype html><title>the capture's page</title>"
+    report["page"] = {"key": store_page(store, report, page)}
+    out = tmp_path / "dataset results"
+    (out / "subject a" / "video (1)").mkdir(parents=True)
+    (out / "subject a" / "video (1)" / "report.json").write_text(json.dumps(report))
+    server = page_server(store, "127.0.0.1", 0)
+    serve_in_background(server)
+    monkeypatch.setenv("FACECAP_PAGES_URL", address(server))
+
+    @flow(name="publish-dataset")
+    def publish() -> None:
+        publish_dataset_page(out, first_run["store"])
+
+    try:
+        publish()
+        (link,) = read_api(lambda c: c.read_artifacts(artifact_filter=ArtifactFilter(
+            key=ArtifactFilterKey(any_=[dataset_link_key(out)]))))
+        address_shown = link.data.rsplit("](", 1)[1][:-1]
+        assert address_shown.startswith(f"{address(server)}/artifacts/page-")
+        with urllib.request.urlopen(address_shown, timeout=10) as answer:
+            dataset_page = answer.read().decode()
+        assert "subject a/video (1)" in dataset_page
+        (row_link,) = set(re.findall(r'href="(http[^"]+)"', dataset_page))
+        with urllib.request.urlopen(html.unescape(row_link), timeout=10) as answer:
+            assert answer.read() == page
+    finally:
+        server.shutdown()
+        server.server_close()

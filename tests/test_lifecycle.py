@@ -12,6 +12,7 @@ import pytest
 
 from facecap_core.errors import InputError
 from flows.cli import main
+from flows.page import store_page
 from tasks.graph import BY_NAME
 from tasks.lifecycle import derived, forget, prune, prune_unreferenced
 from tasks.runner import ingest
@@ -43,9 +44,13 @@ def world(tmp_path):
         (root / subject / "scan.ply").write_bytes(f"the scan of {subject}".encode())
         keys[subject] = chain(store_url, video)
         (out / subject / "take1").mkdir(parents=True)
+        report = {"store": store_url,
+                  "stages": {s: {"key": keys[subject][s]} for s in ("keyframes", "poses")}}
+        # The run's page, kept in the store for the UI's link, and named by the report.
+        keys[subject]["page"] = store_page(ArtifactStore(store_url), report,
+                                           f"the page of {subject}".encode())
         (out / subject / "take1" / "report.json").write_text(json.dumps(
-            {"store": store_url,
-             "stages": {s: {"key": keys[subject][s]} for s in ("keyframes", "poses")}}))
+            {**report, "page": {"key": keys[subject]["page"]}}))
     (out / "evaluations").mkdir()
     (out / "evaluations" / "20261101T020000000000Z.json").write_text(json.dumps(
         {"captures": {"alice/take1": {}, "bob/take1": {}},
@@ -58,7 +63,7 @@ def test_derived_follows_the_inputs_down(world):
     store = ArtifactStore(world["store"])
     alice = world["keys"]["alice"]
     assert derived(store, {alice["video"]}) == set(alice.values())
-    assert derived(store, {alice["poses"]}) == {alice["poses"]}
+    assert derived(store, {alice["poses"]}) == {alice["poses"], alice["page"]}
 
 
 def test_forget_removes_the_subject_and_nothing_else(world):
@@ -182,10 +187,10 @@ def test_the_commands_say_what_they_removed(world, capsys, tmp_path):
     code = main(["forget", "bob", "--root", str(world["root"]), "--out", str(world["out"]),
                  "--store", world["store"]])
     assert code == 0
-    assert "removed 3 artifacts, 1 results folders" in capsys.readouterr().out
+    assert "removed 4 artifacts, 1 results folders" in capsys.readouterr().out
     code = main(["store", "prune", "--older-than-days", "0", "--store", world["store"],
                  "--dry-run"])
-    assert code == 0 and "would remove 3 artifacts" in capsys.readouterr().out
+    assert code == 0 and "would remove 4 artifacts" in capsys.readouterr().out
     for days in ("-1", "800000"):
         assert main(["store", "prune", "--older-than-days", days, "--store",
                      world["store"]]) == 2
@@ -202,7 +207,7 @@ def test_the_commands_say_what_they_removed(world, capsys, tmp_path):
     assert code == 0 and "removed 0 artifacts" in capsys.readouterr().out
     code = main(["store", "prune", "--unreferenced", "--older-than-days", "0", "--out",
                  str(tmp_path / "elsewhere"), "--store", world["store"]])
-    assert code == 0 and "removed 3 artifacts" in capsys.readouterr().out
+    assert code == 0 and "removed 4 artifacts" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("created", ["2026-01-01T02:00:00", "last week"],
@@ -217,7 +222,9 @@ def test_prune_keeps_an_artifact_whose_manifest_is_damaged_and_says_so(created, 
     doc = json.loads(path.read_text())
     path.write_text(json.dumps({**doc, "created": created}))
     removal = prune(store, datetime.now(UTC))
-    assert set(removal.artifacts) == {alice["video"], alice["keyframes"], *bob.values()}
+    # alice's page was made from her keyframes too: it goes with them.
+    assert set(removal.artifacts) == {alice["video"], alice["keyframes"], alice["page"],
+                                      *bob.values()}
     assert set(store.keys()) == {alice["poses"]}
     assert list(removal.damaged) == [alice["poses"]]
     assert "is not a valid manifest" in removal.damaged[alice["poses"]]
@@ -251,3 +258,23 @@ def test_prune_unreferenced_refuses_a_folder_without_results(world, tmp_path, ca
                                    "0", "--out", folder, "--store", world["store"], *dry_run)
             assert_one_line_error(code, err, [f"{folder} holds no facecap results"])
     assert set(store.keys()) == before
+
+
+def test_a_page_goes_with_its_face(world, tmp_path):
+    """The pages kept for the UI's links show faces: a subject's capture pages and the
+    dataset page that lists them go when the subject is forgotten; the page of an earlier
+    run that no report names goes with a prune of what is unreferenced."""
+    from flows.dataset_page import store_dataset_page
+
+    store = ArtifactStore(world["store"])
+    alice = world["keys"]["alice"]
+    report = json.loads((world["out"] / "alice" / "take1" / "report.json").read_text())
+    earlier = store_page(store, report, b"the page of alice's earlier run")
+    dataset = store_dataset_page(world["out"], store)
+    assert store.manifest(dataset).inputs == {"alice/take1": alice["page"],
+                                              "bob/take1": world["keys"]["bob"]["page"]}
+    time.sleep(0.01)
+    removal = prune_unreferenced(store, [world["out"]], datetime.now(UTC), dry_run=True)
+    assert set(removal.artifacts) == {earlier, dataset}
+    removal = forget(store, "alice", world["root"], world["out"])
+    assert set(removal.artifacts) == {*alice.values(), earlier, dataset}

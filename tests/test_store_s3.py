@@ -196,38 +196,40 @@ def test_a_missing_bucket_is_a_store_write_error(s3):
     assert "bucket" in one_line(caught.value)
 
 
-def test_the_results_link_is_a_presigned_url_of_the_mesh(store, prefix, tmp_path):
-    """A capture run whose store is S3 links its UI page to the fitted mesh in the store: a
-    URL that anyone who has it can download the mesh with, without credentials, for
-    RESULTS_LINK_SECONDS."""
+def test_the_results_link_is_a_presigned_url_of_the_page(store, prefix, tmp_path):
+    """A capture run whose store is S3 links its UI page to its results page in the store:
+    a URL that anyone who has it can open in a browser (as a page, not a download), without
+    credentials, for RESULTS_LINK_SECONDS."""
     import time
     import urllib.parse
     import urllib.request
 
+    from flows.page import PAGE_NAME, store_page
     from flows.ui import RESULTS_LINK_SECONDS, results_link
 
-    key = artifact_key("fitting", INPUTS, CONFIG, "1")
-    store.put(key, {"mesh.ply": b"the fitted mesh", "fit.json": b"{}"}, stage="fitting",
-              inputs=INPUTS, config=CONFIG, version="1")
-    report = {"store": store.url, "stages": {"fitting": {"key": key}}}
-    link, where = results_link(report, tmp_path / "out")
-    assert where == "mesh.ply in the store, for 24 h" and RESULTS_LINK_SECONDS == 24 * 3600
+    page = b"<!doctype html><title>the page</title>"
+    report = {"store": store.url, "stages": {"fitting": {"key": mesh_key()}}}
+    key = store_page(store, report, page)
+    link, where = results_link({**report, "page": {"key": key}}, tmp_path / "out")
+    assert where == "its page, for 24 h" and RESULTS_LINK_SECONDS == 24 * 3600
     url = urllib.parse.urlsplit(link)
     query = urllib.parse.parse_qs(url.query)
-    assert url.path == f"/{BUCKET}/{prefix}/artifacts/{key}/{store.manifest(key).folder}/mesh.ply"
+    assert url.path == f"/{BUCKET}/{prefix}/artifacts/{key}/{store.manifest(key).folder}/{PAGE_NAME}"
     if "X-Amz-Expires" in query:  # signature version 4: seconds from signing
         assert query["X-Amz-Expires"] == [str(RESULTS_LINK_SECONDS)]
     else:  # botocore's default for S3 in us-east-1 without a configured version: a deadline
         assert abs(int(query["Expires"][0]) - time.time() - RESULTS_LINK_SECONDS) < 60
     with urllib.request.urlopen(link, timeout=10) as answer:  # no credentials but the URL's
-        assert answer.read() == b"the fitted mesh"
+        assert answer.read() == page
+        assert answer.headers["Content-Type"] == "text/html; charset=utf-8"
     with pytest.raises(ValueError, match="7 days"):
-        store.presigned_url(key, "mesh.ply", 8 * 24 * 3600)
+        store.presigned_url(key, PAGE_NAME, 8 * 24 * 3600)
     with pytest.raises(ArtifactNotFoundError, match="no file 'cloud.ply'"):
         store.presigned_url(key, "cloud.ply", 60)
-    # Without a fitted mesh (a run --until an earlier stage): the output folder.
-    assert results_link({"store": store.url, "stages": {}}, tmp_path / "out") == (
-        (tmp_path / "out").resolve().as_uri(), "the output folder")
+    # Without a page (an artifact gone, a run from before pages): the page on disk.
+    gone = {**report, "page": {"key": "page-" + "0" * 32}}
+    assert results_link(gone, tmp_path / "out")[0] == (
+        (tmp_path / "out").resolve() / PAGE_NAME).as_uri()
 
 
 # --------------------------------------------------------------------------- damage

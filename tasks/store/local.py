@@ -40,6 +40,17 @@ class LocalStore(ArtifactStore):
             raise InputError(f"the store {url} is not a folder ({existing} is a file); give "
                              "the path of a folder (--store or FACECAP_STORE)")
 
+    def presigned_url(self, key: str, name: str, expires: int) -> str | None:
+        """A link to the file on the page server of ``FACECAP_PAGES_URL``
+        (:mod:`tasks.store.links`), valid ``expires`` seconds (at most 7 days); None where no
+        page server is configured."""
+        from facecap_core.settings import settings
+        from tasks.store.links import link
+
+        self._entry(self.manifest(key), name)
+        base = settings().pages_url
+        return link(base, key, name, expires) if base else None
+
     def get(self, key: str, verify: bool = True) -> Path:
         """The artifact folder itself: treat it as read-only."""
         if verify:

@@ -117,7 +117,12 @@ class RemoteStore(ArtifactStore):
             return None
         if not 0 < expires <= PRESIGNED_MAX_SECONDS:
             raise ValueError(f"a presigned URL lasts 1 s to 7 days; got {expires} s")
-        return self._fs.url(self._stored_path(manifest, name), expires=int(expires))
+        from tasks.store.links import content_type
+
+        # The object's own type is whatever the upload left (S3 often says binary): the link
+        # names the type, so that a page opens in the browser rather than downloading.
+        return self._fs.url(self._stored_path(manifest, name), expires=int(expires),
+                            ResponseContentType=content_type(name))
 
     def get(self, key: str, verify: bool = True) -> Path:
         """The local copy in ``$FACECAP_HOME/store-cache/<key>/``, downloaded once and reused
