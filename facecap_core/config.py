@@ -467,6 +467,12 @@ class PBAConfig(StrictModel):
     """Refine focal length, principal point and k1, k2 with the poses, when the tracked points
     are in the solve (``track_weight``): photometric residuals over neighbouring keyframes
     alone leave the principal point free against a tilt of every camera."""
+    principal_point_prior_pct: float = Field(1.0, ge=0)
+    """With the intrinsics refined, the principal point is held near the image centre with
+    this standard deviation (% of the image's width for x, of its height for y; the spread
+    of facecap's sensor model), weighed against the tracks by their noise: the data move it
+    as far as they pin it (a tilt of every camera and a shift of the principal point
+    reproject almost alike). 0: free."""
     scale_prior: float = Field(1e8, gt=0)
     """Weight of the prior that fixes the length of the first baseline (the scale gauge)."""
     points_from_sparse: bool = True

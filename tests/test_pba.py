@@ -218,36 +218,50 @@ def test_the_blur_model_undoes_what_motion_blur_does_to_the_poses():
     assert errors[True]["centre_pct"] < 0.6 * errors[False]["centre_pct"], errors
 
 
-def test_the_tracks_alone_recover_exact_cameras_and_intrinsics():
-    """The reprojection part of the joint solve on its own (blank keyframes: no photometric
-    information): twelve cameras on a 80° arc, exact observations of 300 points, the start
-    turned 0.5° with the focal length 1 % and the principal point 3.6 px off, and the points
-    moved by 1 mm. Gauss-Newton on exact data converges to the exact cameras: the bounds
-    are float rounding (a rotation angle read through arccos of a trace is exact only to
-    ~4e-6°, see tests/test_pose.py)."""
+def _arc_scene(arc_deg: float, pp: tuple[float, float], noise_px: float, seed: int = 0,
+               turn_deg: float = 0.3):
+    """Twelve cameras on an arc of ``arc_deg`` round 300 points, their observations with
+    Gaussian noise, and a start: the cameras turned ``turn_deg``, the principal point at
+    (165.5, 113.5) (the image centre plus 6 px), the focal length 1 % off."""
     from facecap_core.camera import look_at
-    from facecap_core.config import PBAConfig
-    from facecap_core.pose.evaluate import pose_errors
 
-    rng = np.random.default_rng(0)
-    intr = Intrinsics(320, 240, 300.0, 300.0, 163.0, 117.0, -0.05, 0.01)
+    rng = np.random.default_rng(seed)
+    intr = Intrinsics(320, 240, 300.0, 300.0, pp[0], pp[1], -0.05, 0.01)
     R, t = [], []
-    for yaw in np.radians(np.linspace(-40, 40, 12)):
+    for yaw in np.radians(np.linspace(-arc_deg / 2, arc_deg / 2, 12)):
         Rk, tk = look_at([400 * np.sin(yaw), 10.0, 400 * np.cos(yaw)], [0, 0, 0], [0, 1, 0])
         R.append(Rk), t.append(tk)
     points = rng.uniform(-80, 80, (300, 3))
     rows = []
     for k in range(len(R)):
         uv, _ = project(points, R[k], t[k], intr)
+        uv = uv + rng.normal(0, noise_px, uv.shape)
         inside = np.all((uv > 10) & (uv < [310, 230]), 1)
         rows += [(n, k, *uv[n]) for n in np.flatnonzero(inside)]
-    rows = np.array(rows)
-    turned = [R[0]] + [rotation_matrix(rng.normal(size=3), np.radians(0.5)) @ r for r in R[1:]]
-    start_t = [tr @ (r.T @ x) for tr, r, x in zip(turned, R, t)]  # the same centres
-    start = Intrinsics(320, 240, 303.0, 303.0, 166.0, 115.0, -0.05, 0.01)
+    turned = [R[0]] + [rotation_matrix(rng.normal(size=3), np.radians(turn_deg)) @ r
+              for r in R[1:]]
+    start_t = [tr @ (r.T @ x) for tr, r, x in zip(turned, R, t)]
+    start = Intrinsics(320, 240, 303.0, 303.0, 159.5 + 6.0, 119.5 - 6.0, -0.05, 0.01)
+    return intr, R, t, points, np.array(rows), turned, start_t, start
+
+
+def test_the_tracks_alone_recover_exact_cameras_and_intrinsics():
+    """The reprojection part of the joint solve on its own (blank keyframes: no photometric
+    information): twelve cameras on a 80° arc, exact observations of 300 points, the start
+    turned 0.5° with the focal length 1 % and the principal point 4 px off, and the points
+    moved by 1 mm. Gauss-Newton on exact data converges to the exact cameras: the bounds
+    are float rounding (a rotation angle read through arccos of a trace is exact only to
+    ~4e-6°, see tests/test_pose.py)."""
+    from facecap_core.config import PBAConfig
+    from facecap_core.pose.evaluate import pose_errors
+
+    intr, R, t, points, rows, turned, start_t, start = _arc_scene(80.0, (163.0, 117.0), 0.0,
+                                                                   turn_deg=0.5)
+    rng = np.random.default_rng(1)
     moved = points + rng.normal(0, 1.0, points.shape)
     blank = [np.full((240, 320), 100.0, np.float32) for _ in R]
-    config = PBAConfig(iterations=30, pyramid_levels=1, motion_blur=False)
+    config = PBAConfig(iterations=30, pyramid_levels=1, motion_blur=False,
+                       principal_point_prior_pct=0.0)  # exact data: nothing but the data
     result = pba.photometric_bundle_adjustment(blank, start, turned, start_t, moved, config,
                                                sparse_hosts=np.full(len(points), 5),
                                                tracks=(moved, rows))
@@ -256,6 +270,43 @@ def test_the_tracks_alone_recover_exact_cameras_and_intrinsics():
     assert before["rotation_deg"] == pytest.approx(0.5) and before["focal_pct"] > 0.99
     assert after["rotation_deg"] < 1e-5 and after["centre_pct"] < 1e-6, after
     assert after["focal_pct"] < 1e-6 and after["principal_point_px"] < 1e-6, after
+
+
+@pytest.mark.parametrize("noise_px", [0.5, 0.01], ids=["noisy tracks", "exact tracks"])
+def test_the_principal_point_prior_gives_way_to_the_data(noise_px):
+    """Twelve cameras on an 80° arc: a tilt of every camera and a shift of the principal
+    point reproject almost alike, so tracks with half a pixel of noise leave the principal
+    point several pixels off from a bundle adjustment with it free (what the geometric
+    refinement hands PBA). From that start, the prior (1 % of the image) brings it back to
+    the true one (at the centre here) and the rotations with it. Where the tracks are nearly
+    exact the prior gives way: a principal point 4 px (1.3 %) off the centre is kept."""
+    from facecap_core.config import PBAConfig
+    from facecap_core.pose.evaluate import pose_errors
+    from facecap_core.pose.geometric import triangulate
+
+    pp = (159.5, 119.5) if noise_px > 0.1 else (163.5, 116.5)
+    intr, R, t, points, rows, turned, start_t, start = _arc_scene(80.0, pp, noise_px)
+    blank = [np.full((240, 320), 100.0, np.float32) for _ in R]
+    config = PBAConfig(iterations=30, pyramid_levels=1, motion_blur=False,
+                       principal_point_prior_pct=0.0)
+    free = pba.photometric_bundle_adjustment(blank, start, turned, start_t, points, config,
+                                             sparse_hosts=np.full(len(points), 5),
+                                             tracks=(points, rows))
+    X, obs = triangulate(rows, free.R, free.t, free.intrinsics, min_views=2, max_error_px=3.0)
+    prior = pba.photometric_bundle_adjustment(
+        blank, free.intrinsics, free.R, free.t, X,
+        config.model_copy(update={"principal_point_prior_pct": 1.0}),
+        sparse_hosts=np.full(len(X), 5), tracks=(X, obs))
+    before = pose_errors(free.R, free.t, free.intrinsics, R, t, intr)
+    after = pose_errors(prior.R, prior.t, prior.intrinsics, R, t, intr)
+    if noise_px > 0.1:
+        assert before["principal_point_px"] > 3.0, before
+        assert after["principal_point_px"] < 1.5, after
+        assert after["rotation_deg"] < 0.5 * before["rotation_deg"], (before, after)
+    else:
+        # Both within half a pixel of the truth; the centre is 5 px from it.
+        assert before["principal_point_px"] < 0.5, before
+        assert after["principal_point_px"] < 0.5, after
 
 
 def test_the_tracks_under_a_rolling_shutter_recover_the_cameras():

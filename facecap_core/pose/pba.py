@@ -714,12 +714,36 @@ def _track_steps(e: _Normal, dc: np.ndarray, obs_start, obs_frame, lam: float) -
     return step
 
 
+def _track_noise_px(tracks: tuple[np.ndarray, np.ndarray], R, t, intrinsics: Intrinsics,
+                    full: Intrinsics) -> float:
+    """The tracked observations' noise at the start (robust standard deviation of their
+    reprojection errors, pixels of ``intrinsics``; the start is a bundle adjustment's, so
+    what is left is their noise)."""
+    from facecap_core.camera import project
+
+    points, obs = np.asarray(tracks[0], float), np.asarray(tracks[1], float)
+    scale = intrinsics.width / full.width
+    errors = np.empty(len(obs))
+    for k in np.unique(obs[:, 1]).astype(int):
+        sel = obs[:, 1] == k
+        uv, _ = project(points[obs[sel, 0].astype(int)], R[k], t[k], intrinsics)
+        errors[sel] = np.linalg.norm(uv - ((obs[sel, 2:4] + 0.5) * scale - 0.5), axis=1)
+    # The median length of a 2D Gaussian error is 1.1774 of its standard deviation.
+    return float(np.median(errors) / 1.1774)
+
+
 def _adjust_to_tracks(R, t, intr, X, obs_start, obs_frame, obs_xy, rows, velocity, readout,
-                      huber_px, iterations, free_intrinsics=True):
+                      huber_px, iterations, free_intrinsics=True, pp_prior=None):
     """Cameras, intrinsics (``free_intrinsics``) and points adjusted to the tracked points
     alone under a given rolling-shutter readout (Levenberg-Marquardt; the gauge: keyframe 0
     and the first baseline's length), and the reprojection cost left: how well that readout
-    explains the tracks. Returns (cost, R, t, intr, X)."""
+    explains the tracks. ``pp_prior``: (centre, weight per pixel² of x and y) of the principal
+    point's prior. Returns (cost, R, t, intr, X)."""
+    pp0, w_pp = pp_prior if pp_prior is not None else (np.zeros(2), np.zeros(2))
+
+    def prior(intr_):
+        return float(np.sum(w_pp * (intr_[1:3] - pp0) ** 2))
+
     K = len(R)
     n_cam = N_INTR + N_FRAME * (K - 1)
     R, t, intr, X = list(R), list(t), intr.copy(), X.copy()
@@ -739,12 +763,15 @@ def _adjust_to_tracks(R, t, intr, X, obs_start, obs_frame, obs_xy, rows, velocit
         _hold_baseline(H, b, R, t, baseline, 1e8)
         if not free_intrinsics:
             H[:N_INTR, :N_INTR] += 1e12 * np.eye(N_INTR)
+        else:
+            H[1:3, 1:3] += np.diag(w_pp)
+            b[1:3] += w_pp * (intr[1:3] - pp0)
         dc = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-9 * np.eye(n_cam), b)
         R2, t2, _ = _update_frames(R, t, np.zeros((K, 2)), dc[N_INTR:])
         intr2 = intr + dc[:N_INTR]
         X2 = X + _track_steps(e, dc, obs_start, obs_frame, lam)
         e2 = run(R2, t2, intr2, X2, True)
-        if e2.stats[0] < e.stats[0]:
+        if e2.stats[0] + prior(intr2) < e.stats[0] + prior(intr):
             R, t, intr, X, e = R2, t2, intr2, X2, e2
             lam = max(lam / 4, 1e-7)
         else:
@@ -964,11 +991,25 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                      if centre_prior and config.centre_prior_pct > 0 else 0.0)
     w_centre = 0.0
 
-    def prior_cost(R_, t_):
+    # The principal point's prior: a deviation of one standard deviation (processing pixels)
+    # costs as much as one tracked observation off by the tracks' noise, so that it weighs
+    # as a prior should against the data whatever their noise (exact tracks: nothing).
+    pp0 = np.array([(intrinsics.width - 1) / 2, (intrinsics.height - 1) / 2])
+    pp_sigma = config.principal_point_prior_pct / 100 * np.array([intrinsics.width,
+                                                                  intrinsics.height])
+    w_pp = np.zeros(2)
+    if config.principal_point_prior_pct > 0 and tracks is not None and len(tracks[0]):
+        noise = _track_noise_px(tracks, R, t, intrinsics, full)
+        w_pp = config.track_weight ** 2 * noise ** 2 / pp_sigma ** 2
+        log.append(f"principal point prior: ±{config.principal_point_prior_pct:g} % of the "
+                   f"image, the tracks' noise {noise:.2f} px")
+
+    def prior_cost(R_, t_, intr_):
+        cost = float(np.sum(w_pp * (intr_[1:3] - pp0) ** 2))
         if w_centre == 0:
-            return 0.0
+            return cost
         c = np.array([-r.T @ x for r, x in zip(R_, t_)])
-        return w_centre * float(np.sum((c - centres0) ** 2))
+        return cost + w_centre * float(np.sum((c - centres0) ** 2))
 
     if config.points_from_sparse and sparse_hosts is not None:
         host, uv0, rho = _points_from_sparse(sparse_points, sparse_hosts, R, t, intrinsics,
@@ -1111,9 +1152,11 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                 # principal point), so at the start every readout but 0 looks worse.
                 # The chosen readout's adjustment is the start: SfM and the geometric solution
                 # model no rolling shutter.
+                # The track cost's unit is one observation (track_w in the joint solve).
+                pp_prior = (pp0, w_pp / max(config.track_weight ** 2, 1e-12))
                 adjusted = [_adjust_to_tracks(
                     R, t, intr, X, obs_start, obs_frame, obs_xy, greys[0].shape[0], velocity,
-                    value, config.track_huber_px, 15, free_intrinsics)
+                    value, config.track_huber_px, 15, free_intrinsics, pp_prior)
                     for value in config.readout_candidates]
                 costs = [a[0] for a in adjusted]
                 best = int(np.argmin(costs))
@@ -1121,7 +1164,8 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                 if readout_s > 0:
                     R, t, intr, X = _adjust_to_tracks(
                         *adjusted[best][1:], obs_start, obs_frame, obs_xy, greys[0].shape[0],
-                        velocity, readout_s, config.track_huber_px, 35, free_intrinsics)[1:]
+                        velocity, readout_s, config.track_huber_px, 35, free_intrinsics,
+                        pp_prior)[1:]
                     centres0 = np.array([-r.T @ x for r, x in zip(R, t)])
                 log.append("readout " + ", ".join(
                     f"{v:g}: cost {c:.4g}" for v, c in zip(config.readout_candidates, costs))
@@ -1146,7 +1190,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
             cams = it >= config.depth_only_iterations
             e = evaluate(R, t, affine, intr, rho, X, cams)
             H, b, cost, count = e.H, e.b, e.cost, e.count
-            cost_prior = prior_cost(R, t)
+            cost_prior = prior_cost(R, t, intr)
             if rms_first is None:
                 rms_first = np.sqrt(cost / max(count, 1))
             if cams:
@@ -1160,6 +1204,10 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
                         b[sl] += -w_centre * R[k] @ (c - centres0[k])
                 if not free_intrinsics or level > config.intrinsics_level:
                     H[:N_INTR, :N_INTR] += 1e12 * np.eye(N_INTR)
+                else:
+                    # The prior in the level's pixels (cx_l = cx / s): cost w s² (cx_l - c0 / s)².
+                    H[1:3, 1:3] += np.diag(w_pp * s * s)
+                    b[1:3] += w_pp * s * (intr[1:3] - pp0)
                 dc = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), b)
                 dcl = np.where(e.idx >= 0, dc[np.maximum(e.idx, 0)], 0.0)
                 drho = -(e.bpp + np.sum(e.Hcp * dcl, 1)) / (e.Hpp * (1 + lam) + 1e-12)
@@ -1172,7 +1220,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
             rho2 = np.clip(rho + drho, rho * 0.5, rho * 2.0)
             e2 = evaluate(R2, t2, aff2, intr2, rho2, X2, False)
             cost2, count2 = e2.cost, e2.count
-            accept = cost2 + prior_cost(R2, t2) <= cost + cost_prior
+            accept = cost2 + prior_cost(R2, t2, intr2) <= cost + cost_prior
             if accept:
                 R, t, affine, intr, rho, X = R2, t2, aff2, intr2, rho2, X2
                 lam = max(lam / 4, 1e-7)
