@@ -322,7 +322,11 @@ def reconstruct_capture(video: str, out: str, config: ConfigParameter = None,
                 from flows.page import store_page
 
                 page = _page(store, keys, report, results)
-                report["page"] = {"key": store_page(open_store(store), report, page)}
+                try:
+                    report["page"] = {"key": store_page(open_store(store), report, page)}
+                except Exception as exc:  # noqa: BLE001 - the results are made; the UI's link is not worth losing them for
+                    logger.warning(f"{label}: the page was not kept in the store, so the UI's "
+                                   f"link opens it only from disk: {exc}")
                 writer.add("report.json", json.dumps(report, indent=1).encode())
                 writer.add("index.html", page)
                 writer.commit(stale=OUTPUT_NAMES)

@@ -80,20 +80,22 @@ def _cell(text: str, sort: str | float | None = None) -> str:
     return f"<td{key}>{text}</td>"
 
 
-def _relative_link(out: Path, subject: str, capture: str, report: dict) -> str | None:
+def _relative_link(out: Path, subject: str, capture: str, report: dict
+                   ) -> tuple[str | None, bool]:
+    """The capture's page beside the dataset page, if it has one; its face may show."""
     if not (out / subject / capture / "index.html").is_file():
-        return None
-    return quote(f"{subject}/{capture}/index.html")
+        return None, True
+    return quote(f"{subject}/{capture}/index.html"), True
 
 
 def build_dataset_page(out: Path, captures: list[tuple[str, str]],
                        failed: dict[str, str] | None = None,
-                       link: Callable[[Path, str, str, dict], str | None] = _relative_link
-                       ) -> bytes:
+                       link: Callable[[Path, str, str, dict], tuple[str | None, bool]]
+                       = _relative_link) -> bytes:
     """The page of the results folder ``out`` for the dataset's ``captures`` (subject,
     capture); ``failed`` maps ``subject/capture`` to why it failed; ``link(out, subject,
-    capture, report)`` is the address of a capture's page (None: it has none), by default
-    relative to ``out``."""
+    capture, report)`` says the address of a capture's page (None: it has none; by default
+    relative to ``out``) and whether its row may show the face (its thumbnail)."""
     failed = failed or {}
     series, regressed = _history(out)
     rows = []
@@ -113,8 +115,8 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
             status, order = "done", 2
         else:
             status, order = "not run", 3
-        thumb = _thumbnail(folder / "preview.png")
-        href = link(out, subject, capture, report if isinstance(report, dict) else {})
+        href, face = link(out, subject, capture, report if isinstance(report, dict) else {})
+        thumb = _thumbnail(folder / "preview.png") if face else ""
         image = f'<img src="{thumb}" width="{THUMB_WIDTH}" alt="">' if thumb else ""
         picture = f'<a href="{html.escape(href)}">{image}</a>' if href and thumb else image
         accuracy = (fig.get("evaluation") or {}).get("similarity", {}).get("accuracy", {})
@@ -179,15 +181,21 @@ def store_dataset_page(out: Path, store) -> str:
 
     inputs: dict[str, str] = {}
 
-    def link(out: Path, subject: str, capture: str, report: dict) -> str | None:
-        # The page this store holds, whatever store the report names (a results folder is
-        # anyone's to write: it must not make this store sign for another).
+    def link(out: Path, subject: str, capture: str, report: dict) -> tuple[str | None, bool]:
+        # What this store holds of the capture, whatever store the report names (a results
+        # folder is anyone's to write: it must not make this store sign for another). A row
+        # shows its face only where this copy is made from the capture's artifacts, so that
+        # forget, which follows what an artifact was made from, removes the copy with them.
         page = report.get("page")
-        key = page.get("key") if isinstance(page, dict) else None
-        if not (isinstance(key, str) and KEY_PATTERN.fullmatch(key) and store.exists(key)):
-            return None
-        inputs[f"{subject}/{capture}"] = key  # forget removes this page with that one
-        return stored_link(store, key, PAGE_NAME)
+        page_key = page.get("key") if isinstance(page, dict) else None
+        stages = report.get("stages") if isinstance(report.get("stages"), dict) else {}
+        held = [key for key in [page_key, *(row.get("key") for row in stages.values()
+                                            if isinstance(row, dict))]
+                if isinstance(key, str) and KEY_PATTERN.fullmatch(key) and store.exists(key)]
+        if not held:
+            return None, False
+        inputs[f"{subject}/{capture}"] = held[0]
+        return (stored_link(store, page_key, PAGE_NAME) if page_key in held else None), True
 
     page = build_dataset_page(out, *_dataset_contents(out), link=link)
     config = {"sha256": hashlib.sha256(page).hexdigest()}

@@ -131,7 +131,6 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
          "carried": {name: previous[name] for name in without_mesh if name in previous}},
         indent=1).encode()})
     rewrite_dataset_page(out_root)  # with this evaluation in each capture's history
-    publish_dataset_page(out_root, store)
     rows = [{"capture": name, "accuracy_mean": round(s["accuracy"]["mean"], 3),
              "accuracy_median": round(s["accuracy"]["median"], 3),
              "completion_mean": round(s["completion"]["mean"], 3),
@@ -151,6 +150,7 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
         emit_event(event="facecap.evaluation.regressed",
                    resource={"prefect.resource.id": f"facecap.dataset.{Path(root).name}"},
                    payload={"regressions": flagged})
+    publish_dataset_page(out_root, store)  # after the event: a link never holds up an alert
     logger.info(f"scored {len(current)} captures, skipped {len(skipped)} without scan or mesh")
     return {"captures": current, "skipped": skipped, "regressions": flagged}
 

@@ -30,12 +30,18 @@ def _handler(store: ArtifactStore) -> type[BaseHTTPRequestHandler]:
     class PageHandler(BaseHTTPRequestHandler):
         server_version = "facecap-pages"
         sys_version = ""
+        timeout = 30  # a client that holds its connection open holds a thread no longer
 
         def do_GET(self) -> None:  # noqa: N802 - http.server's name
             self._answer(body=True)
 
         def do_HEAD(self) -> None:  # noqa: N802
             self._answer(body=False)
+
+        def _refuse_method(self) -> None:
+            self._refuse(HTTPStatus.NOT_FOUND, "no such page")
+
+        do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse_method  # noqa: N815
 
         def _answer(self, body: bool) -> None:
             url = urlsplit(self.path)
@@ -79,7 +85,9 @@ def _handler(store: ArtifactStore) -> type[BaseHTTPRequestHandler]:
 
         def log_request(self, code: int | str = "-", size: int | str = "-") -> None:
             # Without the query: the log must not hold working links.
-            log.info("%s %s %s", self.command, urlsplit(self.path).path, code)
+            # A request line that did not parse has no path.
+            log.info("%s %s %s", getattr(self, "command", None),
+                     urlsplit(getattr(self, "path", "")).path, code)
 
         def log_message(self, format: str, *args) -> None:  # noqa: A002 - the base's name
             log.debug(format, *args)

@@ -5,10 +5,13 @@ results, and an event that automations can react to."""
 from __future__ import annotations
 
 import base64
+import logging
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+_log = logging.getLogger(__name__)
 
 
 def _slug(text: str) -> str:
@@ -111,16 +114,20 @@ def stored_link(store, key: str | None, name: str) -> str | None:
     in a browser for :data:`RESULTS_LINK_SECONDS`: S3's presigned URL, or for a folder store
     the page server's (``FACECAP_PAGES_URL``); None where the store can make none or does not
     hold the artifact."""
+    from facecap_core.errors import FacecapError
     from tasks.runner import network_errors
-    from tasks.store import ArtifactNotFoundError
     from tasks.store.keys import KEY_PATTERN
 
     if not isinstance(key, str) or not KEY_PATTERN.fullmatch(key):
         return None
     try:
         return store.presigned_url(key, name, RESULTS_LINK_SECONDS)
-    except (OSError, ArtifactNotFoundError, *network_errors()):
-        return None  # the results are made: a link is not worth failing for
+    except (OSError, FacecapError, *network_errors()) as exc:
+        # The results are made: a link is not worth failing for (a missing or damaged page,
+        # an unreadable link secret, a store that cannot be reached).
+        _log.warning("no link to %s of %s: %s", name, key, str(exc).splitlines()[0]
+                     if str(exc) else type(exc).__name__)
+        return None
 
 
 def results_link(report: dict, out: Path) -> tuple[str, str]:
@@ -236,7 +243,11 @@ def publish_dataset_page(out: Path, store: str) -> None:
     from tasks.runner import open_store
 
     st = open_store(store)
-    link = stored_link(st, store_dataset_page(Path(out), st), PAGE_NAME)
+    try:
+        link = stored_link(st, store_dataset_page(Path(out), st), PAGE_NAME)
+    except Exception as exc:  # noqa: BLE001 - the dataset's results are made: a link is not worth failing for
+        _log.warning("the dataset page of %s was not kept in the store: %s", out, exc)
+        link = None
     where = (f"its page, for {RESULTS_LINK_SECONDS // 3600} h" if link else
              "its page on the worker's disk: set FACECAP_PAGES_URL and run `facecap pages` "
              "for a link that opens from here")

@@ -871,6 +871,9 @@ def test_phone_videos_are_accepted(media, kept, tmp_path, capfd, prefect_server)
     report = json.loads((tmp_path / "out unicode" / "report.json").read_text())
     assert (report["subject"], report["capture"]) == ("séance 1", "prise n°1")
     assert results["unicode"]["frame_indices"] == reference.indices
+    # The page the UI's link opens is the one in the output folder.
+    assert (ArtifactStore(kept["store"]).read_bytes(report["page"]["key"], "index.html")
+            == (tmp_path / "out unicode" / "index.html").read_bytes())
     # Run again: everything comes from the store, and the report says so.
     code, _, err = facecap(capfd, "reconstruct", unicode_dir / "prise n°1.mp4", "--out",
                            tmp_path / "out unicode", "--store", kept["store"], "--until",

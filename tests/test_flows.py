@@ -245,8 +245,11 @@ def test_the_ui_link_opens_the_capture_page(first_run, tmp_path, monkeypatch):
 
 def test_without_a_page_server_the_ui_link_names_the_page_on_disk(first_run, tmp_path,
                                                                      monkeypatch):
+    from flows.page import store_page
+
     monkeypatch.delenv("FACECAP_PAGES_URL", raising=False)
-    report = {**_capture_report(first_run), "page": {"key": "page-" + "0" * 32}}
+    report = _capture_report(first_run)  # its page kept: only the server is missing
+    report["page"] = {"key": store_page(ArtifactStore(first_run["store"]), report, b"a page")}
     out = tmp_path / "results (1)"
     out.mkdir()
     link, where = _publish_and_read_link(report, out, {})

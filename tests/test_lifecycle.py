@@ -270,8 +270,17 @@ def test_a_page_goes_with_its_face(world, tmp_path):
     alice = world["keys"]["alice"]
     report = json.loads((world["out"] / "alice" / "take1" / "report.json").read_text())
     earlier = store_page(store, report, b"the page of alice's earlier run")
+    # A result from before pages were kept, and one whose artifacts this store lacks.
+    (world["out"] / "alice" / "take0").mkdir()
+    (world["out"] / "alice" / "take0" / "report.json").write_text(json.dumps(
+        {k: v for k, v in report.items() if k != "page"}))
+    (world["out"] / "carol" / "take1").mkdir(parents=True)
+    (world["out"] / "carol" / "take1" / "report.json").write_text(json.dumps(
+        {"stages": {"poses": {"key": "poses-" + "0" * 32}}, "page": {"key": "../../x"}}))
     dataset = store_dataset_page(world["out"], store)
-    assert store.manifest(dataset).inputs == {"alice/take1": alice["page"],
+    # Made from every capture whose artifacts it shows (its faces), so forget finds it.
+    assert store.manifest(dataset).inputs == {"alice/take0": alice["keyframes"],
+                                              "alice/take1": alice["page"],
                                               "bob/take1": world["keys"]["bob"]["page"]}
     time.sleep(0.01)
     removal = prune_unreferenced(store, [world["out"]], datetime.now(UTC), dry_run=True)

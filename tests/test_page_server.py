@@ -151,3 +151,23 @@ def test_a_port_in_use_is_one_line(served, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err == (f"facecap: error: cannot serve pages on 127.0.0.1:{port} (Address already in use); "
                    "choose another --port or --host"), err
+
+
+def test_a_malformed_request_still_gets_an_answer(served):
+    """A query no link has (a digit that is not ASCII, a signature that is not hex), another
+    method, a request line that does not parse: each is answered, and the server goes on."""
+    import socket
+
+    store, keys = served
+    url = store.presigned_url(keys["page"], "index.html", 3600)
+    parts = urlsplit(url)
+    base = settings().pages_url
+    for odd in (f"{base}{parts.path}?expires=%C2%B2&signature=00",
+                f"{base}{parts.path}?expires=1&signature=%C3%A9"):
+        assert fetch(odd) == (404, fetch(odd)[1], b"no such page\n")
+    assert fetch(url, "POST")[0] == 404
+    host, port = urlsplit(base).hostname, urlsplit(base).port
+    with socket.create_connection((host, port), timeout=10) as raw:
+        raw.sendall(b"GET /x HTTP/9.9\r\n\r\n")
+        assert b"Error" in raw.recv(200)  # the standard library's error page
+    assert fetch(url)[0] == 200

@@ -279,7 +279,7 @@ def test_the_principal_point_prior_gives_way_to_the_data(noise_px):
     point several pixels off from a bundle adjustment with it free (what the geometric
     refinement hands PBA). From that start, the prior (1 % of the image) brings it back to
     the true one (at the centre here) and the rotations with it. Where the tracks are nearly
-    exact the prior gives way: a principal point 4 px (1.3 %) off the centre is kept."""
+    exact the prior gives way: a principal point 5 px off the centre (1.25 % across) is kept."""
     from facecap_core.config import PBAConfig
     from facecap_core.pose.evaluate import pose_errors
     from facecap_core.pose.geometric import triangulate

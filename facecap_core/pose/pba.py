@@ -776,7 +776,7 @@ def _adjust_to_tracks(R, t, intr, X, obs_start, obs_frame, obs_xy, rows, velocit
             lam = max(lam / 4, 1e-7)
         else:
             lam *= 4
-    return float(e.stats[0]), R, t, intr, X
+    return float(e.stats[0]) + prior(intr), R, t, intr, X
 
 
 def _hold_baseline(H, b, R, t, length, weight):

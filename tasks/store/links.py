@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import os
+import re
 import secrets
 import time
 from urllib.parse import quote, urlencode
@@ -71,13 +72,13 @@ def link(base_url: str, key: str, name: str, expires: int) -> str:
         raise ValueError(f"a link lasts 1 s to 7 days; got {expires} s")
     expires_at = int(time.time()) + int(expires)
     query = urlencode({"expires": expires_at, "signature": signature(key, name, expires_at)})
-    return f"{base_url.rstrip('/')}/artifacts/{key}/{quote(name)}?{query}"
+    return f"{base_url.rstrip('/')}/artifacts/{key}/{quote(name, safe='')}?{query}"
 
 
 def link_problem(key: str, name: str, expires_at: str, signed: str) -> str | None:
     """Why a request for ``key``/``name`` with these query values may not be answered
     (None: it may): a signature that is not this machine's, or a link that has expired."""
-    if not expires_at.isdigit() or len(expires_at) > 12:
+    if not (re.fullmatch(r"[0-9]{1,12}", expires_at) and re.fullmatch(r"[0-9a-f]{64}", signed)):
         return "not a link facecap made"
     if not hmac.compare_digest(signature(key, name, int(expires_at)), signed):
         return "not a link facecap made"

@@ -120,9 +120,11 @@ class RemoteStore(ArtifactStore):
         from tasks.store.links import content_type
 
         # The object's own type is whatever the upload left (S3 often says binary): the link
-        # names the type, so that a page opens in the browser rather than downloading.
+        # names the type, so that a page opens in the browser rather than downloading, and
+        # asks that no cache keeps it (a face).
         return self._fs.url(self._stored_path(manifest, name), expires=int(expires),
-                            ResponseContentType=content_type(name))
+                            ResponseContentType=content_type(name),
+                            ResponseCacheControl="private, no-store")
 
     def get(self, key: str, verify: bool = True) -> Path:
         """The local copy in ``$FACECAP_HOME/store-cache/<key>/``, downloaded once and reused
