@@ -28,19 +28,24 @@ def test_deployments_name_their_flows_and_parameters():
 
 
 def test_served_flows_accept_only_documented_parameters():
-    from flows.dataset import reconstruct_dataset
+    """Each served flow's parameters are those its row of the deployments table in
+    docs/deploy.md names, and the required ones are the ones it names first."""
+    import re
 
-    schema = reconstruct_dataset.parameters
-    assert set(schema.properties) == {"root", "out", "config", "store", "until"}
-    assert set(schema.required) == {"root", "out"}
     from flows.capture import reconstruct_capture
+    from flows.dataset import reconstruct_dataset
+    from flows.evaluate import evaluate_dataset
 
-    schema = reconstruct_capture.parameters
-    assert set(schema.properties) == {"video", "out", "config", "scan", "scan_landmarks", "until",
-                                      "store", "progress", "ipd_mm"}
-    assert set(schema.required) == {"video", "out"}
-    documented = (Path(__file__).parents[1] / "docs" / "deploy.md").read_text()
-    assert "`ipd_mm`" in documented
+    table = (Path(__file__).parents[1] / "docs" / "deploy.md").read_text()
+    for deployment, served, required in [
+            ("reconstruct-capture/reconstruct-capture", reconstruct_capture, {"video", "out"}),
+            ("reconstruct-dataset/reconstruct-dataset", reconstruct_dataset, {"root", "out"}),
+            ("evaluate-dataset/nightly-evaluation", evaluate_dataset, {"root", "out"})]:
+        (row,) = [line for line in table.splitlines() if line.startswith(f"| `{deployment}` |")]
+        cell = row.split(" | ")[2]
+        named = {re.match(r"\w+", name)[0] for name in re.findall(r"`([^`]+)`", cell)}
+        assert set(served.parameters.properties) == named, deployment
+        assert set(served.parameters.required) == required, deployment
 
 
 @pytest.mark.slow

@@ -477,8 +477,10 @@ def test_a_mesh_without_ears_scores_nan_accuracy_and_poor_completion_there(ict_m
 def test_config_is_validated_and_documented():
     with pytest.raises(ValidationError):
         EvaluationConfig(trim=0.0)
-    with pytest.raises(ValidationError):
-        EvaluationConfig(radius_factr=1.2)
+    with pytest.raises(ValidationError, match="radius_factor"):
+        EvaluationConfig(radius_factor=0.0)  # a sphere of no size
+    with pytest.raises(ValidationError, match="radius_factr"):
+        EvaluationConfig(radius_factr=1.2)  # a misspelt setting is refused, not ignored
     assert all(fi.description for fi in EvaluationConfig.model_fields.values())
 
 
