@@ -19,6 +19,8 @@ from urllib.parse import quote
 
 import numpy as np
 
+from flows.page import PAGE_HEAD
+
 THUMB_WIDTH = 160
 
 
@@ -172,12 +174,9 @@ def store_dataset_page(out: Path, store) -> str:
     """Keep a copy of the dataset page in the store whose links open each capture's page
     from there (:func:`flows.ui.stored_link`, a day), for the link from the Prefect UI;
     returns its key. Made from the captures' stored pages: ``forget`` removes it with them."""
-    import hashlib
-
-    from flows.page import PAGE_NAME, PAGE_STAGE
+    from flows.page import PAGE_NAME, keep_page
     from flows.ui import stored_link
-    from tasks.store import artifact_key
-    from tasks.store.keys import KEY_PATTERN
+    from tasks.lifecycle import report_keys
 
     inputs: dict[str, str] = {}
 
@@ -186,33 +185,17 @@ def store_dataset_page(out: Path, store) -> str:
         # folder is anyone's to write: it must not make this store sign for another). A row
         # shows its face only where this copy is made from the capture's artifacts, so that
         # forget, which follows what an artifact was made from, removes the copy with them.
-        page = report.get("page")
-        page_key = page.get("key") if isinstance(page, dict) else None
-        stages = report.get("stages") if isinstance(report.get("stages"), dict) else {}
-        held = [key for key in [page_key, *(row.get("key") for row in stages.values()
-                                            if isinstance(row, dict))]
-                if isinstance(key, str) and KEY_PATTERN.fullmatch(key) and store.exists(key)]
+        page, stages = report_keys(report)
+        held = [key for key in [page, *stages] if key and store.exists(key)]
         if not held:
             return None, False
         inputs[f"{subject}/{capture}"] = held[0]
-        return (stored_link(store, page_key, PAGE_NAME) if page_key in held else None), True
+        return (stored_link(store, page, PAGE_NAME) if page in held else None), True
 
-    page = build_dataset_page(out, *_dataset_contents(out), link=link)
-    config = {"sha256": hashlib.sha256(page).hexdigest()}
-    key = artifact_key(PAGE_STAGE, inputs, config, "1")
-    store.put(key, {PAGE_NAME: page}, stage=PAGE_STAGE, inputs=inputs, config=config,
-              version="1")
-    return key
+    return keep_page(store, inputs, build_dataset_page(out, *_dataset_contents(out), link=link))
 
 
-DATASET_TEMPLATE = """<!doctype html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<link rel="icon" href="data:,">
-<title>{title} · facecap</title>
-<style>
+DATASET_TEMPLATE = PAGE_HEAD + """<style>
   body {{ margin: 16px; font: 15px/1.45 system-ui, sans-serif; color: #222; }}
   table {{ border-collapse: collapse; }}
   th {{ text-align: left; cursor: pointer; border-bottom: 2px solid #999; padding: 4px 10px; }}

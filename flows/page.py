@@ -38,20 +38,27 @@ artifacts: what a link from the Prefect UI opens (:func:`flows.ui.results_link`)
 ``report.json`` names it."""
 
 
-def store_page(store, report: dict, page: bytes) -> str:
-    """Keep ``page`` (this run's ``index.html``) in the store; returns its key."""
+def keep_page(store, inputs: dict[str, str], page: bytes) -> str:
+    """Keep ``page`` in the store as an artifact made from ``inputs`` (name -> key), held
+    for the run in progress; returns its key."""
     import hashlib
 
     from tasks.runner import lease
     from tasks.store import artifact_key
 
-    inputs = {name: info["key"] for name, info in report.get("stages", {}).items()}
     config = {"sha256": hashlib.sha256(page).hexdigest()}
     key = artifact_key(PAGE_STAGE, inputs, config, "1")
     lease(store, key)
     store.put(key, {PAGE_NAME: page}, stage=PAGE_STAGE, inputs=inputs, config=config,
               version="1")
     return key
+
+
+def store_page(store, report: dict, page: bytes) -> str:
+    """Keep ``page`` (this run's ``index.html``) in the store, made from the run's stage
+    artifacts; returns its key."""
+    return keep_page(store, {name: info["key"] for name, info in
+                             report.get("stages", {}).items()}, page)
 
 
 def mesh_glb(mesh_ply: Path) -> bytes:
@@ -246,14 +253,18 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
     return page.encode("utf-8")
 
 
-TEMPLATE = """<!doctype html>
+PAGE_HEAD = """<!doctype html>
 <html lang="en">
 <head>
 <meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1">
 <link rel="icon" href="data:,">
 <title>{title} · facecap</title>
-<style>
+"""
+"""The start of facecap's pages (a format string of ``title``): a phone's width, and no
+request for an icon that is not there."""
+
+TEMPLATE = PAGE_HEAD + """<style>
   body {{ margin: 0; font: 15px/1.45 system-ui, sans-serif; color: #222; background: #fff; }}
   main {{ display: flex; flex-wrap: wrap; min-height: 100vh; }}
   #view {{ position: relative; flex: 1 1 480px; min-height: 60vh; }}

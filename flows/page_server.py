@@ -38,10 +38,11 @@ def _handler(store: ArtifactStore) -> type[BaseHTTPRequestHandler]:
         def do_HEAD(self) -> None:  # noqa: N802
             self._answer(body=False)
 
-        def _refuse_method(self) -> None:
+        def _not_found(self) -> None:
+            # The one answer to whatever is not a signed link, that it be no oracle.
             self._refuse(HTTPStatus.NOT_FOUND, "no such page")
 
-        do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse_method  # noqa: N815
+        do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _not_found  # noqa: N815
 
         def _answer(self, body: bool) -> None:
             url = urlsplit(self.path)
@@ -50,19 +51,19 @@ def _handler(store: ArtifactStore) -> type[BaseHTTPRequestHandler]:
             if not found or not KEY_PATTERN.fullmatch(found[1]) \
                     or set(query) != {"expires", "signature"} \
                     or any(len(v) != 1 for v in query.values()):
-                return self._refuse(HTTPStatus.NOT_FOUND, "no such page")
+                return self._not_found()
             key, name = found[1], unquote(found[2])
             problem = link_problem(key, name, query["expires"][0], query["signature"][0])
             if problem:
-                expired = problem.startswith("this link has expired")
-                return self._refuse(HTTPStatus.GONE if expired else HTTPStatus.NOT_FOUND,
-                                    problem if expired else "no such page")
+                if problem.startswith("this link has expired"):
+                    return self._refuse(HTTPStatus.GONE, problem)
+                return self._not_found()
             try:
                 data = store.read_bytes(key, name)
             except Exception as exc:  # noqa: BLE001 - gone, damaged: the browser is told little
                 log.warning("%s/%s: %s", key, name, str(exc).splitlines()[0] if str(exc) else
                             type(exc).__name__)
-                return self._refuse(HTTPStatus.NOT_FOUND, "no such page")
+                return self._not_found()
             self.send_response(HTTPStatus.OK)
             self.send_header("Content-Type", content_type(name))
             self.send_header("Content-Length", str(len(data)))

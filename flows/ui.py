@@ -130,20 +130,29 @@ def stored_link(store, key: str | None, name: str) -> str | None:
         return None
 
 
-def results_link(report: dict, out: Path) -> tuple[str, str]:
-    """``(link, where)`` to a capture run's page (:mod:`flows.page`): a link that opens it
-    from the Prefect UI (:func:`stored_link`), else the ``file://`` address of the page in the
-    output folder, which a browser opens only when typed in."""
+def page_link(store, key: str | None, folder: Path) -> tuple[str, str]:
+    """``(link, where)`` to a page: a link that opens stored page ``key`` from the Prefect UI
+    (:func:`stored_link`), else the ``file://`` address of ``index.html`` in ``folder``,
+    which a browser opens only when typed in."""
     from flows.page import PAGE_NAME
-    from tasks.runner import open_store
 
-    key = (report.get("page") or {}).get("key")
-    link = stored_link(open_store(report["store"]), key, PAGE_NAME) if key else None
+    link = stored_link(store, key, PAGE_NAME)
     if link:
         return link, f"its page, for {RESULTS_LINK_SECONDS // 3600} h"
-    return ((Path(out).resolve() / PAGE_NAME).as_uri(),
+    return ((Path(folder).resolve() / PAGE_NAME).as_uri(),
             "its page on the worker's disk: set FACECAP_PAGES_URL and run `facecap pages` "
             "for a link that opens from here")
+
+
+def results_link(report: dict, out: Path) -> tuple[str, str]:
+    """``(link, where)`` to a capture run's page (:mod:`flows.page`): :func:`page_link` to
+    the page its report names, or to ``index.html`` in the output folder."""
+    from tasks.lifecycle import report_keys
+    from tasks.runner import open_store
+
+    page, _ = report_keys(report)
+    store = open_store(report["store"]) if page else None
+    return page_link(store, page, out)
 
 
 def _legacy_keys(label: str) -> list[str]:
@@ -239,19 +248,15 @@ def publish_dataset_page(out: Path, store: str) -> None:
     from prefect.artifacts import create_link_artifact
 
     from flows.dataset_page import store_dataset_page
-    from flows.page import PAGE_NAME
     from tasks.runner import open_store
 
     st = open_store(store)
     try:
-        link = stored_link(st, store_dataset_page(Path(out), st), PAGE_NAME)
+        key = store_dataset_page(Path(out), st)
     except Exception as exc:  # noqa: BLE001 - the dataset's results are made: a link is not worth failing for
         _log.warning("the dataset page of %s was not kept in the store: %s", out, exc)
-        link = None
-    where = (f"its page, for {RESULTS_LINK_SECONDS // 3600} h" if link else
-             "its page on the worker's disk: set FACECAP_PAGES_URL and run `facecap pages` "
-             "for a link that opens from here")
+        key = None
+    link, where = page_link(st, key, out)
     name = Path(out).resolve().name
-    create_link_artifact(link or (Path(out).resolve() / PAGE_NAME).as_uri(),
-                         link_text=f"results of {markdown_text(name)}",
+    create_link_artifact(link, link_text=f"results of {markdown_text(name)}",
                          key=dataset_link_key(out), description=f"dataset {name}: ({where})")

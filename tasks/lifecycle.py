@@ -20,6 +20,7 @@ from facecap_core.dataset import SUMMARY_NAMES
 from facecap_core.errors import InputError
 from tasks.store import ArtifactStore, CorruptArtifactError, input_key
 from tasks.store.base import redact
+from tasks.store.keys import KEY_PATTERN
 
 
 @dataclass
@@ -175,15 +176,25 @@ def _run_reports(folder: Path) -> Iterator[dict]:
             yield doc
 
 
+def report_keys(doc: dict) -> tuple[str | None, list[str]]:
+    """The artifact keys a run report names: its page's (:func:`flows.page.store_page`; None
+    without one) and its stages', leaving out whatever is not a key (a results folder is
+    anyone's to write)."""
+    def key(row) -> str | None:
+        value = row.get("key") if isinstance(row, dict) else None
+        return value if isinstance(value, str) and KEY_PATTERN.fullmatch(value) else None
+
+    stages = doc.get("stages") if isinstance(doc.get("stages"), dict) else {}
+    return key(doc.get("page")), [k for k in map(key, stages.values()) if k]
+
+
 def _reported_keys(folder: Path) -> tuple[set[str], set[str], set[str]]:
     """The artifact keys named by the run reports under a results folder, the stores the
     reports say the runs used and the runs' ``subject/capture`` labels (their UI pages)."""
     keys, stores, labels = set(), set(), set()
     for doc in _run_reports(folder):
-        keys |= {row["key"] for row in doc["stages"].values()}
-        page = doc.get("page")
-        if isinstance(page, dict) and isinstance(page.get("key"), str):
-            keys.add(page["key"])  # the run's page (flows.page.store_page)
+        page, stages = report_keys(doc)
+        keys |= {*stages, *([page] if page else [])}
         if doc.get("store"):
             stores.add(str(doc["store"]))
         if doc.get("subject") and doc.get("capture"):

@@ -43,7 +43,7 @@ import cv2
 import numba as nb
 import numpy as np
 
-from facecap_core.camera import Intrinsics, rotation_matrix
+from facecap_core.camera import Intrinsics, project, rotation_matrix
 from facecap_core.config import PBAConfig
 from facecap_core.errors import FacecapError
 
@@ -719,8 +719,6 @@ def _track_noise_px(tracks: tuple[np.ndarray, np.ndarray], R, t, intrinsics: Int
     """The tracked observations' noise at the start (robust standard deviation of their
     reprojection errors, pixels of ``intrinsics``; the start is a bundle adjustment's, so
     what is left is their noise)."""
-    from facecap_core.camera import project
-
     points, obs = np.asarray(tracks[0], float), np.asarray(tracks[1], float)
     scale = intrinsics.width / full.width
     errors = np.empty(len(obs))
@@ -885,8 +883,6 @@ def _at_size(intrinsics: Intrinsics, width: int, height: int) -> Intrinsics:
 def _points_from_sparse(points, hosts, R, t, intrinsics: Intrinsics, shape):
     """The initial reconstruction's points, each hosted in its given keyframe at its depth
     (no search: the geometric solution already knows where they are)."""
-    from facecap_core.camera import project
-
     h_img, w_img = shape
     margin = 8
     host, uv, rho = [], [], []

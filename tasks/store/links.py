@@ -23,7 +23,14 @@ from facecap_core.settings import settings
 
 SECRET_NAME = "link-secret"
 LINK_MAX_SECONDS = 7 * 24 * 3600
-"""The longest a link lasts (as S3's presigned URLs)."""
+"""The longest a link lasts: S3's limit on a presigned URL (signature version 4), and the
+page server's alike."""
+
+
+def check_link_seconds(expires: int) -> None:
+    """Refuse a link lifetime outside 1 s .. :data:`LINK_MAX_SECONDS`."""
+    if not 0 < expires <= LINK_MAX_SECONDS:
+        raise ValueError(f"a link lasts 1 s to 7 days; got {expires} s")
 
 
 def content_type(name: str) -> str:
@@ -68,8 +75,7 @@ def signature(key: str, name: str, expires_at: int) -> str:
 def link(base_url: str, key: str, name: str, expires: int) -> str:
     """The address under the page server ``base_url`` that serves file ``name`` of
     artifact ``key`` for ``expires`` seconds."""
-    if not 0 < expires <= LINK_MAX_SECONDS:
-        raise ValueError(f"a link lasts 1 s to 7 days; got {expires} s")
+    check_link_seconds(expires)
     expires_at = int(time.time()) + int(expires)
     query = urlencode({"expires": expires_at, "signature": signature(key, name, expires_at)})
     return f"{base_url.rstrip('/')}/artifacts/{key}/{quote(name, safe='')}?{query}"

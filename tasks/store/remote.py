@@ -34,9 +34,7 @@ from tasks.store.files import (
     write_local_file,
 )
 from tasks.store.keys import check_key
-
-PRESIGNED_MAX_SECONDS = 7 * 24 * 3600
-"""The longest an S3 presigned URL (signature version 4) can last."""
+from tasks.store.links import check_link_seconds, content_type
 
 
 def cache_root() -> Path:
@@ -115,9 +113,7 @@ class RemoteStore(ArtifactStore):
         self._entry(manifest, name)
         if scheme(self.url) != "s3":
             return None
-        if not 0 < expires <= PRESIGNED_MAX_SECONDS:
-            raise ValueError(f"a presigned URL lasts 1 s to 7 days; got {expires} s")
-        from tasks.store.links import content_type
+        check_link_seconds(expires)
 
         # The object's own type is whatever the upload left (S3 often says binary): the link
         # names the type, so that a page opens in the browser rather than downloading, and
