@@ -10,9 +10,10 @@ ICT_MODEL := $(or $(FACECAP_ICT_MODEL),facecap_core/data/ict_face_model_trimmed.
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # Shared libraries the wheels need but do not ship (open3d: libusb, libgomp).
 SYSTEM_LIBS := libusb-1.0.so.0:libusb-1.0-0 libgomp.so.1:libgomp1
-# The iris model (docs/landmarks.md, "Metric scale"), without its declared dependencies: they
-# would replace opencv-python-headless's cv2 (pyproject.toml lists what it needs).
-MEDIAPIPE := mediapipe==0.10.14
+# The face detector, face mesh and iris models (docs/landmarks.md), without mediapipe's declared
+# dependencies: they would replace opencv-python-headless's cv2 and numpy 2 (pyproject.toml
+# lists what it needs; docs/dependencies.md).
+MEDIAPIPE := mediapipe==0.10.21
 
 .PHONY: demo test test-fast lint install constraints system-libs compose-tool browser bench clean
 
@@ -32,7 +33,7 @@ test-fast: install compose-tool browser
 
 install: system-libs $(VENV)/.installed
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.installed: pyproject.toml Makefile
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip setuptools wheel
 	$(PY) -m pip install -q -e '.[test]'

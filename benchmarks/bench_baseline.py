@@ -25,13 +25,13 @@ PAPER_MEAN_BASEL = "paper, Mean Basel (10 real subjects): accuracy 3.09 / 1.24 /
 
 
 def landmark_agreement(capture, max_yaw_deg: float = 12.0) -> tuple[float, int]:
-    """Median distance (px) between dlib's inner 51 landmarks and the projected ground truth
+    """Median distance (px) between the detector's inner 51 landmarks and the projected ground truth
     on the near-frontal frames, and the number of frames where a face was found."""
     import av
     import numpy as np
 
     from facecap_core.camera import camera_center, project
-    from facecap_core.landmarks import detect_68
+    from facecap_core.face import detect
     from facecap_core.meshio import load_landmarks
     from facecap_core.synthetic import load_gt_cameras
 
@@ -43,7 +43,7 @@ def landmark_agreement(capture, max_yaw_deg: float = 12.0) -> tuple[float, int]:
             c = camera_center(pose["R"], pose["t"])
             if abs(np.degrees(np.arctan2(c[0], c[2]))) > max_yaw_deg:
                 continue
-            det = detect_68(frame.to_ndarray(format="rgb24"))
+            det = detect(frame.to_ndarray(format="rgb24"))
             if det is None:
                 continue
             found += 1

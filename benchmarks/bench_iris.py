@@ -5,15 +5,15 @@ iris-diameter error in pixels.
         [--methods limbus mediapipe]
 
 On each synthetic capture (``facecap synth`` folders, e.g. those ``bench_scale.py`` renders):
-every second frame whose camera is within ``--max-yaw`` degrees of frontal; dlib's 68 points,
-then each iris found by
+every second frame whose camera is within ``--max-yaw`` degrees of frontal; the face and its
+68 points (:func:`facecap_core.face.detect`), then each iris found by
 
-* ``limbus``: :func:`iris_limbus.fit_iris` (a circle on the lateral limbus arcs near dlib's
+* ``limbus``: :func:`iris_limbus.fit_iris` (a circle on the lateral limbus arcs near the
   eye points; not used by the pipeline);
-* ``mediapipe``: :func:`facecap_core.landmarks.iris.detect_irises` (MediaPipe's face mesh
-  with iris refinement on dlib's face box, the pupil refined to the dark centroid; what the
-  landmark stage uses), when installed; ``mediapipe raw``: the same with MediaPipe's own
-  iris centre; ``mediapipe+limbus``: the limbus fit started from MediaPipe's iris.
+* ``mediapipe``: :func:`facecap_core.landmarks.iris.detect_irises` (the face mesh's iris
+  points, the pupil refined to the dark centroid; what the landmark stage uses);
+  ``mediapipe raw``: the same with MediaPipe's own iris centre; ``mediapipe+limbus``: the
+  limbus fit started from MediaPipe's iris.
 
 Truth: the renderer paints each iris as a disk of the subject's ``iris_diameter_mm`` around
 the gaze axis (``gt/subject.json``: ``pupils_mm``); the pupil and the limbus's horizontal ends
@@ -36,7 +36,8 @@ sys.path.insert(0, str(ROOT))
 from iris_limbus import LEFT_EYE, RIGHT_EYE, fit_iris  # noqa: E402
 
 from facecap_core.camera import camera_center, project  # noqa: E402
-from facecap_core.landmarks import detect_68, iris  # noqa: E402
+from facecap_core.face import detect  # noqa: E402
+from facecap_core.landmarks import iris  # noqa: E402
 from facecap_core.synthetic import load_gt_cameras  # noqa: E402
 from facecap_core.video import iter_frames  # noqa: E402
 
@@ -59,8 +60,7 @@ def mediapipe_irises(image: np.ndarray, det, refine_pupil: bool = True) -> dict:
     if det is None:
         return {}
     return {side: {"pupil": f.centre, "diameter": f.diameter}
-            for side, f in iris.detect_irises(image, det.points, det.box,
-                                              refine_pupil=refine_pupil).items()}
+            for side, f in iris.detect_irises(image, det, refine_pupil=refine_pupil).items()}
 
 
 def mediapipe_raw_irises(image: np.ndarray, det) -> dict:
@@ -97,10 +97,6 @@ def main() -> None:
     args = ap.parse_args()
     methods = {"limbus": limbus_irises, "mediapipe raw": mediapipe_raw_irises,
                "mediapipe": mediapipe_irises, "mediapipe+limbus": refined_irises}
-    if not iris.available():
-        print("mediapipe: not installed, not measured")
-        for name in ("mediapipe raw", "mediapipe", "mediapipe+limbus"):
-            methods.pop(name)
     methods = {k: v for k, v in methods.items() if k in args.methods}
     rows = {m: [] for m in methods}
     separations = {m: [] for m in methods}  # (capture, pupil-separation error %) per frame
@@ -116,7 +112,7 @@ def main() -> None:
                 wanted[f["index"]] = f
         for frame in iter_frames(folder / "video.mp4", indices=list(wanted)):
             gt = truth(folder, wanted[frame.index], intr)
-            det = detect_68(frame.image, 0, None, -0.5)
+            det = detect(frame.image)
             tried += 2
             for name, method in methods.items():
                 found = method(frame.image, det)

@@ -23,9 +23,10 @@ deformation; CPU and wall seconds (wall under load from other work on the machin
 Writes ``OUT/report.md`` and ``OUT/results.json``.
 
 Calibration (``--calibrate``): renders (once, cached in ``OUT/calibration``) short 720p
-sweeps (-50 to 50 degrees) of ICT identities that the benchmark does not use, triangulates
-them with GT cameras and writes the mean per-landmark convention offsets to
-``facecap_core/landmarks/dlib68_convention.json``; it also prints the landmark-size prior
+sweeps (-50 to 50 degrees) of ICT identities that the benchmark does not use; chooses the
+face-mesh vertex of each iBUG point on them (``facecap_core/data/face_mesh_to_ibug68.json``),
+triangulates them with GT cameras and writes the median per-landmark convention offsets to
+``facecap_core/landmarks/ibug68_convention.json``; it also prints the landmark-size prior
 (``CoarseConfig.landmark_size``): the mean similarity scale from the template's inner
 landmarks to those of 200 random ICT identities, and its spread.
 """
@@ -241,12 +242,67 @@ def calibration_capture(seed: int, out: Path, ict_model: str) -> Path:
     return folder
 
 
+# MediaPipe face-mesh vertices along the inner edge of the upper and of the lower lip.
+UPPER_INNER_LIP = [78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308]
+LOWER_INNER_LIP = [78, 95, 88, 178, 87, 14, 317, 402, 318, 324, 308]
+
+
+def calibrate_mesh_vertices(folders: list[Path], command: str) -> None:
+    """Which face-mesh vertex stands for each iBUG point (``facecap_core/face.py``): over every
+    frame of the calibration sweeps, the vertex whose image lies nearest the projected
+    ground-truth landmark (median distance per face box size). Writes ``MESH_TO_68_FILE``."""
+    from facecap_core import face
+    from facecap_core.camera import project
+    from facecap_core.landmarks.triangulate import box_size
+    from facecap_core.video import iter_frames
+
+    face.mesh_to_68.cache_clear()
+    before = face.mesh_to_68()
+    costs = []
+    for folder in folders:
+        intr, poses = load_gt_cameras(folder / "gt" / "cameras.json")
+        G = load_landmarks(folder / "gt" / "landmarks.json")
+        for frame, pose in zip(iter_frames(folder / "video.mp4"), poses):
+            det = face.detect(frame.image)
+            if det is None:
+                continue
+            uv, _ = project(G, pose["R"], pose["t"], intr)
+            costs.append(np.linalg.norm(det.mesh[None, :468] - uv[:, None], axis=2)
+                         / box_size(det.box))
+    median = np.median(np.stack(costs), axis=0)  # (68 points, 468 vertices)
+    # The rendered mouths are closed, so the upper and lower inner lip coincide there: each
+    # inner-lip point is chosen on its own lip's inner edge of the mesh.
+    allowed = median.copy()
+    for points, ring in ((np.r_[61:64], UPPER_INNER_LIP), (np.r_[65:68], LOWER_INNER_LIP)):
+        outside = np.setdiff1d(np.arange(468), ring)
+        allowed[np.ix_(points, outside)] = np.inf
+    vertices = allowed.argmin(axis=1)
+    rows = np.arange(68)
+    doc = {"what": "MediaPipe face-mesh vertex (0-467) of each iBUG 300-W point: the vertex "
+                   "whose image lies nearest the projected ground-truth landmark, median over "
+                   "the calibration frames, per face box size",
+           "captures": [f.name for f in folders], "frames": len(costs), "command": command,
+           "median_rel_before": median[rows, before].round(5).tolist(),
+           "median_rel": median[rows, vertices].round(5).tolist(),
+           "vertices": vertices.tolist()}
+    face.MESH_TO_68_FILE.write_text(json.dumps(doc, indent=1))
+    face.mesh_to_68.cache_clear()
+    changed = int(np.sum(vertices != before))
+    print(f"wrote {face.MESH_TO_68_FILE}: {changed} of 68 vertices changed; inner 51 median "
+          f"{np.median(median[rows, before][INNER_LANDMARKS]):.4f} -> "
+          f"{np.median(median[rows, vertices][INNER_LANDMARKS]):.4f} of the face box")
+
+
 def calibrate(seeds: list[int], out: Path, ict_model: str) -> None:
     from facecap_core.geometry import robust_similarity
     from facecap_core.template import ict_identity_vertices, load_ict_model
 
     offsets, used = [], []
     config = LandmarkConfig(convention_correction=False)
+    command = ("python benchmarks/bench_landmarks.py --calibrate --calibration-seeds "
+               + " ".join(map(str, seeds)))
+    calibrate_mesh_vertices([calibration_capture(seed, out, ict_model) for seed in seeds],
+                            command)
     for seed in seeds:
         folder = calibration_capture(seed, out, ict_model)
         work = out / "calibration_runs" / folder.name
@@ -259,11 +315,10 @@ def calibrate(seeds: list[int], out: Path, ict_model: str) -> None:
         used.append(f"ict:{seed}")
         e = landmark_errors(L_mm, G)[INNER_LANDMARKS]
         print(f"ict:{seed}: raw inner median {np.median(e):.2f} mm")
-    doc = {"what": "mean offset from triangulated dlib 68-point landmarks to ground-truth 3D "
+    doc = {"what": "median offset from triangulated face-mesh 68-point landmarks to ground-truth 3D "
                    "landmarks, inner points 17-67, head-frame axes (x subject's left, y up, z "
                    "out of the face), per eye-centre distance",
-           "captures": used, "command": "python benchmarks/bench_landmarks.py --calibrate "
-                                        f"--calibration-seeds {' '.join(map(str, seeds))}",
+           "captures": used, "command": command,
            "stage_config": config.model_dump(mode="json"),
            "spread": np.nanstd(offsets, axis=0).round(5).tolist(),
            # The median over captures: a point triangulated badly in one capture (dropped

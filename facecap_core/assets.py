@@ -221,9 +221,10 @@ Assets used by facecap
   (BSD-3-Clause, Copyright (c) 2014 Imperial College London and others):
     template.ply/.ljson  default template, face + ears, Basel Face Model topology, 68 landmarks
     james.obj/.jpg/.ljson  real textured head scan (mm) with 68 3D landmarks
-- 68-point landmark model (dlib's shape_predictor_68_face_landmarks, via the
-  face-recognition-models package): trained on iBUG 300-W, whose licence excludes
-  commercial use. Use a model of your own for commercial work.
+- Face detector, face mesh and iris models (mediapipe==0.10.21, Apache-2.0, inside the
+  package): the 68 face landmarks and the irises (docs/provenance.md).
+- Ear detector and ear-contour predictor (facecap's own, trained on renders of ICT
+  identities: facecap_core/landmarks/models, docs/ears.md).
 - ICT Face Model Light (MIT, Copyright (c) 2020 USC Institute for Creative Technologies):
   synthetic identities; a trimmed copy (30 identity modes) ships in facecap_core/data/,
   --ict-model or FACECAP_ICT_MODEL give another (e.g. the full model).

@@ -749,20 +749,12 @@ class LandmarkConfig(StrictModel):
     """68-point landmarks per keyframe, their gate, and 3D triangulation
     (``facecap_core/landmarks/stage.py``; Agrawal et al. 2020, "Landmark constraints")."""
 
-    detect_width: int = Field(640, ge=160, le=4096)
-    """The face box is searched at this image width (dlib's HOG detector is slow at full
-    size); the 68 points are then predicted in the full-resolution frame."""
-    upsample: int = Field(0, ge=0, le=3)
-    """Times the detector doubles the image first (finds smaller faces, 4x slower each)."""
-    min_detector_score: float = Field(-0.3, ge=-2, le=3)
-    """Weakest detector score kept at all (dlib's HOG score: about 1-2 frontal, near 0 at
-    55-60 degrees of yaw)."""
-    gate_min_score: float = Field(-0.3, ge=-2, le=3)
-    """Gate: weakest detector score of a keyframe used for the 3D landmarks (on renders,
-    good detections score from -0.2 up: a stricter score gate only loses views)."""
+    min_detector_score: float = Field(0.5, ge=0, le=1)
+    """Weakest face detection kept (MediaPipe's face detector score, 0-1: 0.8-0.9 on faces
+    turned up to 50°; ``facecap_core/face.py``)."""
     gate_max_yaw_deg: float = Field(40.0, gt=0, le=90)
     """Gate: largest yaw of the camera around the head (from the first triangulation): the
-    detector's points drift along the face outline beyond it."""
+    detector's points grow less certain beyond it."""
     gate_max_reprojection: float = Field(0.02, gt=0, le=1)
     """Gate: largest median reprojection error of a keyframe's inner points against the
     landmarks triangulated from all views, as a fraction of its face box size (the square
@@ -794,23 +786,19 @@ class LandmarkConfig(StrictModel):
     ill-conditioned for a metric face). A full capture spans about 180°."""
     irises: bool = True
     """Measure the irises (pupil centres, horizontal iris diameter) in the frontal keyframes
-    with MediaPipe's face mesh, when the ``mediapipe`` package is installed
-    (``facecap_core/landmarks/iris.py``): the coarse stage's IPD and iris-size scale cues."""
+    from the face mesh's iris points (``facecap_core/landmarks/iris.py``): the coarse stage's
+    IPD and iris-size scale cues."""
     iris_max_yaw_deg: float = Field(15.0, gt=0, le=60)
     """Irises are measured in gated keyframes at most this far from frontal: beyond, the iris
     is foreshortened and MediaPipe's diameter less certain (on the calibration renders, 15°
     gave a 4.7 % spread of the measured diameter and 0.2 % of the pupil distance; 35°: 4.8 %
     and 0.5 %)."""
-    min_eye_opening: float = Field(0.18, ge=0, le=1)
+    min_eye_opening: float = Field(0.2, ge=0, le=1)
     """An eye is measured only when its lids are this far apart, as a fraction of its
-    corner-to-corner width (dlib's points; ~0.3 open, below ~0.15 closed): the lids of a
-    half-closed eye cut the iris."""
-    min_lid_opening: float = Field(0.2, ge=0, le=1)
-    """An eye is measured only when MediaPipe's lid points are this far apart too, as a
-    fraction of its corner-to-corner width (the eye aspect ratio of blink detection): dlib
-    draws an open eye on a closed one (0.18-0.26 on the closed eyes of ``photo_set_31``),
-    MediaPipe's lids follow it. Measured: 0.26-0.30 on rendered open eyes (ICT identity 11,
-    calibration renders), 0.06-0.17 on real closed eyes."""
+    corner-to-corner width (the eye aspect ratio of blink detection, from the face mesh's lid
+    points): the lids of a half-closed eye cut the iris. Measured: 0.26-0.30 on rendered open
+    eyes (ICT identity 11, calibration renders), 0.06-0.17 on the closed eyes of
+    ``photo_set_31``."""
     ear_min_views: int = Field(3, ge=2, le=100)
     """Fewest keyframes with an ear detection for that ear's points to be triangulated."""
     ear_outlier_threshold: float = Field(0.1, gt=0, le=1)
@@ -853,23 +841,23 @@ class CoarseConfig(StrictModel):
     """The subject's interpupillary distance in mm as an optician measures it ("far PD"),
     when known: the scale then comes mainly from the distance between the triangulated eye
     centres (``--ipd-mm`` on the command line)."""
-    ipd_ratio: float = Field(0.9834, gt=0.5, lt=1.5)
+    ipd_ratio: float = Field(0.9816, gt=0.5, lt=1.5)
     """Pupil distance over the distance between the triangulated centres of the two eyes'
     six landmarks: the mean over the captures of ICT identities 1000-1007 (the rendered
     pupils against the landmark stage's output with exact cameras; ``benchmarks/
     bench_scale.py --calibrate``). Used for ``ipd_mm`` when the pupils were not measured."""
     ipd_spread: float = Field(0.02, gt=0, lt=1)
     """Relative 1σ of the IPD cue against the eye landmarks: the spread of that ratio over
-    the calibration captures (1.4 % over 8, rounded up: a spread from 8 faces is itself
+    the calibration captures (1.2 % over 8, rounded up: a spread from 8 faces is itself
     uncertain by a quarter)."""
-    pupil_ratio: float = Field(1.0033, gt=0.5, lt=1.5)
+    pupil_ratio: float = Field(1.0051, gt=0.5, lt=1.5)
     """Pupil distance over the distance between the pupils as the landmark stage triangulates
     them: the mean over the captures of ICT identities 1000-1007 (``benchmarks/
     bench_scale.py --calibrate``). With pupils, ``ipd_mm`` uses them instead of the eye
     landmarks."""
     pupil_ipd_spread: float = Field(0.006, gt=0, lt=1)
     """Relative 1σ of the IPD cue from the triangulated pupils: the spread of ``pupil_ratio``
-    over the calibration captures (0.22 % over 8), widened to 0.6 %: a spread from 8 faces is
+    over the calibration captures (0.28 % over 8), widened to 0.6 %: a spread from 8 faces is
     itself uncertain by a quarter, rendered pupils are sharper than real ones, and a subject
     who fixates a near point while the camera moves converges the eyes (a far gaze, or eyes
     that follow the camera, give the far PD)."""
@@ -879,14 +867,15 @@ class CoarseConfig(StrictModel):
     tighter prior than the face's size."""
     iris_diameter_mm: float = Field(11.7, gt=8, lt=16)
     """Mean horizontal visible iris diameter of adults (11.7 ± 0.5 mm, 1σ)."""
-    iris_ratio: float = Field(0.9904, gt=0.5, lt=1.5)
+    iris_ratio: float = Field(0.9902, gt=0.5, lt=1.5)
     """True iris diameter over the landmark stage's measurement (MediaPipe's iris edges at
     the pupils' depth): the mean over the captures of ICT identities 1000-1007, whose renders
     paint each subject's own iris diameter (``benchmarks/bench_scale.py --calibrate``)."""
     iris_spread: float = Field(0.065, gt=0, lt=1)
     """Relative 1σ of the iris cue: the population's 4.3 % (0.5 / 11.7) and the measurement's
-    4.5 % (the spread of ``iris_ratio`` over the calibration captures, 640x360 renders with
-    irises ~12 px wide), added in quadrature (6.2 %) and rounded up."""
+    3.6 % (the spread of ``iris_ratio`` over the calibration captures, 640x360 renders with
+    irises ~12 px wide; 4.5 % before the face mesh gave the 68 points too), added in
+    quadrature (5.5 %) and rounded up to the earlier 6.5 %."""
     ear_width_cue: bool = False
     """Use the ear-to-ear width as a scale cue. Off: it is not calibrated (``ear_width_size``
     is the template's own width) and real-skin ear points can be far off."""

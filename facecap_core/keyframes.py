@@ -25,6 +25,7 @@ import numpy as np
 
 from facecap_core.config import KeyframeConfig
 from facecap_core.errors import InputError
+from facecap_core.face import face_box
 from facecap_core.video import iter_frames, probe
 
 
@@ -124,11 +125,9 @@ class HeadMotionProbe:
 
     def update(self, index: int, grey: np.ndarray, ids: np.ndarray, pts: np.ndarray) -> None:
         if index in self.starts:
-            from facecap_core.landmarks import face_box
-
-            box = face_box(grey)
-            if box is not None:
-                self.open[index] = (index + self.span, box, dict(zip(ids.tolist(), pts)))
+            found = face_box(grey)
+            if found is not None:
+                self.open[index] = (index + self.span, found[0], dict(zip(ids.tolist(), pts)))
         for start, (end, box, before) in list(self.open.items()):
             if index == end:
                 del self.open[start]

@@ -196,19 +196,18 @@ def _figures(module: str) -> Callable[[Path], dict]:
 
 
 def _landmark_models() -> str:
-    """The models the landmark stage ran besides dlib's, as part of its version: the ear model
-    (retrained, or replaced through $FACECAP_EAR_MODELS) and the iris model (mediapipe is
-    installed apart from the other dependencies: a worker without it measures no irises, and
-    a shared store must not hand its artifacts to workers that have it)."""
+    """The models the landmark stage ran, as part of its version: the ear model (retrained, or
+    replaced through $FACECAP_EAR_MODELS) and the face mesh's (mediapipe is installed apart
+    from the other dependencies, so its version is not fixed by the package's)."""
     from importlib.metadata import PackageNotFoundError, version
 
     from facecap_core.landmarks.ears import model_digest
 
     try:
-        iris = f"mediapipe-{version('mediapipe')}"
+        mesh = f"mediapipe-{version('mediapipe')}"
     except PackageNotFoundError:
-        iris = "no-iris"
-    return f"ears-{model_digest()}-{iris}"
+        mesh = "no-mediapipe"
+    return f"ears-{model_digest()}-{mesh}"
 
 
 # -- the table -------------------------------------------------------------------------------
@@ -221,7 +220,7 @@ STAGES: tuple[Stage, ...] = (
           exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=_figures("pose.stage")),
     Stage("frames", "landmarks", "1", ("video", "poses"), None, compute_frames,
           (FRAMES_JSON, "frame_{index:06d}.png")),
-    Stage("landmarks", "landmarks", "6", ("video", "poses"), "landmarks", compute_landmarks,
+    Stage("landmarks", "landmarks", "7", ("video", "poses"), "landmarks", compute_landmarks,
           (LANDMARKS_2D, LANDMARKS_3D, EARS_3D),
           version_suffix=_landmark_models),
     Stage("coarse", "coarse", "5", ("landmarks", "poses"), "coarse", compute_coarse,

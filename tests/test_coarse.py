@@ -218,7 +218,7 @@ def test_iris_cue_recovers_the_scale_and_a_wrong_one_is_dropped(template):
     assert "iris dropped: disagrees" in doc["how"]
 
     unmeasured = {"iris_diameter": None, "pupil_distance": None,
-                  "reason": "the mediapipe package is not installed"}
+                  "reason": "irises measured in 1 frontal keyframe(s)"}
     doc = coarse.metric_scale(template, L, *none, config, unmeasured)
     assert doc["used"] == ["landmarks"]
     assert doc["dropped"] == [{"name": "iris", "reason": unmeasured["reason"]}]

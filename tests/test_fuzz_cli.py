@@ -147,7 +147,7 @@ def damaged(draw, valid: bytes) -> bytes:
 SECTIONS = {"keyframes": ["min_frames", "track_width", "keyframe_angle_deg", "max_features"],
             "poses": ["method", "threads", "pba"], "mvs": ["workers", "depth", "fusion"],
             "fitting": ["stiffness", "landmark_weight", "iterations_per_level"],
-            "coarse": ["ipd_mm", "nicp_stiffness", "deformation"], "landmarks": ["upsample"],
+            "coarse": ["ipd_mm", "nicp_stiffness", "deformation"], "landmarks": ["min_detector_score"],
             "meshing": ["depth"]}
 scalars = st.one_of(st.none(), st.booleans(), st.integers(-2**70, 2**70),
                     st.floats(allow_nan=True, allow_infinity=True),

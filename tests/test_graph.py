@@ -158,3 +158,21 @@ def test_dependencies_point_one_way():
                 found += [f"{path.relative_to(root)}: {n}" for n in names
                           if n.split(".")[0] in banned]
     assert found == []
+
+
+def test_the_face_detector_sits_below_the_stages():
+    """``facecap_core/face.py`` (face box, mesh, 68 points) is a shared helper: it imports no
+    stage, and the keyframe stage, which uses its face box, imports no later stage."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "facecap_core"
+    stages = ("facecap_core.landmarks", "facecap_core.coarse", "facecap_core.pose",
+              "facecap_core.mvs", "facecap_core.fitting", "facecap_core.synthetic")
+    found = []
+    for name in ("face.py", "keyframes.py"):
+        for node in ast.walk(ast.parse((root / name).read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            found += [f"{name}: {n}" for n in names if n.startswith(stages)]
+    assert found == []

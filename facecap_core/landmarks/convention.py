@@ -1,14 +1,13 @@
-"""From the detector's 2D convention to 3D landmarks on the face.
+"""From the detector's 68 points to 3D landmarks on the face.
 
-dlib's 68 points follow the iBUG 300-W *image* annotation: brows, nostrils and mouth corners
-are placed where they look to be in each photo, so that, triangulated, they sit a few
-millimetres away from the 3D landmark vertices of a head model (the brows lower, the nostril
-points on the alar edge seen from the front, the mouth corners deeper) — 3 mm median on
-our renders even though the views agree with each other to ~2 px. These offsets are
-systematic: a per-landmark 3D offset, expressed in the head frame and in units of the
-eye-centre distance (so it holds at any scale), removes most of them.
+The 68 points are face-mesh vertices (:mod:`facecap_core.face`) chosen to lie nearest the
+iBUG 300-W landmarks; triangulated, each still sits a little away from the 3D landmark vertex
+of a head model (the mesh's vertices are not the annotation's points, and where the annotation
+follows an edge seen in the photo, a vertex cannot). These offsets are systematic: a
+per-landmark 3D offset, expressed in the head frame and in units of the eye-centre distance (so
+it holds at any scale), removes most of them.
 
-The table (:func:`load_offsets`, ``dlib68_convention.json``) is the mean offset from the
+The table (:func:`load_offsets`, ``ibug68_convention.json``) is the median offset from the
 triangulated to the ground-truth 3D landmarks over synthetic captures of ICT identities that
 are not used for testing; ``python benchmarks/bench_landmarks.py --calibrate`` rebuilds it.
 """
@@ -23,7 +22,7 @@ import numpy as np
 
 from facecap_core.template import INNER_LANDMARKS, head_frame
 
-OFFSETS_FILE = Path(__file__).with_name("dlib68_convention.json")
+OFFSETS_FILE = Path(__file__).with_name("ibug68_convention.json")
 
 __all__ = ["robust_head_frame", "eye_distance", "convention_offsets", "correct",
            "load_offsets", "OFFSETS_FILE"]

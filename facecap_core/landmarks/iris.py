@@ -1,31 +1,23 @@
 """The irises in an image: each pupil's centre and the iris's horizontal diameter in pixels.
 
-MediaPipe's face mesh with iris refinement (the ``mediapipe`` package, Apache-2.0; its models
-ship inside the wheel) gives 478 points: 468 and 473 are the centres of the subject's right
-and left iris, 469/471 and 474/476 their horizontal edges. It runs on a crop around dlib's
-face box, so that it measures the face the 68 points belong to. The pupil is then refined,
-along the eye's axis, to the centroid of the dark pixels around MediaPipe's centre
-(:func:`pupil_centre`).
+They come from the face detection's mesh (:mod:`facecap_core.face`: MediaPipe's face mesh with
+iris refinement, 478 points): 468 and 473 are the centres of the subject's right and left
+iris, 469/471 and 474/476 their horizontal edges. The pupil is then refined, along the eye's
+axis, to the centroid of the dark pixels around MediaPipe's centre (:func:`pupil_centre`).
 
 Against the renderer's truth (``benchmarks/bench_iris.py``, views within 15° of frontal at
-640x360, irises ~12 px wide): pupil error 0.33 px median (MediaPipe's own centre: 1.0 px),
-diameter error 5.4 % RMS per eye. An own limbus fit near dlib's eye points did worse (see
+640x360, irises ~12 px wide): pupil error 0.67 px median (MediaPipe's own centre: 1.0 px),
+diameter error 5.4 % RMS per eye. An own limbus fit near the eye points did worse (see
 docs/landmarks.md, "Metric scale").
 
-An eye is refused when it is not open enough (its dlib eye opening, the lids' mean distance
-over the corner-to-corner width, below ``min_eye_opening``; and the same ratio from
-MediaPipe's own lid points, below ``min_lid_opening``: dlib's predictor draws an open eye's
-outline on a closed one, MediaPipe's mesh follows the lids), when the iris centre lies outside
-the eye's dlib outline, or when the diameter is implausible for the eye's width.
+An eye is refused when it is not open enough (the mesh's lid points: their mean distance over
+the corner-to-corner width below ``min_eye_opening``), when the iris centre lies outside the
+eye's outline, or when the diameter is implausible for the eye's width.
 """
 
 from __future__ import annotations
 
-import importlib.util
-import logging
-import warnings
 from dataclasses import dataclass
-from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -33,13 +25,11 @@ from scipy import ndimage
 
 from facecap_core.camera import CameraSet, camera_center
 from facecap_core.config import LandmarkConfig
+from facecap_core.face import Detection
 from facecap_core.landmarks.triangulate import box_size, triangulate
-from facecap_core.native_logs import native_stderr_to_log
 
-__all__ = ["IrisFit", "available", "detect_irises", "eye_opening", "pupil_centre", "RIGHT_EYE",
+__all__ = ["IrisFit", "detect_irises", "eye_opening", "pupil_centre", "RIGHT_EYE",
            "LEFT_EYE", "DETECTOR"]
-
-log = logging.getLogger(__name__)
 
 RIGHT_EYE = np.arange(36, 42)  # the subject's right eye (image left in a frontal view)
 LEFT_EYE = np.arange(42, 48)
@@ -48,53 +38,24 @@ _MESH_IRIS = {"right": (468, 469, 471), "left": (473, 474, 476)}
 # MediaPipe's lid points per eye in the 68-point eye order: outer corner, two upper-lid
 # points, inner corner, two lower-lid points (the usual eye-aspect-ratio sextuple).
 _MESH_LIDS = {"right": (33, 160, 158, 133, 153, 144), "left": (263, 387, 385, 362, 380, 373)}
-DETECTOR = ("MediaPipe face mesh with iris refinement (478 points) on dlib's face box; pupils "
-            "refined along the eye's axis to the dark centroid")
+DETECTOR = ("MediaPipe face mesh with iris refinement (478 points); pupils refined along the "
+            "eye's axis to the dark centroid")
 # An adult's visible iris is 0.35-0.5 of the eye's corner-to-corner width.
 _DIAMETER_OVER_WIDTH = (0.25, 0.65)
 
 
 @dataclass
 class IrisFit:
-    """One iris: its centre (x, y) and horizontal diameter in pixels, and the eye's opening
-    by dlib's points and by MediaPipe's lids."""
+    """One iris: its centre (x, y) and horizontal diameter in pixels, and the eye's opening."""
 
     centre: np.ndarray
     diameter: float
     opening: float
-    lid_opening: float = float("nan")
 
     def as_dict(self) -> dict:
         return {"centre": [round(float(c), 3) for c in self.centre],
                 "diameter_px": round(float(self.diameter), 4),
-                "opening": round(float(self.opening), 4),
-                "lid_opening": round(float(self.lid_opening), 4)}
-
-
-def available() -> bool:
-    """Whether the ``mediapipe`` package is installed."""
-    return importlib.util.find_spec("mediapipe") is not None
-
-
-@lru_cache(maxsize=1)
-def _face_mesh():
-    from mediapipe.python.solutions import face_mesh
-
-    mesh = face_mesh.FaceMesh(static_image_mode=True, refine_landmarks=True, max_num_faces=1,
-                              min_detection_confidence=0.3)
-    # Its C++ side logs the graph's start (the TFLite delegate, absl notices) to stderr:
-    # kept in the log at DEBUG, none of it is a warning to the user.
-    with native_stderr_to_log(log, warnings=(), prefix="mediapipe: "):
-        _process(mesh, np.zeros((64, 64, 3), np.uint8))  # the graph starts (and logs) here
-    return mesh
-
-
-def _process(mesh, image: np.ndarray):
-    with warnings.catch_warnings():
-        # protobuf 4 warns on every graph output that MediaPipe 0.10.14 reads the old way.
-        warnings.filterwarnings("ignore", message="SymbolDatabase.GetPrototype",
-                                category=UserWarning)
-        return mesh.process(image)
+                "opening": round(float(self.opening), 4)}
 
 
 def eye_opening(eye_points: np.ndarray) -> float:
@@ -151,44 +112,28 @@ def _inside(point: np.ndarray, polygon: np.ndarray) -> bool:
     return cv2.pointPolygonTest(polygon.astype(np.float32), tuple(map(float, point)), False) >= 0
 
 
-def detect_irises(image: np.ndarray, points68: np.ndarray, box: tuple[float, ...],
-                  min_eye_opening: float = 0.18, refine_pupil: bool = True,
-                  min_lid_opening: float = 0.2) -> dict[str, IrisFit]:
-    """The irises ({"right", "left"}: :class:`IrisFit`) of the face whose 68 points and box
-    are given, in an RGB uint8 ``image``; an eye that is refused is missing. Without
-    ``refine_pupil`` the centre is MediaPipe's own."""
-    left, top, right, bottom = box
-    size = max(right - left, bottom - top)
-    cx, cy = 0.5 * (left + right), 0.5 * (top + bottom)
-    h, w = image.shape[:2]
-    x0, y0 = int(max(0, np.floor(cx - size))), int(max(0, np.floor(cy - size)))
-    x1, y1 = int(min(w, np.ceil(cx + size))), int(min(h, np.ceil(cy + size)))
-    if x1 - x0 < 32 or y1 - y0 < 32:
-        return {}
-    crop = np.ascontiguousarray(image[y0:y1, x0:x1, :3])
-    result = _process(_face_mesh(), crop)
-    if not result.multi_face_landmarks:
-        return {}
-    mesh = np.array([[q.x * (x1 - x0) + x0, q.y * (y1 - y0) + y0]
-                     for q in result.multi_face_landmarks[0].landmark])
-    if len(mesh) < 478:
-        return {}
+def detect_irises(image: np.ndarray, detection: Detection, min_eye_opening: float = 0.2,
+                  refine_pupil: bool = True) -> dict[str, IrisFit]:
+    """The irises ({"right", "left"}: :class:`IrisFit`) of a detected face in an RGB uint8
+    ``image``; an eye that is refused is missing. Without ``refine_pupil`` the centre is
+    MediaPipe's own."""
+    mesh = detection.mesh
     found = {}
     for side, ids in (("right", RIGHT_EYE), ("left", LEFT_EYE)):
-        eye = np.asarray(points68, float)[ids]
+        eye = np.asarray(detection.points, float)[ids]
+        lids = mesh[list(_MESH_LIDS[side])]
         centre, a, b = mesh[list(_MESH_IRIS[side])]
         diameter = float(np.linalg.norm(a - b))
-        width = float(np.linalg.norm(eye[3] - eye[0]))
-        opening = eye_opening(eye)
-        lids = eye_opening(mesh[list(_MESH_LIDS[side])])
-        if (opening < min_eye_opening or lids < min_lid_opening or not _inside(centre, eye)
+        width = float(np.linalg.norm(lids[3] - lids[0]))
+        opening = eye_opening(lids)
+        if (opening < min_eye_opening or not _inside(centre, eye)
                 or not _DIAMETER_OVER_WIDTH[0] <= diameter / width <= _DIAMETER_OVER_WIDTH[1]):
             continue
         if refine_pupil:
-            centre = pupil_centre(image, centre, 0.5 * diameter, eye[3] - eye[0])
+            centre = pupil_centre(image, centre, 0.5 * diameter, lids[3] - lids[0])
         if not _inside(centre, eye):
             continue
-        found[side] = IrisFit(centre, diameter, opening, lids)
+        found[side] = IrisFit(centre, diameter, opening)
     return found
 
 
@@ -199,15 +144,12 @@ def triangulate_irises(dets: list, records: list[dict], gated: list[int],
     times the pupil's depth over the focal length, undone of the foreshortening of an iris
     that looks along the head's +z (cos of the view's yaw at that eye); the median over views
     and eyes."""
-    doc = {"detector": DETECTOR if available() else None, "units": cams.units,
+    doc = {"detector": DETECTOR, "units": cams.units,
            "views": [], "pupils": {"right": None, "left": None}, "pupil_distance": None,
            "iris_diameter": None, "iris_diameter_spread_rel": None, "iris_diameter_views": [],
            "reason": None}
     if not config.irises:
         doc["reason"] = "iris measurement is off (LandmarkConfig.irises)"
-        return doc
-    if not available():
-        doc["reason"] = "the mediapipe package is not installed"
         return doc
     views = [k for k in gated if abs(records[k]["yaw_deg"]) <= config.iris_max_yaw_deg
              and dets[k].irises]

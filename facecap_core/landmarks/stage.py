@@ -2,15 +2,16 @@
 
 :func:`main` runs, for the keyframes of a ``cameras.json`` (``facecap_core/pose/io.py``):
 
-1. **Detection**: dlib's HOG face box at ``detect_width``, the 68-point ERT predictor at full
-   resolution, on every keyframe (:func:`facecap_core.landmarks.detect_68`).
+1. **Detection**: MediaPipe's face box and face mesh, and the 68 points read off the mesh, on
+   every keyframe (:func:`facecap_core.face.detect`).
 2. **First triangulation** of all 68 points from every detection (robust,
    :mod:`.triangulate`). It gives the head frame (:func:`facecap_core.template.head_frame`),
    hence each keyframe's **yaw** around the head — for every keyframe, detected or not — and
    each detection's **agreement**: the median reprojection error of its inner points against
    the landmarks triangulated from all views, relative to the face box size.
-3. **Gate** (the paper: high-confidence, near-frontal frames): detector score, |yaw| and
-   agreement within the :class:`~facecap_core.config.LandmarkConfig` limits.
+3. **Gate** (the paper: high-confidence, near-frontal frames): |yaw| and agreement within the
+   :class:`~facecap_core.config.LandmarkConfig` limits (the detector's score is checked
+   at detection).
 4. **3D landmarks**: the 51 inner points (iBUG 17–67; the jaw contour 0–16 depends on the
    view and is left out, as in the paper) triangulated from the gated keyframes, then moved
    from the detector's image convention to 3D landmarks on the face
@@ -21,7 +22,7 @@
    triangulated over the keyframes that found it. A side whose points fail the checks of
    :mod:`.ear_check` (too few points, views that disagree, an ear where no ear can be
    relative to the face, an ear-to-ear width no head has) is dropped with its reason.
-6. **Irises**, when ``mediapipe`` is installed (:mod:`.iris`): each detected keyframe's pupil
+6. **Irises** (:mod:`.iris`, from the same face mesh): each detected keyframe's pupil
    centres and horizontal iris diameters (``landmarks2d.json``, per keyframe); over the gated
    keyframes within ``iris_max_yaw_deg`` of frontal, the pupils triangulated and the iris
    diameter in world units (``landmarks3d.json``: ``irises``), for the coarse stage's scale
@@ -45,7 +46,8 @@ import numpy as np
 from facecap_core.camera import CameraSet, Intrinsics, camera_center, read_cameras_json
 from facecap_core.config import LandmarkConfig
 from facecap_core.errors import InputError
-from facecap_core.landmarks import Detection, detect_68, iris
+from facecap_core.face import DETECTOR, Detection, detect
+from facecap_core.landmarks import iris
 from facecap_core.landmarks.convention import (
     correct,
     eye_distance,
@@ -137,31 +139,33 @@ def _to_intrinsics(points: np.ndarray, image_shape, intr: Intrinsics) -> np.ndar
 # --------------------------------------------------------------------------- detection
 
 
+def _at_intrinsics(det: Detection, irises: dict | None, image_shape, intr: Intrinsics
+                   ) -> Detection:
+    """A detection in a decoded frame's pixels, with its irises (None: not measured), in the
+    intrinsics' pixels."""
+    def at(points):
+        return _to_intrinsics(np.reshape(points, (-1, 2)), image_shape, intr)
+
+    zoom = intr.width / image_shape[1]
+    if irises is not None:
+        irises = {side: iris.IrisFit(at(f.centre)[0], f.diameter * zoom, f.opening)
+                  for side, f in irises.items()}
+    return Detection(at(det.points), det.score, tuple(float(b) for b in at(det.box).ravel()),
+                     at(det.mesh), irises)
+
+
 def detect_keyframes(video: str | Path, cams: CameraSet, config: LandmarkConfig
                      ) -> list[Detection | None]:
     """One :class:`Detection` (points at the intrinsics' resolution) or None per keyframe."""
     from facecap_core.video import iter_frames
 
     found: dict[int, Detection | None] = {}
-    measure_irises = config.irises and iris.available()
     for frame in iter_frames(video, indices=cams.frame_indices):
-        det = detect_68(frame.image, config.upsample, config.detect_width,
-                        config.min_detector_score)
+        det = detect(frame.image, config.min_detector_score)
         if det is not None:
-            pts = _to_intrinsics(det.points, frame.image.shape, cams.intrinsics)
-            box = _to_intrinsics(np.reshape(det.box, (2, 2)), frame.image.shape,
-                                 cams.intrinsics).ravel()
-            irises = None
-            if measure_irises:
-                irises = iris.detect_irises(frame.image, det.points, det.box,
-                                            config.min_eye_opening,
-                                            min_lid_opening=config.min_lid_opening)
-                zoom = cams.intrinsics.width / frame.image.shape[1]
-                irises = {side: iris.IrisFit(_to_intrinsics(f.centre[None], frame.image.shape,
-                                                            cams.intrinsics)[0],
-                                             f.diameter * zoom, f.opening, f.lid_opening)
-                          for side, f in irises.items()}
-            det = Detection(pts, det.score, tuple(float(b) for b in box), det.view, irises)
+            irises = (iris.detect_irises(frame.image, det, config.min_eye_opening)
+                      if config.irises else None)
+            det = _at_intrinsics(det, irises, frame.image.shape, cams.intrinsics)
         found[frame.index] = det
     missing = [i for i in cams.frame_indices if i not in found]
     if missing:
@@ -208,8 +212,7 @@ def _gate(records: list[dict], config: LandmarkConfig) -> tuple[list[int], bool]
     """Keyframe positions that pass the gate, and whether it had to be widened."""
     detected = [k for k, r in enumerate(records) if r["detected"]]
     passed = [k for k in detected
-              if records[k]["score"] >= config.gate_min_score
-              and abs(records[k]["yaw_deg"]) <= config.gate_max_yaw_deg
+              if abs(records[k]["yaw_deg"]) <= config.gate_max_yaw_deg
               and records[k]["reprojection_rel"] <= config.gate_max_reprojection]
     if len(passed) >= min(config.min_views, len(detected)):
         return passed, False
@@ -325,7 +328,7 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
             v = detected.index(k)
             err = first.errors[v, inner]
             med = float(np.nanmedian(err)) if np.isfinite(err).any() else float("inf")
-            rec.update(score=round(det.score, 4), detector_view=det.view,
+            rec.update(score=round(det.score, 4),
                        box=[round(b, 2) for b in det.box],
                        points=np.round(det.points, 3).tolist(),
                        reprojection_px=round(med, 3),
@@ -384,7 +387,7 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
     out.mkdir(parents=True, exist_ok=True)
     errs = final.errors[final.inliers]
     doc2d = {"image_size": [cams.intrinsics.width, cams.intrinsics.height],
-             "detector": "dlib HOG face detector + 68-point ERT predictor (iBUG 300-W)",
+             "detector": DETECTOR,
              "ear_model": ears is not None, "gate_widened": widened,
              "config": config.model_dump(mode="json"), "keyframes": records}
     _write_json(out / LANDMARKS_2D, doc2d)
