@@ -749,8 +749,8 @@ class LandmarkConfig(StrictModel):
     """68-point landmarks per keyframe, their gate, and 3D triangulation
     (``facecap_core/landmarks/stage.py``; Agrawal et al. 2020, "Landmark constraints")."""
 
-    min_detector_score: float = Field(0.5, ge=0, le=1)
-    """Weakest face detection kept (MediaPipe's face detector score, 0-1: 0.8-0.9 on faces
+    min_detector_score: float = Field(0.5, ge=0.1, le=1)
+    """Weakest face detection kept (MediaPipe's face detector score, 0.1-1: 0.8-0.9 on faces
     turned up to 50°; ``facecap_core/face.py``)."""
     gate_max_yaw_deg: float = Field(40.0, gt=0, le=90)
     """Gate: largest yaw of the camera around the head (from the first triangulation): the
@@ -841,23 +841,23 @@ class CoarseConfig(StrictModel):
     """The subject's interpupillary distance in mm as an optician measures it ("far PD"),
     when known: the scale then comes mainly from the distance between the triangulated eye
     centres (``--ipd-mm`` on the command line)."""
-    ipd_ratio: float = Field(0.9816, gt=0.5, lt=1.5)
+    ipd_ratio: float = Field(0.9800, gt=0.5, lt=1.5)
     """Pupil distance over the distance between the triangulated centres of the two eyes'
     six landmarks: the mean over the captures of ICT identities 1000-1007 (the rendered
     pupils against the landmark stage's output with exact cameras; ``benchmarks/
     bench_scale.py --calibrate``). Used for ``ipd_mm`` when the pupils were not measured."""
     ipd_spread: float = Field(0.02, gt=0, lt=1)
     """Relative 1σ of the IPD cue against the eye landmarks: the spread of that ratio over
-    the calibration captures (1.2 % over 8, rounded up: a spread from 8 faces is itself
+    the calibration captures (1.1 % over 8, rounded up: a spread from 8 faces is itself
     uncertain by a quarter)."""
-    pupil_ratio: float = Field(1.0051, gt=0.5, lt=1.5)
+    pupil_ratio: float = Field(1.0055, gt=0.5, lt=1.5)
     """Pupil distance over the distance between the pupils as the landmark stage triangulates
     them: the mean over the captures of ICT identities 1000-1007 (``benchmarks/
     bench_scale.py --calibrate``). With pupils, ``ipd_mm`` uses them instead of the eye
     landmarks."""
     pupil_ipd_spread: float = Field(0.006, gt=0, lt=1)
     """Relative 1σ of the IPD cue from the triangulated pupils: the spread of ``pupil_ratio``
-    over the calibration captures (0.28 % over 8), widened to 0.6 %: a spread from 8 faces is
+    over the calibration captures (0.22 % over 8), widened to 0.6 %: a spread from 8 faces is
     itself uncertain by a quarter, rendered pupils are sharper than real ones, and a subject
     who fixates a near point while the camera moves converges the eyes (a far gaze, or eyes
     that follow the camera, give the far PD)."""
@@ -867,13 +867,13 @@ class CoarseConfig(StrictModel):
     tighter prior than the face's size."""
     iris_diameter_mm: float = Field(11.7, gt=8, lt=16)
     """Mean horizontal visible iris diameter of adults (11.7 ± 0.5 mm, 1σ)."""
-    iris_ratio: float = Field(0.9902, gt=0.5, lt=1.5)
+    iris_ratio: float = Field(0.9838, gt=0.5, lt=1.5)
     """True iris diameter over the landmark stage's measurement (MediaPipe's iris edges at
     the pupils' depth): the mean over the captures of ICT identities 1000-1007, whose renders
     paint each subject's own iris diameter (``benchmarks/bench_scale.py --calibrate``)."""
     iris_spread: float = Field(0.065, gt=0, lt=1)
     """Relative 1σ of the iris cue: the population's 4.3 % (0.5 / 11.7) and the measurement's
-    3.6 % (the spread of ``iris_ratio`` over the calibration captures, 640x360 renders with
+    3.7 % (the spread of ``iris_ratio`` over the calibration captures, 640x360 renders with
     irises ~12 px wide; 4.5 % before the face mesh gave the 68 points too), added in
     quadrature (5.5 %) and rounded up to the earlier 6.5 %."""
     ear_width_cue: bool = False

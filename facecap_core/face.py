@@ -37,13 +37,19 @@ log = logging.getLogger(__name__)
 DETECTOR = ("MediaPipe 0.10 (Apache-2.0): BlazeFace face box (short or full range), face mesh with "
             "irises (478 points); the 68 iBUG points are fixed mesh vertices")
 MESH_POINTS = 478
+MIN_SCORE = 0.1  # the weakest detection the detector reports at all
 
 # iBUG 300-W index -> MediaPipe face-mesh vertex ("right" is the subject's right, the image's
 # left in a frontal view, in both conventions): the vertex nearest each projected ground-truth
 # landmark on calibration renders (``python benchmarks/bench_landmarks.py --calibrate``).
 MESH_TO_68_FILE = Path(__file__).with_name("data") / "face_mesh_to_ibug68.json"
 
-_LOCK = threading.Lock()  # one MediaPipe graph per process; its calls are not re-entrant
+_LOCK = threading.Lock()  # MediaPipe's graphs are not re-entrant: one call at a time
+
+# protobuf 4 warns on every graph output that MediaPipe 0.10 reads the old way; filtered once
+# here (catch_warnings around each call would swap the process's filters from several
+# threads at once).
+warnings.filterwarnings("ignore", message="SymbolDatabase.GetPrototype", category=UserWarning)
 
 
 @dataclass
@@ -73,43 +79,60 @@ def available() -> bool:
     return importlib.util.find_spec("mediapipe") is not None
 
 
+INSTALL = ("run `make install`, or `pip install --no-deps mediapipe==0.10.21` and the "
+           "packages pyproject.toml lists for it (docs/dependencies.md)")
+
+
 def _require() -> None:
     if not available():
-        raise FacecapError("the mediapipe package is not installed (the face landmark "
-                           "detector): run `make install`, or `pip install --no-deps "
-                           "mediapipe==0.10.21` (docs/dependencies.md)")
+        raise FacecapError(f"the mediapipe package (the face detector) is not installed: "
+                           f"{INSTALL}")
 
 
-def _quietly(graph, image: np.ndarray):
-    with warnings.catch_warnings():
-        # protobuf 4 warns on every graph output that MediaPipe 0.10 reads the old way.
-        warnings.filterwarnings("ignore", message="SymbolDatabase.GetPrototype",
-                                category=UserWarning)
-        return graph.process(image)
+def _solution(name: str):
+    """``mediapipe.python.solutions.<name>``, or a one-line error when it cannot be imported."""
+    _require()
+    import importlib
+
+    try:
+        return importlib.import_module(f"mediapipe.python.solutions.{name}")
+    except ImportError as exc:
+        raise FacecapError(f"the mediapipe package does not import ({exc}): {INSTALL}") from exc
+
+
+_SPOKEN: set[int] = set()  # graphs that have run a model on a face
+
+
+def _run(graph, image: np.ndarray):
+    """``graph.process(image)``. The C++ side logs to stderr when a model first runs (the
+    TFLite delegate, absl notices), which is at the first image with a face for the mesh
+    model: until then its stderr goes to the log at DEBUG, none of it is a warning to the
+    user."""
+    with _LOCK:
+        if id(graph) in _SPOKEN:
+            return graph.process(image)
+        with native_stderr_to_log(log, warnings=(), prefix="mediapipe: "):
+            result = graph.process(image)
+        if getattr(result, "detections", None) or getattr(result, "multi_face_landmarks", None):
+            _SPOKEN.add(id(graph))
+        return result
 
 
 def _started(graph):
-    # The C++ side logs the graph's start (the TFLite delegate, absl notices) to stderr:
-    # kept in the log at DEBUG, none of it is a warning to the user.
-    with native_stderr_to_log(log, warnings=(), prefix="mediapipe: "):
-        _quietly(graph, np.zeros((64, 64, 3), np.uint8))
+    _run(graph, np.zeros((64, 64, 3), np.uint8))
     return graph
 
 
 @lru_cache(maxsize=2)
 def _face_detector(full_range: bool):
-    _require()
-    from mediapipe.python.solutions import face_detection
-
+    face_detection = _solution("face_detection")
     return _started(face_detection.FaceDetection(model_selection=int(full_range),
-                                                 min_detection_confidence=0.1))
+                                                 min_detection_confidence=MIN_SCORE))
 
 
 @lru_cache(maxsize=1)
 def _face_mesh():
-    _require()
-    from mediapipe.python.solutions import face_mesh
-
+    face_mesh = _solution("face_mesh")
     return _started(face_mesh.FaceMesh(static_image_mode=True, refine_landmarks=True,
                                        max_num_faces=1, min_detection_confidence=0.3))
 
@@ -131,8 +154,7 @@ def face_box(image: np.ndarray, min_score: float = 0.5
     # The short-range model finds faces that fill the frame (a phone at arm's length or
     # closer), which the full-range one misses; the full-range one finds faces further away.
     for full_range in (False, True):
-        with _LOCK:
-            result = _quietly(_face_detector(full_range), img)
+        result = _run(_face_detector(full_range), img)
         if result.detections:
             best = max(result.detections, key=lambda d: d.score[0])
             if best.score[0] >= min_score:
@@ -140,7 +162,9 @@ def face_box(image: np.ndarray, min_score: float = 0.5
     if best is None or best.score[0] < min_score:
         return None
     b = best.location_data.relative_bounding_box
-    box = (b.xmin * w, b.ymin * h, (b.xmin + b.width) * w, (b.ymin + b.height) * h)
+    # MediaPipe's normalised coordinates put pixel centres at (i + 0.5) / size; ours at i.
+    box = (b.xmin * w - 0.5, b.ymin * h - 0.5, (b.xmin + b.width) * w - 0.5,
+           (b.ymin + b.height) * h - 0.5)
     return tuple(float(v) for v in box), float(best.score[0])
 
 
@@ -162,8 +186,7 @@ def detect(image: np.ndarray, min_score: float = 0.5) -> Detection | None:
     x1, y1 = int(min(w, np.ceil(cx + size))), int(min(h, np.ceil(cy + size)))
     if x1 - x0 < 32 or y1 - y0 < 32:
         return None
-    with _LOCK:
-        result = _quietly(_face_mesh(), np.ascontiguousarray(img[y0:y1, x0:x1]))
+    result = _run(_face_mesh(), np.ascontiguousarray(img[y0:y1, x0:x1]))
     if not result.multi_face_landmarks:
         return None
     # MediaPipe's normalised coordinates put pixel centres at (i + 0.5) / size; ours at i.

@@ -10,6 +10,7 @@ changes its output.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,9 +22,11 @@ from facecap_core import config as cfg
 from facecap_core.camera import CAMERAS_JSON
 from facecap_core.coarse import COARSE_JSON, COARSE_PLY
 from facecap_core.evaluation import EVALUATION_JSON, PROTOCOLS
+from facecap_core.face import MESH_TO_68_FILE
 from facecap_core.fitting.run import FIT_JSON, MESH_LANDMARKS, MESH_OBJ, MESH_PLY
 from facecap_core.frames import FRAMES_JSON
 from facecap_core.keyframes import KEYFRAMES_JSON, TRACKS_NPZ
+from facecap_core.landmarks.convention import OFFSETS_FILE
 from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_2D, LANDMARKS_3D
 from facecap_core.mvs.fusion import CLOUD, FUSION
 from facecap_core.mvs.views import VIEWS, read_views
@@ -196,9 +199,11 @@ def _figures(module: str) -> Callable[[Path], dict]:
 
 
 def _landmark_models() -> str:
-    """The models the landmark stage ran, as part of its version: the ear model (retrained, or
-    replaced through $FACECAP_EAR_MODELS) and the face mesh's (mediapipe is installed apart
-    from the other dependencies, so its version is not fixed by the package's)."""
+    """The models and tables the landmark stage ran, as part of its version: the ear model
+    (retrained, or replaced through $FACECAP_EAR_MODELS), the face mesh's (mediapipe is
+    installed apart from the other dependencies, so its version is not fixed by the
+    package's), and the calibrated tables that turn mesh vertices into 3D landmarks (a
+    recalibration changes every landmark)."""
     from importlib.metadata import PackageNotFoundError, version
 
     from facecap_core.landmarks.ears import model_digest
@@ -207,7 +212,8 @@ def _landmark_models() -> str:
         mesh = f"mediapipe-{version('mediapipe')}"
     except PackageNotFoundError:
         mesh = "no-mediapipe"
-    return f"ears-{model_digest()}-{mesh}"
+    tables = hashlib.sha256(MESH_TO_68_FILE.read_bytes() + OFFSETS_FILE.read_bytes())
+    return f"ears-{model_digest()}-{mesh}-tables-{tables.hexdigest()[:12]}"
 
 
 # -- the table -------------------------------------------------------------------------------

@@ -344,6 +344,11 @@ def test_worker_image_installs_the_project_as_a_non_root_user():
     pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
     prefect_pin = next(d for d in pyproject["project"]["dependencies"] if d.startswith("prefect=="))
     assert prefect_pin in constraints
+    # mediapipe (the face detector) is installed apart, --no-deps: one version everywhere.
+    makefile = re.search(r"^MEDIAPIPE := (mediapipe==\S+)$", (ROOT / "Makefile").read_text(),
+                         re.M).group(1)
+    assert makefile in constraints
+    assert any(f"--no-deps {makefile}" in a for w, a in instructions if w == "RUN")
     users = [i for i, (w, a) in enumerate(instructions) if w == "USER"]
     assert users and users[-1] > install
     assert instructions[users[-1]][1] not in ("root", "0")

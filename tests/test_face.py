@@ -2,6 +2,8 @@
 read off the mesh, against rendered ground truth."""
 
 import json
+import sys
+from types import SimpleNamespace
 
 import av
 import numpy as np
@@ -36,18 +38,15 @@ def frontal(tmp_path_factory, ict_model):
 
 def test_the_68_points_lie_on_the_projected_ground_truth(frontal):
     """The inner 51 points against the projected landmark vertices. On held-out 720p renders
-    the median is PLACEHOLDER px (``bench_landmark_detectors.py``, docs/landmarks.md); 6 px
-    is twice the worst capture's, and half of dlib's former bound (8 px), which the mesh
-    detector was chosen to beat."""
+    the median per capture is 3.5-4.7 px on ICT identities (5.3 on the james scan;
+    ``bench_landmark_detectors.py``, docs/landmarks.md): 6 px leaves a quarter over the worst
+    ICT capture (dlib's former predictor had 8 px here)."""
     errors = []
     for image, truth in frontal:
         det = face.detect(image)
         assert det is not None, "no face found on a frontal frame"
-        assert det.points.shape == (68, 2) and det.mesh.shape == (face.MESH_POINTS, 2)
-        np.testing.assert_array_equal(det.points, det.mesh[face.mesh_to_68()])
         left, top, right, bottom = det.box
-        assert 0.5 < det.score <= 1 and left < truth[:, 0].mean() < right
-        assert top < truth[:, 1].mean() < bottom
+        assert left < truth[:, 0].mean() < right and top < truth[:, 1].mean() < bottom
         errors.append(np.linalg.norm(det.points[INNER_LANDMARKS] - truth[INNER_LANDMARKS],
                                      axis=1))
     assert np.median(errors) < 6.0
@@ -104,7 +103,52 @@ def test_the_vertex_table_is_a_calibrated_mesh_vertex_per_point():
 
 
 def test_without_mediapipe_the_error_says_how_to_install_it(monkeypatch):
-    monkeypatch.setattr(face, "available", lambda: False)
     monkeypatch.setattr(face, "_face_detector", face._face_detector.__wrapped__)
-    with pytest.raises(FacecapError, match="make install"):
+    monkeypatch.setattr(face, "available", lambda: False)
+    with pytest.raises(FacecapError, match="not installed: run `make install`"):
         face.detect(np.zeros((64, 64, 3), np.uint8))
+    # Installed but broken (a dependency missing): one line, not a traceback.
+    monkeypatch.setattr(face, "available", lambda: True)
+    monkeypatch.setitem(sys.modules, "mediapipe.python.solutions.face_detection", None)
+    with pytest.raises(FacecapError, match="does not import .*make install"):
+        face.detect(np.zeros((64, 64, 3), np.uint8))
+
+
+class _Graph:
+    """A stand-in MediaPipe graph that answers with fixed normalised coordinates."""
+
+    def __init__(self, result):
+        self.result, self.images = result, []
+
+    def process(self, image):
+        self.images.append(image)
+        return self.result
+
+
+def test_pixel_coordinates_follow_the_crop_and_the_pixel_centres(monkeypatch):
+    """MediaPipe's normalised coordinates put pixel centres at (i + 0.5) / size; facecap's at
+    i. A box near the image's border gives a clipped, non-square crop; a mesh point at
+    normalised (u, v) of the crop lands at u * crop width + crop left - 0.5."""
+    h, w = 300, 400
+    # A box from (349.5, 49.5) to (399.5, 129.5) in facecap's pixels.
+    box = SimpleNamespace(xmin=350 / w, ymin=50 / h, width=50 / w, height=80 / h)
+    detection = SimpleNamespace(score=[0.9], location_data=SimpleNamespace(
+        relative_bounding_box=box))
+    points = [SimpleNamespace(x=(i % 7) / 7, y=(i % 5) / 5, z=0.0)
+              for i in range(face.MESH_POINTS)]
+    mesh = _Graph(SimpleNamespace(multi_face_landmarks=[SimpleNamespace(landmark=points)]))
+    detector = _Graph(SimpleNamespace(detections=[detection]))
+    monkeypatch.setattr(face, "_face_detector", lambda full_range: detector)
+    monkeypatch.setattr(face, "_face_mesh", lambda: mesh)
+    det = face.detect(np.zeros((h, w, 3), np.uint8))
+    assert det.box == pytest.approx((349.5, 49.5, 399.5, 129.5))
+    # Crop: twice the box's larger side (80) around its centre (374.5, 89.5), clipped.
+    assert mesh.images[0].shape == (170 - 9, 400 - 294, 3)
+    x0, y0, cw, ch = 294, 9, 106, 161
+    expected = [[(i % 7) / 7 * cw + x0 - 0.5, (i % 5) / 5 * ch + y0 - 0.5]
+                for i in range(face.MESH_POINTS)]
+    np.testing.assert_allclose(det.mesh, expected)
+    np.testing.assert_allclose(det.points, np.asarray(expected)[face.mesh_to_68()])
+    # A weaker face than asked for is no face; the full-range detector is asked next.
+    detection.score = [0.3]
+    assert face.detect(np.zeros((h, w, 3), np.uint8), min_score=0.5) is None

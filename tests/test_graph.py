@@ -173,6 +173,22 @@ def test_the_face_detector_sits_below_the_stages():
     for name in ("face.py", "keyframes.py"):
         for node in ast.walk(ast.parse((root / name).read_text())):
             names = ([a.name for a in node.names] if isinstance(node, ast.Import)
-                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+                     else [f"{node.module}.{a.name}" for a in node.names]
+                     if isinstance(node, ast.ImportFrom) else [])
             found += [f"{name}: {n}" for n in names if n.startswith(stages)]
     assert found == []
+
+
+def test_a_recalibrated_landmark_table_is_a_new_landmark_stage(tmp_path, monkeypatch):
+    """The landmark stage's version names its calibrated tables: a store never hands out
+    landmarks made with another vertex table or convention offsets."""
+    import tasks.graph as graph
+
+    before = graph._landmark_models()
+    for name in ("MESH_TO_68_FILE", "OFFSETS_FILE"):
+        table = tmp_path / f"{name}.json"
+        table.write_bytes(getattr(graph, name).read_bytes() + b" ")
+        with monkeypatch.context() as m:
+            m.setattr(graph, name, table)
+            assert graph._landmark_models() != before
+    assert graph._landmark_models() == before

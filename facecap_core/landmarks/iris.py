@@ -35,8 +35,9 @@ RIGHT_EYE = np.arange(36, 42)  # the subject's right eye (image left in a fronta
 LEFT_EYE = np.arange(42, 48)
 # MediaPipe's iris points: centre, then the subject's right/top/left/bottom edge... per side.
 _MESH_IRIS = {"right": (468, 469, 471), "left": (473, 474, 476)}
-# MediaPipe's lid points per eye in the 68-point eye order: outer corner, two upper-lid
-# points, inner corner, two lower-lid points (the usual eye-aspect-ratio sextuple).
+# MediaPipe's lid points per eye: outer corner, two upper-lid points, inner corner, two
+# lower-lid points (the usual eye-aspect-ratio sextuple; for the left eye iBUG's order runs
+# the other way, from the inner corner).
 _MESH_LIDS = {"right": (33, 160, 158, 133, 153, 144), "left": (263, 387, 385, 362, 380, 373)}
 DETECTOR = ("MediaPipe face mesh with iris refinement (478 points); pupils refined along the "
             "eye's axis to the dark centroid")
