@@ -38,7 +38,7 @@ def frontal(tmp_path_factory, ict_model):
 
 def test_the_68_points_lie_on_the_projected_ground_truth(frontal):
     """The inner 51 points against the projected landmark vertices. On held-out 720p renders
-    the median per capture is 3.5-4.7 px on ICT identities (5.3 on the james scan;
+    the median per capture is 3.7-4.7 px on ICT identities (5.3 on the james scan;
     ``bench_landmark_detectors.py``, docs/landmarks.md): 6 px leaves a quarter over the worst
     ICT capture (dlib's former predictor had 8 px here)."""
     errors = []
