@@ -40,7 +40,7 @@ def main() -> None:
     accuracy, frames = None, None
     stages = report.get("stages", {})
     if store:
-        from tasks.runner import open_store
+        from tasks.store import open_store
 
         if "evaluation" in stages:
             path = open_store(store).get(stages["evaluation"]["key"]) / "accuracy_metric.npy"

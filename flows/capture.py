@@ -48,9 +48,10 @@ from tasks.graph import (
     stages_until,
 )
 from tasks.outputs import ResultWriter, check_output_place
-from tasks.runner import default_store_url, open_store, run_leases
+from tasks.runner import default_store_url, run_leases
 from tasks.scratch import process_scratch
 from tasks.stages import call_ingest, call_stage, stage_result
+from tasks.store import open_store
 
 Step = Literal[STEPS + tuple(UNTIL_ALIASES)]
 """What ``until`` can stop after, in order: the stages of the graph (``mvs`` is fusion)."""

@@ -120,7 +120,7 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
                       "scan_landmarks": call_ingest(store, entry.scan_landmarks,
                                                     entry.scan_landmarks.name, name)}
             key, _ = call_stage("evaluation", store, inputs, {}, name)
-            from tasks.runner import open_store
+            from tasks.store import open_store
 
             doc = json.loads((open_store(store).get(key) / "evaluation.json").read_text())
             current[name] = doc["similarity"]

@@ -144,7 +144,8 @@ def guard(out: str | os.PathLike, store: str | None,
           **inputs: str | os.PathLike | None) -> str:
     """Check a flow's parameters against the service's limits (when served); returns the
     store to use. ``inputs`` are named by what they are (``video``, ``config``, ...)."""
-    from tasks.runner import default_store_url, open_store
+    from tasks.runner import default_store_url
+    from tasks.store import open_store
 
     policy = service_policy()
     if policy is None:

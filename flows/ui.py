@@ -148,7 +148,7 @@ def results_link(report: dict, out: Path) -> tuple[str, str]:
     """``(link, where)`` to a capture run's page (:mod:`flows.page`): :func:`page_link` to
     the page its report names, or to ``index.html`` in the output folder."""
     from tasks.lifecycle import report_keys
-    from tasks.runner import open_store
+    from tasks.store import open_store
 
     page, _ = report_keys(report)
     store = open_store(report["store"]) if page else None
@@ -248,7 +248,7 @@ def publish_dataset_page(out: Path, store: str) -> None:
     from prefect.artifacts import create_link_artifact
 
     from flows.dataset_page import store_dataset_page
-    from tasks.runner import open_store
+    from tasks.store import open_store
 
     st = open_store(store)
     try:

@@ -30,7 +30,7 @@ from facecap_core.errors import FacecapError, InputError
 from facecap_core.settings import settings
 from tasks.graph import INPUT_VERSION, Stage
 from tasks.scratch import process_scratch
-from tasks.store import ArtifactStore, CorruptArtifactError, StoreWriteError, input_key
+from tasks.store import ArtifactStore, CorruptArtifactError, StoreWriteError, input_key, open_store
 from tasks.store.base import redact
 
 
@@ -38,12 +38,6 @@ def default_store_url() -> str:
     """``$FACECAP_STORE`` (a folder or ``s3://bucket/prefix``), else ``$FACECAP_HOME/store``."""
     configured = settings()
     return configured.store or str(configured.home / "store")
-
-
-def open_store(url: str) -> ArtifactStore:
-    """The store at ``url`` (an unsupported protocol, or a local store that is not a
-    folder, is refused in one line)."""
-    return ArtifactStore(url)
 
 
 def check_store(url: str) -> ArtifactStore:

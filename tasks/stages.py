@@ -45,7 +45,7 @@ def _headline(stage, store: str, key: str) -> str:
     if stage.name != "coarse" or stage.figures is None:
         return ""
     from facecap_core.coarse import scale_summary
-    from tasks.runner import open_store
+    from tasks.store import open_store
 
     scale = stage.figures(open_store(store).get(key)).get("scale") or {}
     if scale.get("metric_scale") is None:

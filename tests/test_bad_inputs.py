@@ -35,7 +35,7 @@ import pytest
 
 from facecap_core.camera import look_at
 from flows.cli import main
-from tasks.store import ArtifactStore, artifact_key
+from tasks.store import ArtifactStore, artifact_key, open_store
 from tests.media import write_video
 from tests.test_photos import png_claiming
 
@@ -194,7 +194,7 @@ def home(tmp_path, monkeypatch) -> Path:
 def kept(tmp_path, home) -> dict[str, Path]:
     """A store and an output folder that already hold results of an earlier run."""
     store_dir, out = tmp_path / "store", tmp_path / "out"
-    store = ArtifactStore(store_dir)
+    store = open_store(store_dir)
     key = artifact_key("fitting", {"fusion": "fusion-" + "0" * 32}, {"a": 1}, "1")
     store.put(key, {"mesh.ply": b"ply of an earlier run", "fit.json": b"{}"}, stage="fitting",
               inputs={"fusion": "fusion-" + "0" * 32}, config={"a": 1}, version="1")
@@ -599,7 +599,7 @@ def test_a_damaged_photo_is_named_as_the_user_gave_it(tmp_path):
 
     folder = _photos_with_a_truncated_one(tmp_path)
     key = ingest(str(tmp_path / "store"), folder, PHOTOS)
-    stored = ArtifactStore(tmp_path / "store").get(key) / PHOTOS
+    stored = open_store(tmp_path / "store").get(key) / PHOTOS
     with pytest.raises(InputError) as refused:
         list(iter_frames(stored, grey=True))
     assert f"{key}/{PHOTOS}/IMG_2.jpg cannot be decoded" in str(refused.value)
@@ -839,7 +839,7 @@ def test_evaluation_does_not_follow_a_link_out_of_the_results(media, kept, tmp_p
 def _keyframes_of(store: Path, out: Path) -> dict:
     report = json.loads((out / "report.json").read_text())
     key = report["stages"]["keyframes"]["key"]
-    return json.loads((ArtifactStore(store).get(key) / "keyframes.json").read_text())
+    return json.loads((open_store(store).get(key) / "keyframes.json").read_text())
 
 
 @pytest.mark.slow
@@ -872,7 +872,7 @@ def test_phone_videos_are_accepted(media, kept, tmp_path, capfd, prefect_server)
     assert (report["subject"], report["capture"]) == ("séance 1", "prise n°1")
     assert results["unicode"]["frame_indices"] == reference.indices
     # The page the UI's link opens is the one in the output folder.
-    assert (ArtifactStore(kept["store"]).read_bytes(report["page"]["key"], "index.html")
+    assert (open_store(kept["store"]).read_bytes(report["page"]["key"], "index.html")
             == (tmp_path / "out unicode" / "index.html").read_bytes())
     # Run again: everything comes from the store, and the report says so.
     code, _, err = facecap(capfd, "reconstruct", unicode_dir / "prise n°1.mp4", "--out",
@@ -895,7 +895,7 @@ def test_credentials_come_only_from_the_environment():
     from flows.capture import reconstruct_capture
     from flows.dataset import reconstruct_dataset
     from flows.evaluate import evaluate_dataset
-    from tasks.runner import open_store
+    from tasks.store import open_store
 
     secretive = ("key", "secret", "password", "token", "credential", "auth")
     entry_points = [ArtifactStore.__init__, open_store, reconstruct_capture.fn,

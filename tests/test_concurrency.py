@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from facecap_core.config import PipelineConfig
-from tasks.store import ArtifactStore
+from tasks.store import open_store
 from tests.test_faults import (  # noqa: F401 - prefect_api is a fixture
     committed,
     computed_in,
@@ -54,7 +54,7 @@ def seed_poses_and_coarse(store_url: str, video: Path, capture: Path, config: Pi
     from tests.test_flows import seed_upstream
 
     gt = seed_upstream(store_url, capture, tmp)  # the files, under keys of their own
-    store = ArtifactStore(store_url)
+    store = open_store(store_url)
     section = {name: getattr(config, name).model_dump(mode="json")
                for name in ("keyframes", "poses", "landmarks", "coarse")}
     video_key = gt["video"]  # the same bytes as ``video``
@@ -135,7 +135,7 @@ def test_two_workers_compute_each_artifact_once(runs):
 def test_results_are_identical_to_a_serial_run(runs):
     together, serial = runs["together"], runs["serial"]
     assert serial["results"][0].returncode == 0, serial["results"][0].stderr[-3000:]
-    a, b = ArtifactStore(together["store"]), ArtifactStore(serial["store"])
+    a, b = open_store(together["store"]), open_store(serial["store"])
     computed = [key for key in a.keys() if not key.startswith("page-")]  # pages: each run's
     assert computed == [key for key in b.keys() if not key.startswith("page-")]
     for key in computed:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import pytest
 
-from tasks.store import ArtifactStore, CorruptArtifactError
+from tasks.store import CorruptArtifactError, open_store
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -36,7 +36,7 @@ WORKER = """
 import dataclasses, json, sys
 import tasks.stages as stages
 from tasks.store import input_key
-from tasks.runner import ingest, open_store, run_stage
+from tasks.runner import ingest, run_stage
 
 mode, store, args, log_path = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), sys.argv[4]
 
@@ -129,7 +129,7 @@ def capture(tmp_path_factory, ict_model) -> Path:
 
 def committed(store: Path) -> dict[str, str]:
     """{key: commit time} of every artifact in a local store."""
-    return {key: ArtifactStore(store).manifest(key).created for key in ArtifactStore(store).keys()}
+    return {key: open_store(store).manifest(key).created for key in open_store(store).keys()}
 
 
 def worker_home(tmp: Path) -> Path:
@@ -268,7 +268,7 @@ def test_a_worker_killed_in_any_stage_loses_only_that_stage(chain, mode):
     """Each rerun recomputes what the killed worker lost and no committed artifact; the
     last one finishes. Every recomputed artifact is byte for byte (timings aside) what the
     killed worker had computed."""
-    runs, store = chain[mode]["runs"], ArtifactStore(chain[mode]["store"])
+    runs, store = chain[mode]["runs"], open_store(chain[mode]["store"])
     lost: set[str] = set()
     for run in runs:
         assert run["code"] == (137 if run["fault"] else 0), (run["fault"], run["stderr"])
@@ -331,19 +331,19 @@ def test_a_process_killed_during_a_put_leaves_nothing_readable(tmp_path):
     key = artifact_key("fusion", {}, {"x": 1}, "1")
     script = f"""
 import os
-from tasks.store import ArtifactStore
+from tasks.store import open_store
 
 class DiesMidway:
     def read(self, size=-1):
         os._exit(137)
 
-ArtifactStore({str(store_dir)!r}).put({key!r}, {{"a.ply": b"first file", "b.ply": DiesMidway()}},
+open_store({str(store_dir)!r}).put({key!r}, {{"a.ply": b"first file", "b.ply": DiesMidway()}},
                                     stage="fusion", inputs={{}}, config={{"x": 1}}, version="1")
 """
     proc = subprocess.run([sys.executable, "-c", script], cwd=ROOT, timeout=120,
                           env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert proc.returncode == 137
-    store = ArtifactStore(store_dir)
+    store = open_store(store_dir)
     assert not store.exists(key) and store.keys() == []
     assert not (store_dir / "artifacts" / key).exists()
     store.put(key, {"a.ply": b"first file", "b.ply": b"second file"}, stage="fusion",
@@ -372,7 +372,7 @@ def test_a_corrupt_artifact_is_refused_and_recomputed_once_deleted(finished, cap
     from tasks.runner import run_stage
     from tests.test_flows import run_tail, small_config
 
-    store = ArtifactStore(finished["store"])
+    store = open_store(finished["store"])
     fusion = finished["keys"]["fusion"]
     original = store.manifest(fusion).files
     cloud = Path(finished["store"]) / "artifacts" / fusion / "cloud.ply"
@@ -403,7 +403,7 @@ def test_a_transient_fault_is_retried_within_the_run(finished, capture, monkeypa
     from tasks import runner
     from tests.test_flows import run_tail, small_config
 
-    store = ArtifactStore(finished["store"])
+    store = open_store(finished["store"])
     store.delete(finished["keys"]["views"])
     monkeypatch.setenv("FACECAP_FAULT", "views:1:oserror")
     monkeypatch.setattr(runner, "_FAULT_COUNTS", {})
@@ -490,5 +490,5 @@ def test_a_store_outage_is_retried_and_then_succeeds(prefect_api, tmp_path, monk
 
     [run] = asyncio.run(task_runs())
     assert run.run_count == 2 and run.state.name == "Completed"  # failed once, retried
-    assert ArtifactStore(store_url).read_bytes(key, "video.mp4") == video.read_bytes()
+    assert open_store(store_url).read_bytes(key, "video.mp4") == video.read_bytes()
     server.stop()

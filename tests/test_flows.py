@@ -19,7 +19,7 @@ pytestmark = pytest.mark.slow
 
 from facecap_core.config import PipelineConfig, SynthConfig
 from facecap_core.meshio import load_landmarks, load_mesh, save_landmarks
-from tasks.store import ArtifactStore
+from tasks.store import open_store
 
 WIDTH, HEIGHT, FRAMES = 320, 180, 18
 KEYFRAMES = list(range(5, 13))
@@ -71,7 +71,7 @@ def seed_upstream(store_url: str, capture: Path, tmp: Path) -> dict[str, str]:
     from tasks.graph import stage_key
     from tasks.runner import ingest
 
-    store = ArtifactStore(store_url)
+    store = open_store(store_url)
     intr, frames = load_gt_cameras(capture / "gt" / "cameras.json")
     video = ingest(store_url, capture / "video.mp4", "video.mp4")
     poses = tmp / "poses"
@@ -150,7 +150,7 @@ def first_run(prefect_server, capture, tmp_path_factory):
 
 
 def test_tail_reconstructs_the_capture(first_run, capture):
-    store = ArtifactStore(first_run["store"])
+    store = open_store(first_run["store"])
     keys = first_run["keys"]
     depth = [k for name, k in keys.items() if name.startswith("depth_")]
     assert first_run["computed"] == {"frames", "views", "fusion", "fitting", "evaluation",
@@ -220,11 +220,11 @@ def test_the_ui_link_opens_the_capture_page(first_run, tmp_path, monkeypatch):
     with ResultWriter(out) as writer:
         results = _export(first_run["store"], keys, writer, tmp_path)
         page = _page(first_run["store"], keys, report, results)
-        report["page"] = {"key": store_page(ArtifactStore(first_run["store"]), report, page)}
+        report["page"] = {"key": store_page(open_store(first_run["store"]), report, page)}
         writer.add(PAGE_NAME, page)
         writer.commit()
     assert (out / "mesh.glb").stat().st_size > 0
-    server = page_server(ArtifactStore(first_run["store"]), "127.0.0.1", 0)
+    server = page_server(open_store(first_run["store"]), "127.0.0.1", 0)
     serve_in_background(server)
     monkeypatch.setenv("FACECAP_PAGES_URL", address(server))
     try:
@@ -249,7 +249,7 @@ def test_without_a_page_server_the_ui_link_names_the_page_on_disk(first_run, tmp
 
     monkeypatch.delenv("FACECAP_PAGES_URL", raising=False)
     report = _capture_report(first_run)  # its page kept: only the server is missing
-    report["page"] = {"key": store_page(ArtifactStore(first_run["store"]), report, b"a page")}
+    report["page"] = {"key": store_page(open_store(first_run["store"]), report, b"a page")}
     out = tmp_path / "results (1)"
     out.mkdir()
     link, where = _publish_and_read_link(report, out, {})
@@ -262,7 +262,7 @@ def test_rerun_is_all_cached(first_run, capture):
     ends in a state named Reused."""
     from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
 
-    store = ArtifactStore(first_run["store"])
+    store = open_store(first_run["store"])
     before = set(store.keys())
     result = tail_result(first_run["tail"], first_run["store"], first_run["seeded"],
                          small_config(), capture)
@@ -277,7 +277,7 @@ def test_rerun_is_all_cached(first_run, capture):
 
 
 def test_fusion_change_recomputes_only_fusion_fitting_evaluation(first_run, capture):
-    store = ArtifactStore(first_run["store"])
+    store = open_store(first_run["store"])
     config = small_config()
     config.mvs.fusion.max_normal_deg = 25.0
     before = set(store.keys())
@@ -291,7 +291,7 @@ def test_fusion_change_recomputes_only_fusion_fitting_evaluation(first_run, capt
 def test_lost_depth_maps_are_recomputed_alone(first_run, capture):
     """A run killed during MVS leaves some depth maps uncommitted: the rerun makes only
     those (a deleted artifact stands in for one that was never committed)."""
-    store = ArtifactStore(first_run["store"])
+    store = open_store(first_run["store"])
     keys = first_run["keys"]
     lost = [keys[f"depth_{i:05d}"] for i in KEYFRAMES[2:4]]
     for key in lost:
@@ -385,7 +385,7 @@ def test_the_ui_link_opens_the_dataset_page_and_its_rows_open_the_captures(first
     from flows.page_server import address, page_server, serve_in_background
     from flows.ui import dataset_link_key, publish_dataset_page
 
-    store = ArtifactStore(first_run["store"])
+    store = open_store(first_run["store"])
     report = _capture_report(first_run)
     page = b"<!doctype html><title>the capture's page</title>"
     report["page"] = {"key": store_page(store, report, page)}

@@ -55,14 +55,14 @@ def world(tmp_path_factory):
     where a folder is expected, a small scan with its 68 landmarks, and a FACECAP_HOME
     with the template assets."""
     from facecap_core import assets
-    from tasks.store import ArtifactStore, artifact_key
+    from tasks.store import artifact_key, open_store
 
     d = tmp_path_factory.mktemp("fuzz")
     source = assets.menpo3d_data()
     (d / "home" / "assets").mkdir(parents=True)
     (d / "home" / "assets" / source.name).symlink_to(source)
     video = write_video(d / "orbit.mp4", orbit_frames(16))
-    store = ArtifactStore(d / "store")
+    store = open_store(d / "store")
     key = artifact_key("fitting", {"fusion": "fusion-" + "0" * 32}, {"a": 1}, "1")
     store.put(key, {"mesh.ply": b"ply of an earlier run"}, stage="fitting",
               inputs={"fusion": "fusion-" + "0" * 32}, config={"a": 1}, version="1")

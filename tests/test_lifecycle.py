@@ -16,12 +16,12 @@ from flows.page import store_page
 from tasks.graph import BY_NAME
 from tasks.lifecycle import derived, forget, prune, prune_unreferenced
 from tasks.runner import ingest
-from tasks.store import ArtifactStore
+from tasks.store import open_store
 
 
 def chain(store_url: str, video: Path) -> dict[str, str]:
     """A capture's input artifact and two stage artifacts made from it, one from the other."""
-    store = ArtifactStore(store_url)
+    store = open_store(store_url)
     keys = {"video": ingest(store_url, video, "video.mp4")}
     for stage, made_from in (("keyframes", {"video": keys["video"]}),
                              ("poses", {"video": keys["video"], "keyframes": None})):
@@ -47,7 +47,7 @@ def world(tmp_path):
         report = {"store": store_url,
                   "stages": {s: {"key": keys[subject][s]} for s in ("keyframes", "poses")}}
         # The run's page, kept in the store for the UI's link, and named by the report.
-        keys[subject]["page"] = store_page(ArtifactStore(store_url), report,
+        keys[subject]["page"] = store_page(open_store(store_url), report,
                                            f"the page of {subject}".encode())
         (out / subject / "take1" / "report.json").write_text(json.dumps(
             {**report, "page": {"key": keys[subject]["page"]}}))
@@ -60,14 +60,14 @@ def world(tmp_path):
 
 
 def test_derived_follows_the_inputs_down(world):
-    store = ArtifactStore(world["store"])
+    store = open_store(world["store"])
     alice = world["keys"]["alice"]
     assert derived(store, {alice["video"]}) == set(alice.values())
     assert derived(store, {alice["poses"]}) == {alice["poses"], alice["page"]}
 
 
 def test_forget_removes_the_subject_and_nothing_else(world):
-    store = ArtifactStore(world["store"])
+    store = open_store(world["store"])
     before = set(store.keys())
     dry = forget(store, "alice", world["root"], world["out"], dry_run=True)
     assert set(store.keys()) == before and (world["out"] / "alice").is_dir()
@@ -83,7 +83,7 @@ def test_forget_removes_the_subject_and_nothing_else(world):
 
 
 def test_forget_refuses_names_that_are_not_subjects(world, tmp_path):
-    store = ArtifactStore(world["store"])
+    store = open_store(world["store"])
     for name in ("", "..", "alice/take1", "../out"):
         with pytest.raises(InputError, match="not a subject name"):
             forget(store, name, world["root"], world["out"])
@@ -106,7 +106,7 @@ def test_forget_refuses_names_that_are_not_subjects(world, tmp_path):
 def test_forget_with_the_results_alone_removes_the_inputs_they_were_made_from(world):
     """Without the dataset folder, the reports lead to the stage artifacts and up to the
     video they were made from; the mesh the nightly evaluation stored goes too."""
-    store = ArtifactStore(world["store"])
+    store = open_store(world["store"])
     mesh = world["out"] / "alice" / "take1" / "mesh.ply"
     mesh.write_bytes(b"alice's fitted mesh")
     copy = ingest(world["store"], mesh, "mesh.ply")
@@ -124,7 +124,7 @@ def test_forget_after_the_store_was_emptied_still_removes_the_results(world):
     """The reports name artifacts already pruned from the store they name: the results
     folder (which holds the face) still goes. A file where a results folder would be is
     refused before anything is removed."""
-    store = ArtifactStore(world["store"])
+    store = open_store(world["store"])
     for key in list(store.keys()):
         store.delete(key)
     (world["out"] / "carol").write_text("not a folder")
@@ -136,16 +136,16 @@ def test_forget_after_the_store_was_emptied_still_removes_the_results(world):
 
 
 def test_forget_refuses_a_store_that_holds_none_of_the_reported_artifacts(world, tmp_path):
-    other = ArtifactStore(str(tmp_path / "other-store"))
+    other = open_store(str(tmp_path / "other-store"))
     ingest(other.url, world["root"] / "bob" / "take1.mp4", "video.mp4")
     with pytest.raises(InputError, match="give that store"):
         forget(other, "alice", None, world["out"])
     assert (world["out"] / "alice").is_dir()
-    assert set(ArtifactStore(world["store"]).keys()) >= set(world["keys"]["alice"].values())
+    assert set(open_store(world["store"]).keys()) >= set(world["keys"]["alice"].values())
 
 
 def test_prune_removes_what_is_older_and_what_was_made_from_it(world, tmp_path):
-    store = ArtifactStore(world["store"])
+    store = open_store(world["store"])
     time.sleep(0.01)
     cut = datetime.fromisoformat(store.manifest(world["keys"]["bob"]["poses"]).created)
     time.sleep(0.01)
@@ -162,7 +162,7 @@ def test_prune_removes_what_is_older_and_what_was_made_from_it(world, tmp_path):
 
 def test_prune_unreferenced_keeps_what_a_result_names_and_what_it_was_made_from(world,
                                                                               tmp_path):
-    store = ArtifactStore(world["store"])
+    store = open_store(world["store"])
     video = tmp_path / "abandoned.mp4"
     video.write_bytes(b"a capture whose run never wrote a report")
     orphan = chain(world["store"], video)
@@ -216,7 +216,7 @@ def test_prune_keeps_an_artifact_whose_manifest_is_damaged_and_says_so(created, 
                                                                        capsys):
     """Its age cannot be known: it is neither removed as old nor allowed to stop the prune;
     the command names it, and what to do, on its own line."""
-    store = ArtifactStore(world["store"])
+    store = open_store(world["store"])
     alice, bob = world["keys"]["alice"], world["keys"]["bob"]
     path = Path(world["store"]) / "artifacts" / alice["poses"] / "manifest.json"
     doc = json.loads(path.read_text())
@@ -244,7 +244,7 @@ def test_prune_unreferenced_refuses_a_folder_without_results(world, tmp_path, ca
     (a dry run too)."""
     from tests.test_bad_inputs import assert_one_line_error, facecap
 
-    store = ArtifactStore(world["store"])
+    store = open_store(world["store"])
     before = set(store.keys())
     (tmp_path / "notes").mkdir()
     (tmp_path / "notes" / "report.json").write_text('{"title": "not a run report"}')
@@ -266,7 +266,7 @@ def test_a_page_goes_with_its_face(world, tmp_path):
     run that no report names goes with a prune of what is unreferenced."""
     from flows.dataset_page import store_dataset_page
 
-    store = ArtifactStore(world["store"])
+    store = open_store(world["store"])
     alice = world["keys"]["alice"]
     report = json.loads((world["out"] / "alice" / "take1" / "report.json").read_text())
     earlier = store_page(store, report, b"the page of alice's earlier run")

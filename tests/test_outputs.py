@@ -171,9 +171,9 @@ def test_the_preview_is_made_from_the_runs_own_mesh(tmp_path):
     import trimesh
 
     from flows.capture import _export
-    from tasks.store import ArtifactStore, artifact_key
+    from tasks.store import artifact_key, open_store
 
-    store = ArtifactStore(tmp_path / "store")
+    store = open_store(tmp_path / "store")
     key = artifact_key("fitting", {"fusion": "fusion-x"}, {}, "1")
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=80.0)
     store.put(key, {"mesh.ply": mesh.export(file_type="ply")}, stage="fitting",
@@ -390,9 +390,9 @@ def test_a_prune_during_a_run_keeps_what_the_run_reads(media, kept, tmp_path, ca
 
     from facecap_core import keyframes
     from tasks import lifecycle
-    from tasks.store import ArtifactStore
+    from tasks.store import open_store
 
-    store = ArtifactStore(kept["store"])
+    store = open_store(kept["store"])
     seen, select = {}, keyframes.main
 
     def pruning_first(*args, **kwargs):

@@ -15,7 +15,7 @@ import pytest
 from facecap_core.errors import InputError
 from facecap_core.settings import settings
 from flows.page_server import address, page_server, serve_in_background
-from tasks.store import ArtifactNotFoundError, ArtifactStore, artifact_key
+from tasks.store import ArtifactNotFoundError, artifact_key, open_store
 from tasks.store.base import scheme
 from tasks.store.links import SECRET_NAME, link
 
@@ -27,7 +27,7 @@ def served(tmp_path, monkeypatch):
     """A folder store holding one page and one mesh, served on a free port, and
     FACECAP_PAGES_URL naming the server."""
     monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
-    store = ArtifactStore(tmp_path / "store")
+    store = open_store(tmp_path / "store")
     keys = {}
     for stage, files in (("page", {"index.html": PAGE}), ("fitting", {"mesh.ply": b"ply"})):
         keys[stage] = artifact_key(stage, {}, None, "1")
@@ -126,7 +126,7 @@ def test_links_from_another_machines_secret_do_not_open(served, tmp_path, monkey
 def test_no_page_server_no_link(tmp_path, monkeypatch):
     monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
     monkeypatch.delenv("FACECAP_PAGES_URL", raising=False)
-    store = ArtifactStore(tmp_path / "store")
+    store = open_store(tmp_path / "store")
     key = artifact_key("page", {}, None, "1")
     store.put(key, {"index.html": PAGE}, stage="page", inputs={}, config=None, version="1")
     assert scheme(store.url) != "s3" and store.presigned_url(key, "index.html", 60) is None

@@ -89,7 +89,7 @@ def test_facecap_home_resolves_one_way_everywhere(value, tmp_path, monkeypatch,
     default store, the assets, the locks of a remote store and the copies of its artifacts."""
     from facecap_core import assets
     from tasks.runner import default_store_url, key_lock
-    from tasks.store import ArtifactStore
+    from tasks.store import open_store
     from tasks.store.remote import cache_root
 
     monkeypatch.setenv("HOME", str(tmp_path))
@@ -107,7 +107,7 @@ def test_facecap_home_resolves_one_way_everywhere(value, tmp_path, monkeypatch,
     assert default_store_url() == str(home / "store")
     assert assets.default_template_files()[0] == home / "assets" / "menpo3d-0.8.6" / "template.ply"
     assert cache_root() == home / "store-cache"
-    with key_lock(ArtifactStore(f"memory://facecap-test-{uuid.uuid4().hex}"), "input-" + "0" * 32):
+    with key_lock(open_store(f"memory://facecap-test-{uuid.uuid4().hex}"), "input-" + "0" * 32):
         assert (home / "locks" / ("input-" + "0" * 32 + ".lock")).is_file()
 
 

@@ -22,6 +22,7 @@ from tasks.store import (
     artifact_key,
     file_digest,
     input_key,
+    open_store,
 )
 
 INPUTS = {"video": "input-" + "0" * 32}
@@ -47,7 +48,7 @@ def put_mesh(store: ArtifactStore, files, key: str | None = None) -> Manifest:
 def stored_file_url(store_url: str, key: str, name: str) -> str:
     """Where the documented layout puts an artifact's file (used to damage it on purpose):
     the artifact folder, or on a remote backend the committing writer's folder in it."""
-    folder = ArtifactStore(store_url).manifest(key).folder
+    folder = open_store(store_url).manifest(key).folder
     if "://" in store_url:
         assert folder is not None and folder.startswith("w-")
         return f"{store_url}/artifacts/{key}/{folder}/{name}"
@@ -82,7 +83,7 @@ def store_url(request, tmp_path) -> str:
 
 @pytest.fixture
 def store(store_url) -> ArtifactStore:
-    return ArtifactStore(store_url)
+    return open_store(store_url)
 
 
 # --------------------------------------------------------------------------- keys
@@ -182,7 +183,7 @@ def test_put_on_an_existing_key_is_a_no_op(store, store_url):
 
 
 def test_local_get_returns_the_artifact_folder(tmp_path):
-    store = ArtifactStore(f"file://{tmp_path / 'store'}")
+    store = open_store(f"file://{tmp_path / 'store'}")
     put_mesh(store, {"mesh.ply": b"ply"})
     assert store.get(mesh_key()) == tmp_path / "store" / "artifacts" / mesh_key()
     assert repr(store) == f"ArtifactStore({str(tmp_path / 'store')!r})"
@@ -296,7 +297,7 @@ def test_delete_removes_the_artifact_so_it_can_be_recomputed(store):
 
 
 def test_concurrent_puts_of_one_key_commit_exactly_once(tmp_path):
-    store = ArtifactStore(tmp_path / "store")
+    store = open_store(tmp_path / "store")
     files = {"mesh.ply": b"ply" * 10_000, "maps/depth.npy": b"depth" * 10_000}
     start = threading.Barrier(8)
     results: list[Manifest] = []
@@ -305,7 +306,7 @@ def test_concurrent_puts_of_one_key_commit_exactly_once(tmp_path):
     def writer():
         start.wait()
         try:
-            results.append(put_mesh(ArtifactStore(tmp_path / "store"), files))
+            results.append(put_mesh(open_store(tmp_path / "store"), files))
         except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
             errors.append(exc)
 
@@ -324,7 +325,7 @@ def test_concurrent_puts_of_one_key_commit_exactly_once(tmp_path):
 
 def test_read_only_store_raises_store_write_error(tmp_path):
     root = tmp_path / "store"
-    store = ArtifactStore(root)
+    store = open_store(root)
     put_mesh(store, {"mesh.ply": b"kept"})
     folders = [root, *(path for path in root.rglob("*") if path.is_dir())]
     for folder in folders:
@@ -350,10 +351,10 @@ def test_unwritable_location_raises_store_write_error(tmp_path):
     blocker = tmp_path / "not-a-folder"
     blocker.write_bytes(b"")
     with pytest.raises(InputError, match="is not a folder"):
-        ArtifactStore(blocker)
+        open_store(blocker)
     (tmp_path / "store").mkdir()
     (tmp_path / "store" / ".tmp").write_bytes(b"")
-    store = ArtifactStore(tmp_path / "store")
+    store = open_store(tmp_path / "store")
     with pytest.raises(StoreWriteError) as caught:
         put_mesh(store, {"mesh.ply": b"ply"})
     assert isinstance(caught.value, FacecapError)
@@ -365,7 +366,7 @@ def test_unwritable_location_raises_store_write_error(tmp_path):
 
 
 def test_remote_get_downloads_into_the_cache_once(memory_url, facecap_home):
-    store = ArtifactStore(memory_url)
+    store = open_store(memory_url)
     put_mesh(store, {"mesh.ply": b"ply", "maps/depth.npy": b"depth"})
 
     folder = store.get(mesh_key())
@@ -381,7 +382,7 @@ def test_remote_get_downloads_into_the_cache_once(memory_url, facecap_home):
 
 
 def test_damaged_cache_copy_is_downloaded_again(memory_url):
-    store = ArtifactStore(memory_url)
+    store = open_store(memory_url)
     put_mesh(store, {"mesh.ply": b"ply"})
     folder = store.get(mesh_key())
     (folder / "mesh.ply").write_bytes(b"PLY")
@@ -390,7 +391,7 @@ def test_damaged_cache_copy_is_downloaded_again(memory_url):
 
 
 def test_remote_delete_drops_the_cached_copy(memory_url):
-    store = ArtifactStore(memory_url)
+    store = open_store(memory_url)
     put_mesh(store, {"mesh.ply": b"ply"})
     folder = store.get(mesh_key())
     store.delete(mesh_key())
@@ -455,11 +456,11 @@ def test_a_store_url_is_shown_without_its_password(memory_url):
     assert redact("at 12:30@noon") == "at 12:30@noon"  # not a URL: unchanged
     for url in ("ftp://user:secret@host/x", "s3://user:secret@host/b::x"):
         with pytest.raises(InputError) as refused:
-            ArtifactStore(url)
+            open_store(url)
         assert "secret" not in str(refused.value) and "user:***@host" in str(refused.value)
-    assert "secret" not in repr(ArtifactStore("s3://user:secret@host/bucket"))
+    assert "secret" not in repr(open_store("s3://user:secret@host/bucket"))
     secret = memory_url.replace("memory://", "memory://user:secret@")
-    store = ArtifactStore(secret)
+    store = open_store(secret)
     with pytest.raises(ArtifactNotFoundError) as missing:
         store.manifest(mesh_key())
     put_mesh(store, {"mesh.ply": b"ply"})
@@ -474,3 +475,21 @@ def test_a_store_url_is_shown_without_its_password(memory_url):
     for message in messages:
         assert "secret" not in message and "user:***@" in message, message
     store.delete(mesh_key())
+
+
+def test_open_store_picks_the_backend_and_the_interface_is_not_a_store(tmp_path):
+    """``open_store`` gives the backend for the URL; the interface class itself opens
+    nothing, and it does not import its backends (no import circle)."""
+    import ast
+
+    from tasks.store import ArtifactStore, LocalStore, RemoteStore
+
+    assert type(open_store(tmp_path / "store")) is LocalStore
+    assert type(open_store(f"file://{tmp_path}/store")) is LocalStore
+    assert type(open_store("memory://facecap-open-store")) is RemoteStore
+    with pytest.raises(TypeError, match="open_store"):
+        ArtifactStore(tmp_path / "store")
+    base = Path(__file__).resolve().parents[1] / "tasks" / "store" / "base.py"
+    imported = {node.module for node in ast.walk(ast.parse(base.read_text()))
+                if isinstance(node, ast.ImportFrom)}
+    assert not imported & {"tasks.store.local", "tasks.store.remote"}

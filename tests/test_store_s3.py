@@ -38,6 +38,7 @@ from tasks.store import (
     CorruptArtifactError,
     StoreWriteError,
     artifact_key,
+    open_store,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -116,7 +117,7 @@ def prefix() -> str:
 
 @pytest.fixture
 def store(s3, prefix) -> ArtifactStore:
-    return ArtifactStore(f"s3://{BUCKET}/{prefix}")
+    return open_store(f"s3://{BUCKET}/{prefix}")
 
 
 @pytest.fixture
@@ -180,7 +181,7 @@ def test_round_trip_through_the_endpoint_from_the_environment(store, bucket, pre
     assert (folder / "maps" / "depth.npy").read_bytes() == depth.read_bytes()
 
     # Another worker's store object sees the same committed artifact.
-    other = ArtifactStore(f"s3://{BUCKET}/{prefix}")
+    other = open_store(f"s3://{BUCKET}/{prefix}")
     assert other.manifest(key) == manifest
 
 
@@ -190,7 +191,7 @@ def test_keys_of_an_empty_or_absent_prefix_are_empty(store):
 
 
 def test_a_missing_bucket_is_a_store_write_error(s3):
-    store = ArtifactStore(f"s3://no-such-bucket-{uuid.uuid4().hex[:8]}/artifacts")
+    store = open_store(f"s3://no-such-bucket-{uuid.uuid4().hex[:8]}/artifacts")
     with pytest.raises(StoreWriteError) as caught:
         put_mesh(store, {"mesh.ply": b"ply"})
     assert "bucket" in one_line(caught.value)
@@ -435,7 +436,7 @@ def test_a_second_writer_that_dies_cannot_damage_a_committed_artifact(store, buc
 
     def writer_b():
         try:
-            put_mesh(ArtifactStore(store.url), {"mesh.ply": Waits(), "texture.png": Dies()})
+            put_mesh(open_store(store.url), {"mesh.ply": Waits(), "texture.png": Dies()})
         except BaseException as exc:  # noqa: BLE001 - expected: B dies
             failures.append(exc)
 
@@ -481,7 +482,7 @@ def test_of_two_writers_that_both_finish_the_first_manifest_wins(store, bucket, 
             return b"B" * 64
 
     thread = threading.Thread(target=lambda: results.append(
-        put_mesh(ArtifactStore(store.url), {"mesh.ply": WaitsAfterUpload()})))
+        put_mesh(open_store(store.url), {"mesh.ply": WaitsAfterUpload()})))
     thread.start()
     try:
         assert uploaded.wait(timeout=30)
@@ -506,8 +507,8 @@ def compose_worker_environment() -> dict[str, str]:
 
 WORKER_SCRIPT = """
 import sys
-from tasks.runner import default_store_url, open_store
-from tasks.store import artifact_key
+from tasks.runner import default_store_url
+from tasks.store import artifact_key, open_store
 store = open_store(default_store_url())
 key = artifact_key("mesh", {}, None, sys.argv[1])
 store.put(key, {"mesh.ply": b"from a worker"}, stage="mesh", inputs={}, config=None,
@@ -547,4 +548,4 @@ def test_a_worker_configured_like_the_compose_workers_uses_the_store(
     assert result.returncode == 0, result.stderr[-3000:]
     url, key = result.stdout.split()
     assert url == f"s3://{BUCKET}/{prefix}"
-    assert ArtifactStore(url).read_bytes(key, "mesh.ply") == b"from a worker"
+    assert open_store(url).read_bytes(key, "mesh.ply") == b"from a worker"

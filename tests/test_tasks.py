@@ -14,7 +14,7 @@ import pytest
 from facecap_core.errors import FacecapError, InputError
 from tasks.graph import BY_NAME, stage_key
 from tasks.runner import ingest, is_transient, run_stage
-from tasks.store import ArtifactStore, CorruptArtifactError, StoreWriteError
+from tasks.store import CorruptArtifactError, StoreWriteError, open_store
 
 
 def _stage(compute, name: str = "fusion"):
@@ -69,7 +69,7 @@ def test_concurrent_runs_compute_once(tmp_path):
     assert len({key for key, _ in results}) == 1
     assert sorted(computed for _, computed in results) == [False, False, True]
     key = results[0][0]
-    assert (ArtifactStore(store).get(key) / "result.txt").read_text() == "7"
+    assert (open_store(store).get(key) / "result.txt").read_text() == "7"
 
 
 def test_a_failed_stage_stores_nothing(tmp_path):
@@ -81,7 +81,7 @@ def test_a_failed_stage_stores_nothing(tmp_path):
 
     with pytest.raises(InputError):
         run_stage(store, _stage(half), {}, {})
-    assert ArtifactStore(store).keys() == []
+    assert open_store(store).keys() == []
 
 
 def test_inputs_reach_the_stage_as_folders(tmp_path):
@@ -128,7 +128,7 @@ def test_a_store_folder_that_is_a_file_fails_its_first_task_at_once(tmp_path):
     (tmp_path / "store").mkdir()
     (tmp_path / "store" / ".locks").write_text("a file where the lock folder should be")
     with pytest.raises(StoreWriteError) as refused:
-        with key_lock(ArtifactStore(str(tmp_path / "store")), "input-" + "0" * 32):
+        with key_lock(open_store(str(tmp_path / "store")), "input-" + "0" * 32):
             pass
     assert "cannot lock artifact input-" in str(refused.value)
     assert "Not a directory" in str(refused.value) and not is_transient(refused.value)
@@ -143,7 +143,7 @@ def test_results_are_exported_only_as_they_were_committed(tmp_path):
     from tasks.outputs import ResultWriter, write_results
     from tasks.store import artifact_key
 
-    store = ArtifactStore(str(tmp_path / "store"))
+    store = open_store(str(tmp_path / "store"))
     key = artifact_key("poses", {"video": "input-x"}, {}, "1")
     store.put(key, {"cameras.json": b'{"fx": 500}'}, stage="poses", inputs={"video": "input-x"},
               config={}, version="1")

@@ -41,9 +41,15 @@ Remote artifacts are downloaded for local use into a cache,
 
 To force an artifact to be recomputed, delete its folder ``<root>/artifacts/<key>`` (or
 call :meth:`ArtifactStore.delete`).
+
+Open a store with :func:`open_store`.
 """
 
-from tasks.store.base import ArtifactStore
+import os
+
+from fsspec.implementations.local import LocalFileSystem
+
+from tasks.store.base import ArtifactStore, _filesystem
 from tasks.store.files import (
     MANIFEST_NAME,
     ArtifactNotFoundError,
@@ -56,6 +62,15 @@ from tasks.store.files import (
 from tasks.store.keys import KEY_DIGEST_LENGTH, artifact_key, file_digest, input_key
 from tasks.store.local import LocalStore
 from tasks.store.remote import RemoteStore
+
+
+def open_store(url: str | os.PathLike[str]) -> ArtifactStore:
+    """The store at ``url``: a :class:`LocalStore` for a folder (a path or ``file://``), a
+    :class:`RemoteStore` for an object store (``s3://``, ``memory://``). A URL that names
+    another protocol, or cannot be parsed, is an ``InputError``."""
+    fs, _ = _filesystem(url)
+    return LocalStore(url) if isinstance(fs, LocalFileSystem) else RemoteStore(url)
+
 
 __all__ = [
     "KEY_DIGEST_LENGTH",
@@ -72,4 +87,5 @@ __all__ = [
     "artifact_key",
     "file_digest",
     "input_key",
+    "open_store",
 ]

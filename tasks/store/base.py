@@ -11,7 +11,6 @@ from typing import Any
 
 import fsspec
 from fsspec.core import url_to_fs
-from fsspec.implementations.local import LocalFileSystem
 from fsspec.implementations.memory import MemoryFileSystem
 from pydantic import BaseModel, ValidationError
 
@@ -91,28 +90,22 @@ def _filesystem(url: str | os.PathLike[str]) -> tuple[fsspec.AbstractFileSystem,
 class ArtifactStore:
     """Content-addressed artifacts in a local folder or under any fsspec URL.
 
-    ``ArtifactStore(url)`` gives the backend for the URL: :class:`~tasks.store.local.LocalStore`
-    for a folder, :class:`~tasks.store.remote.RemoteStore` for an object store. See
-    :mod:`tasks.store` for the layout and the commit protocol.
+    :func:`tasks.store.open_store` gives the backend for a URL:
+    :class:`~tasks.store.local.LocalStore` for a folder, :class:`~tasks.store.remote.RemoteStore`
+    for an object store. See :mod:`tasks.store` for the layout and the commit protocol.
     """
 
     is_local = False
     """Whether the store is a folder of this machine."""
-
-    def __new__(cls, url: str | os.PathLike[str]):
-        if cls is ArtifactStore:
-            from tasks.store.local import LocalStore
-            from tasks.store.remote import RemoteStore
-
-            fs, _ = _filesystem(url)
-            cls = LocalStore if isinstance(fs, LocalFileSystem) else RemoteStore
-        return super().__new__(cls)
 
     def __init__(self, url: str | os.PathLike[str]) -> None:
         """Use the store at ``url``: a local path, or a ``file://``, ``s3://``, ``memory://`` URL.
 
         Nothing is created until the first put.
         """
+        if type(self) is ArtifactStore:
+            raise TypeError("ArtifactStore is the backends' interface: open a store with "
+                            "tasks.store.open_store(url)")
         fs, root = _filesystem(url)
         self._fs: fsspec.AbstractFileSystem = fs
         self._root: str = root.rstrip("/") or "/"
