@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 WORKER = """
 import dataclasses, json, sys
 import tasks.stages as stages
-from tasks.store import input_key
+from tasks.store import input_key, open_store
 from tasks.runner import ingest, run_stage
 
 mode, store, args, log_path = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), sys.argv[4]
