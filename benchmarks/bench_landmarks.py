@@ -305,10 +305,9 @@ def calibrate(seeds: list[int], out: Path, ict_model: str) -> None:
     config = LandmarkConfig(convention_correction=False)
     command = ("python benchmarks/bench_landmarks.py --calibrate --calibration-seeds "
                + " ".join(map(str, seeds)))
-    calibrate_mesh_vertices([calibration_capture(seed, out, ict_model) for seed in seeds],
-                            command)
-    for seed in seeds:
-        folder = calibration_capture(seed, out, ict_model)
+    folders = [calibration_capture(seed, out, ict_model) for seed in seeds]
+    calibrate_mesh_vertices(folders, command)
+    for seed, folder in zip(seeds, folders):
         work = out / "calibration_runs" / folder.name
         cams = stage.write_gt_keyframe_cameras(folder / "gt" / "cameras.json",
                                                work / "cameras.json", step=1, **WORLD)

@@ -52,7 +52,6 @@ from facecap_core import coarse  # noqa: E402
 from facecap_core.assets import default_ict_model  # noqa: E402
 from facecap_core.camera import rotation_matrix  # noqa: E402
 from facecap_core.config import CoarseConfig, SynthConfig  # noqa: E402
-from facecap_core.geometry import umeyama  # noqa: E402
 from facecap_core.landmarks import stage  # noqa: E402
 from facecap_core.meshio import load_landmarks  # noqa: E402
 from facecap_core.synthetic import synthesize  # noqa: E402
@@ -142,14 +141,12 @@ def measure(subject: str, out: Path, ict_model: str, model: dict, template: Temp
 def landmark_error_mm(L: np.ndarray, truth: np.ndarray) -> dict:
     """The 3D landmarks' error after a similarity onto the truth (mm): median of the inner 51
     and of each region."""
+    from bench_landmarks import REGIONS, landmark_errors
+
     mm = (np.asarray(L, float) - WORLD["translation"]) @ WORLD["rotation"] / WORLD["scale"]
-    ok = INNER_LANDMARKS[np.all(np.isfinite(mm[INNER_LANDMARKS]), axis=1)]
-    s, R, t = umeyama(mm[ok], truth[ok])
-    e = np.full(68, np.nan)
-    e[ok] = np.linalg.norm(s * mm[ok] @ R.T + t - truth[ok], axis=1)
-    regions = {"inner": INNER_LANDMARKS, "brows": np.r_[17:27], "nose": np.r_[27:36],
-               "eyes": np.r_[36:48], "mouth": np.r_[48:68]}
-    return {k: round(float(np.nanmedian(e[i])), 3) for k, i in regions.items()}
+    e = landmark_errors(mm, truth)
+    return {k: round(float(np.nanmedian(e[i])), 3)
+            for k, i in {"inner": INNER_LANDMARKS, **REGIONS}.items()}
 
 
 def summary(rows: list[dict], setting: str) -> dict:

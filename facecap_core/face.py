@@ -1,16 +1,18 @@
 """Faces in images: the face box, MediaPipe's 478-point face mesh, and the 68 landmarks of the
 iBUG 300-W convention read off that mesh.
 
-MediaPipe (the ``mediapipe`` package, Apache-2.0) ships its models inside the wheel: BlazeFace's
-short- and full-range face detectors (the box and its score) and the face mesh with attention (468 surface
-points plus the two irises' five points each). ``make install`` installs it without its declared
-dependencies, which would replace opencv-python-headless's ``cv2`` (docs/dependencies.md).
+MediaPipe (the ``mediapipe`` package, Apache-2.0) ships its models inside the wheel:
+BlazeFace's short- and full-range face detectors (the box and its score) and the face mesh with
+attention (468 surface points plus the two irises' five points each). ``make install`` installs
+it without its declared dependencies, which would replace opencv-python-headless's ``cv2``
+(docs/dependencies.md).
 
-The 68 points are fixed mesh vertices (:func:`mesh_to_68`): the iBUG index's anatomical point on
-MediaPipe's canonical face. They are surface points, the same ones in every view, so they
-triangulate consistently; where the iBUG annotation means something else (the jaw contour is a
-silhouette in each photo, a brow is drawn along its lower edge) the landmark stage's calibrated
-convention offsets (:mod:`facecap_core.landmarks.convention`) move them in 3D.
+The 68 points are fixed mesh vertices (:func:`mesh_to_68`): for each iBUG index, the vertex
+whose image lies nearest that landmark on calibration renders. They are surface points, the
+same ones in every view, so they triangulate consistently; where the iBUG annotation means
+something else (the jaw contour is a silhouette in each photo, a brow is drawn along its lower
+edge) the landmark stage's calibrated convention offsets
+(:mod:`facecap_core.landmarks.convention`) move them in 3D.
 """
 
 from __future__ import annotations
@@ -92,8 +94,6 @@ def _require() -> None:
 def _solution(name: str):
     """``mediapipe.python.solutions.<name>``, or a one-line error when it cannot be imported."""
     _require()
-    import importlib
-
     try:
         return importlib.import_module(f"mediapipe.python.solutions.{name}")
     except ImportError as exc:
