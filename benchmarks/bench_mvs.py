@@ -198,7 +198,7 @@ def pipeline_subject(result: Path, config, peer: bool):
     from facecap_core.mvs.depth import load_depth_map
     from facecap_core.mvs.images import load_view
     from facecap_core.mvs.views import read_views
-    from tasks.runner import open_store
+    from tasks.store import open_store
 
     report = json.loads((result / "report.json").read_text())
     store, stages = open_store(report["store"]), report["stages"]

@@ -78,7 +78,7 @@ def depth_speedup(store: str, report: dict, maps: int, scratch: Path) -> dict:
     from facecap_core.config import DepthMapConfig
     from facecap_core.mvs import depth
     from facecap_core.mvs.views import read_views
-    from tasks.runner import open_store
+    from tasks.store import open_store
 
     st = open_store(store)
     stages = report["stages"]
