@@ -31,7 +31,6 @@ from pathlib import Path
 import numba
 import numpy as np
 import trimesh
-from planesweep import plane_sweep  # benchmarks/planesweep.py, the peer method
 from scipy.spatial import cKDTree
 
 from facecap_core.config import MVSConfig, SynthConfig
@@ -41,6 +40,7 @@ from facecap_core.mvs.depth import compute_depth_map
 from facecap_core.mvs.filtering import filter_with_prior, geometric_filter
 from facecap_core.mvs.fusion import fuse, write_ply
 from facecap_core.mvs.prior import coarse_prior
+from facecap_core.mvs.sweep import sweep_depth as plane_sweep
 from facecap_core.mvs.views import choose_sources, sparse_from_mesh, visible_points
 from facecap_core.synthetic import load_gt_cameras, synthesize
 from facecap_core.synthetic.ground_truth import coarse_from_gt, even_keyframes, gt_depth, load_views

@@ -20,6 +20,7 @@ from facecap_core.mvs.filtering import filter_with_prior
 from facecap_core.mvs.images import MVSView, load_view, metric_cameras
 from facecap_core.mvs.patchmatch import DepthMap, patchmatch_depth
 from facecap_core.mvs.prior import coarse_prior
+from facecap_core.mvs.sweep import sweep_depth
 from facecap_core.mvs.views import read_views
 
 log = logging.getLogger(__name__)
@@ -33,13 +34,18 @@ def depth_map_name(index: int) -> str:
 def compute_depth_map(ref: MVSView, sources: list[MVSView], coarse_vertices: np.ndarray,
                       coarse_faces: np.ndarray, config: DepthMapConfig
                       ) -> tuple[DepthMap, DepthMap]:
-    """One keyframe's depth map: coarse prior, PatchMatch, coarse-mesh filter.
+    """One keyframe's depth map: coarse prior, PatchMatch or the plane sweep
+    (``config.method``), coarse-mesh filter.
 
     Returns (raw, filtered); both carry depth, camera-frame normal and cost maps.
     """
     prior = coarse_prior(ref, coarse_vertices, coarse_faces, config.depth_margin_mm,
                          config.head_dilation_px)
-    raw = patchmatch_depth(ref, sources, prior, config)
+    if config.method == "sweep":
+        raw = sweep_depth(ref, sources, prior, config.depth_margin_mm, config.sweep_step_mm,
+                          config.window_radius, config.num_best_views)
+    else:
+        raw = patchmatch_depth(ref, sources, prior, config)
     filtered = filter_with_prior(raw, prior, config.max_cost, config.coarse_max_distance_mm,
                                  config.depth_margin_mm)
     return raw, filtered
