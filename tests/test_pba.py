@@ -46,6 +46,51 @@ def test_kernel_residuals_match_a_direct_warp():
     np.testing.assert_allclose(stats[0], np.sum(residuals ** 2), rtol=1e-4)
 
 
+def test_the_normal_equations_do_not_depend_on_how_the_points_are_split():
+    # The photometric system is summed over fixed runs of points on threads: the same
+    # system (to rounding) as one run, and per-point blocks written where one run writes them.
+    rng = np.random.default_rng(3)
+    intr = Intrinsics(320, 240, 300.0, 300.0, 161.2, 118.7, -0.08, 0.02)
+    imgs = [np.asarray(__import__("cv2").GaussianBlur(rng.uniform(0, 255, (240, 320)).astype(
+        np.float32), (0, 0), 2.0)) for _ in range(3)]
+    R = [np.eye(3), rotation_matrix([0.1, 1.0, 0.0], 0.05), rotation_matrix([0, 1.0, 0], -0.05)]
+    t = [np.zeros(3), np.array([-20.0, 1.0, 2.0]), np.array([20.0, -1.0, 1.0])]
+    n = 61
+    uv = rng.uniform([40, 40], [280, 200], (n, 2))
+    rho = 1.0 / rng.uniform(300, 600, n)
+    host = rng.integers(0, 3, n)
+    targets = np.array([k for h in host for k in range(3) if k != h], np.int64)
+    target_start = np.arange(0, 2 * n + 1, 2, dtype=np.int64)
+    gx, gy = nb.typed.List(), nb.typed.List()
+    for im in imgs:
+        a, b = pba._gradients(im)
+        gx.append(a)
+        gy.append(b)
+    R_rel, t_rel = pba._relative(R, t)
+    n_cam, local = pba.N_INTR + 2 * pba.N_FRAME, pba.N_INTR + 3 * pba.N_FRAME
+
+    def system(chunks):
+        out = [np.zeros((n_cam, n_cam)), np.zeros(n_cam), np.zeros(n), np.zeros(n),
+               np.zeros((n, local)), np.full((n, local), -1, np.int64), np.zeros(3),
+               np.zeros(8 * len(targets))]
+        pba._accumulate_in_chunks(
+            host, uv, rho, target_start, targets, nb.typed.List(imgs), gx, gy,
+            np.ones((n, 8)), np.zeros((3, 6)), 9,
+            np.zeros((3, 6)), 0.0, 240, R_rel, t_rel, np.zeros((3, 2)),
+            np.array([intr.fx, intr.cx, intr.cy, intr.k1, intr.k2]), 4.0, 12.0, True, *out,
+            chunks=chunks)
+        return out
+
+    one, two, five = system(1), system(2), system(5)
+    assert one[6][1] > 8 * n  # residuals in both targets of most points
+    for other in (two, five):
+        for a, b in zip(one[:6], other[:6]):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(one[6], other[6], rtol=1e-12)
+        count = int(one[6][2])
+        np.testing.assert_array_equal(np.sort(one[7][:count]), np.sort(other[7][:count]))
+
+
 def test_sparse_points_are_hosted_at_their_depth():
     intr = Intrinsics(320, 240, 300.0, 300.0, 161.2, 118.7, -0.08, 0.02)
     R = [np.eye(3), rotation_matrix([0.0, 1.0, 0.0], 0.1)]

@@ -7,12 +7,13 @@ from facecap_core.camera import Intrinsics, rotation_matrix
 from facecap_core.config import PoseConfig, SynthConfig
 from facecap_core.keyframes import load_keyframes
 from facecap_core.keyframes import main as keyframes_main
-from facecap_core.pose.colmap_sfm import Poses
+from facecap_core.pose.colmap_sfm import Poses, run_sfm
 from facecap_core.pose.evaluate import pose_errors
 from facecap_core.pose.geometric import triangulate
 from facecap_core.pose.io import write_colmap_text, write_outputs
 from facecap_core.pose.stage import estimate_poses, track_hosts
 from facecap_core.synthetic import load_gt_cameras, synthesize
+from facecap_core.video import read_frames
 
 
 def _ring(n=8, seed=0):
@@ -133,6 +134,20 @@ def test_pose_stage_calibrates_every_keyframe(capture, tmp_path):
     for name in ("cameras.txt", "images.txt", "points3D.txt"):
         assert (tmp_path / "poses" / "colmap" / name).is_file()
     assert (tmp_path / "poses" / "points.ply").is_file()
+
+
+@pytest.mark.slow
+def test_sift_threads_do_not_change_the_cameras(capture, tmp_path):
+    # SIFT extracts each image alone, so threads there cost no reproducibility (matching's
+    # threads do: they stay at one).
+    kf = load_keyframes(keyframes_main(capture.video, tmp_path / "kf"))
+    images = read_frames(capture.video, kf.indices, width=640)
+    one, two = (run_sfm(images, tmp_path / f"sfm{n}", kf.video_size, extraction_threads=n)
+                for n in (1, 2))
+    assert one.frame_indices == two.frame_indices
+    assert np.array_equal(np.asarray(one.R), np.asarray(two.R))
+    assert np.array_equal(np.asarray(one.t), np.asarray(two.t))
+    assert one.intrinsics == two.intrinsics
 
 
 def test_pose_stage_needs_the_keyframe_stage(tmp_path):

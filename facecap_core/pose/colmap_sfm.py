@@ -61,11 +61,12 @@ def _unwritable(path: Path) -> OSError:
 def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tuple[int, int],
             overlap: int = 10, refine_principal_point: bool = False,
             threads: int = 1, seed: int = 0, ordered: bool = True,
-            focal_px: float | None = None) -> Poses:
+            focal_px: float | None = None, extraction_threads: int = 1) -> Poses:
     """SfM over keyframe images ({video frame index: RGB uint8}, all one size).
 
     With one thread and a fixed ``seed`` the result is the same on every run; with more,
-    COLMAP's threaded SIFT and matching give slightly different cameras each time.
+    COLMAP's threaded matching gives slightly different cameras each time. SIFT extracts
+    each image alone: ``extraction_threads`` do not change the result.
 
     With the defaults this is what a COLMAP user gets (principal point held at the image
     centre); sequential matching pairs each keyframe with the next ``overlap``. Images not
@@ -94,7 +95,7 @@ def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tup
         f_sfm = focal_px * w / video_size[0]
         reader.camera_params = f"{f_sfm!r},{w / 2!r},{h / 2!r},0,0"  # a prior focal length
     extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = threads
+    extraction.num_threads = extraction_threads
     pycolmap.extract_features(db, img_dir, camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader, extraction_options=extraction,
                               device=pycolmap.Device.cpu)

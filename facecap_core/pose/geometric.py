@@ -57,12 +57,12 @@ def triangulate(observations: np.ndarray, R: list[np.ndarray], t: list[np.ndarra
         if abs(X[3]) < 1e-12:
             continue
         X = X[:3] / X[3]
-        depth = np.einsum("kij,j->ki", Pv[:, :, :3], X)[:, 2] + Pv[:, 2, 3]
-        if np.any(depth <= 0):
+        in_cameras = np.einsum("kij,j->ki", Pv[:, :, :3], X) + Pv[:, :, 3]
+        if np.any(in_cameras[:, 2] <= 0):
             continue
-        err = [np.linalg.norm(project(X[None], R[v], t[v], intr)[0][0] - obs[o, 2:4])
-               for v, o in zip(views, sel)]
-        if max(err) > max_error_px:
+        # Every view at once: the points are already in their cameras' frames.
+        pixels = project(in_cameras, np.eye(3), np.zeros(3), intr)[0]
+        if np.max(np.linalg.norm(pixels - obs[sel, 2:4], axis=1)) > max_error_px:
             continue
         rays = X - centres[views]
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)

@@ -37,6 +37,7 @@ intrinsics' Jacobians pass through the undistortion by the implicit-function the
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -171,7 +172,7 @@ def _samples(dx, dy, most):
     return min(most, 1 + int(np.ceil(np.sqrt(dx * dx + dy * dy))))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, host_weights,
                 motion, max_samples, velocity, readout, rows, R_rel, t_rel, affine, intr,
                 huber, max_residual, with_cameras, H, b, Hpp, bpp, Hcp_store, idx_store, stats,
@@ -453,6 +454,53 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
                     H[g2, g1] += v
     stats[0] = cost
     stats[1] = count
+
+
+ACCUMULATE_CHUNKS = 2
+"""The photometric normal equations are summed over this many fixed runs of points, each
+on its own thread (the kernel releases the GIL), and added in this order: the same sums,
+so the same cameras, on one core or many; two use both cores of the machine the pipeline
+is sized for (PBA runs alone in the pipeline)."""
+
+
+def _accumulate_in_chunks(host, uv, rho, target_start, targets, images, grad_x, grad_y,
+                          host_weights, motion, max_samples, velocity, readout, rows, R_rel,
+                          t_rel, affine, intr, huber, max_residual, with_cameras, H, b, Hpp,
+                          bpp, Hcp_store, idx_store, stats, res_out,
+                          chunks: int = ACCUMULATE_CHUNKS):
+    """:func:`_accumulate` over ``chunks`` runs of points at once: per-point outputs are
+    written in place (the runs are disjoint), the camera system and the cost summed in
+    order, the residual magnitudes gathered at the front of ``res_out`` (stats[2] of them)."""
+    cuts = np.linspace(0, len(host), chunks + 1).astype(np.int64)
+    runs = []
+    for a, z in zip(cuts[:-1], cuts[1:]):
+        out = res_out[8 * target_start[a]:8 * target_start[z]] if len(res_out) else res_out
+        runs.append((a, z, np.zeros_like(H), np.zeros_like(b), np.zeros(3), out))
+
+    def run(part):
+        a, z, H_, b_, stats_, out = part
+        _accumulate(host[a:z], uv[a:z], rho[a:z], target_start[a:z + 1], targets, images,
+                    grad_x, grad_y, host_weights[a:z], motion, max_samples, velocity, readout,
+                    rows, R_rel, t_rel, affine, intr, huber, max_residual, with_cameras, H_,
+                    b_, Hpp[a:z], bpp[a:z], Hcp_store[a:z], idx_store[a:z], stats_, out)
+
+    if chunks == 1:
+        run(runs[0])
+    else:
+        with ThreadPoolExecutor(chunks) as pool:
+            list(pool.map(run, runs))
+    stats[0] = stats[1] = 0.0
+    written = int(stats[2])
+    for _, _, H_, b_, stats_, out in runs:
+        H += H_
+        b += b_
+        stats[0] += stats_[0]
+        stats[1] += stats_[1]
+        n = int(stats_[2])
+        if n:  # each run's magnitudes start its own slice, at or after the gathered ones
+            res_out[written:written + n] = out[:n].copy()
+            written += n
+    stats[2] = written
 
 
 @nb.njit(cache=True)
@@ -1084,7 +1132,8 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
             e = _Normal(n_cam, len(host), max_local, len(X_), len(obs_frame))
             intr_l = _level_intrinsics(intr_, s)
             vel = frozen_velocity if frozen_velocity is not None else velocity(R_, t_)
-            _accumulate(host, uv_l, rho_, target_start, targets, imgs, gxs, gys, host_weights,
+            _accumulate_in_chunks(host, uv_l, rho_, target_start, targets, imgs, gxs, gys,
+                                  host_weights,
                         vel * (exposure_s / 2), config.blur_samples, vel, readout_s,
                         imgs[0].shape[0], R_rel, t_rel, aff_, intr_l,
                         huber, max_residual, with_cameras,

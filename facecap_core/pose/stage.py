@@ -150,7 +150,7 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
     images = read_frames(video, keyframes.indices, width=config.sfm_width)
     sfm = run_sfm(images, work / "sfm", keyframes.video_size, overlap=config.match_overlap,
                   threads=config.threads, ordered=keyframes.ordered,
-                  focal_px=keyframes.focal_px)
+                  focal_px=keyframes.focal_px, extraction_threads=config.extraction_threads)
     registered_enough(sfm, len(keyframes.indices), config)
     if not keyframes.ordered:
         sfm = reorder(sfm, sweep_order(sfm))
