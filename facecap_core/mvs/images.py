@@ -6,6 +6,8 @@ lens distortion is removed once per image here (OpenCV remap) instead of per sam
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,7 +16,7 @@ import numpy as np
 
 from facecap_core.camera import CameraSet, Intrinsics, camera_center, read_cameras_json
 from facecap_core.errors import InputError
-from facecap_core.frames import load_frame
+from facecap_core.frames import frame_name, load_frame
 
 
 @dataclass
@@ -79,10 +81,34 @@ def prepare_view(index: int, image: np.ndarray, intr: Intrinsics, R: np.ndarray,
     return MVSView(int(index), pinhole(cam), R, t, np.ascontiguousarray(rgb), grey)
 
 
+VIEW_CACHE_BYTES = 256 * 2**20
+"""Prepared views a process keeps for its next depth maps: each map reads its reference and
+12 sources, neighbouring maps mostly the same ones, and decoding and undistorting a 720p
+keyframe costs about as much as a tenth of a plane-sweep map. 256 MB holds ~90 views at the
+default 640 px. Views are shared: nothing writes into their arrays."""
+
+_views: OrderedDict[tuple, MVSView] = OrderedDict()
+_views_lock = threading.Lock()
+
+
 def load_view(frames_dir: str | Path, cams: CameraSet, index: int, width: int) -> MVSView:
-    """Keyframe ``index`` of the frames stage, prepared at ``width`` for matching."""
+    """Keyframe ``index`` of the frames stage, prepared at ``width`` for matching (kept for
+    the next call with the same file, camera and width)."""
     R, t = cams.pose(index)
-    return prepare_view(index, load_frame(frames_dir, index), cams.intrinsics, R, t, width)
+    path = Path(frames_dir).resolve()
+    stat = (path / frame_name(index)).stat() if (path / frame_name(index)).is_file() else None
+    key = (str(path), int(index), int(width), cams.intrinsics, np.asarray(R, float).tobytes(),
+           np.asarray(t, float).tobytes(), stat and (stat.st_mtime_ns, stat.st_size))
+    with _views_lock:
+        if key in _views:
+            _views.move_to_end(key)
+            return _views[key]
+    view = prepare_view(index, load_frame(frames_dir, index), cams.intrinsics, R, t, width)
+    with _views_lock:
+        _views[key] = view
+        while sum(v.rgb.nbytes + v.grey.nbytes for v in _views.values()) > VIEW_CACHE_BYTES:
+            _views.popitem(last=False)
+    return view
 
 
 def metric_cameras(cameras_json: str | Path) -> CameraSet:
