@@ -17,7 +17,12 @@ from facecap_core.camera import Intrinsics, look_at
 from facecap_core.errors import InputError
 from facecap_core.evaluation import distances, score
 from facecap_core.fitting import FittingConfig, Keyframe, NicpSystem, fit, fit_and_write
-from facecap_core.fitting.constraints import CloudGrid, cloud_targets, nearest_edge_pixels
+from facecap_core.fitting.constraints import (
+    CloudGrid,
+    cloud_targets,
+    nearest_edge_pixels,
+    silhouette_vertices,
+)
 from facecap_core.fitting.nicp import initial_similarity
 from facecap_core.fitting.roughness import face_edges, roughness
 from facecap_core.render import RaycastScene, interpolate
@@ -367,3 +372,32 @@ def test_ear_points_off_the_cloud_are_not_fitted():
     face_only = cloud[np.abs((cloud - template.landmark_points[30]) @ R[0]) < 50]
     kept, report = ears_off_the_cloud((ids, out, weights), face_only)
     assert len(kept[0]) == 24 and report["left"]["cloud_points_near"] < 200
+
+
+def test_silhouette_vertices_are_the_contour_a_camera_sees():
+    # A sphere's occluding contour from a camera: the vertices of the edges between a
+    # triangle facing it and one facing away (trimesh's own face adjacency), all unoccluded.
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=100.0)
+    V, F = np.asarray(sphere.vertices), np.asarray(sphere.faces, np.int64)
+    R, t = look_at(np.array([30.0, 20.0, 500.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]))
+    kf = Keyframe(np.zeros((480, 640), np.uint8), Intrinsics(640, 480, 500.0, 500.0, 319.5,
+                                                               239.5), R, t)
+    scene = RaycastScene()
+    scene.add(V, F)
+    centre = -R.T @ t
+    front = np.einsum("ij,ij->i", sphere.face_normals, centre - V[F[:, 0]]) > 0
+    pairs = sphere.face_adjacency
+    expected = np.unique(sphere.face_adjacency_edges[front[pairs[:, 0]] != front[pairs[:, 1]]])
+    # A ray to a contour vertex grazes the surface: one can clip a neighbouring triangle by
+    # more than the 1 mm tolerance and count as hidden.
+    ids = silhouette_vertices(V, F, kf, scene)
+    assert set(ids) <= set(expected) and len(ids) >= 0.95 * len(expected)
+    np.testing.assert_array_equal(silhouette_vertices(V, F, kf, scene), ids)  # worked out once
+    # Vertices on the far side's rim of a second sphere behind the first are hidden.
+    behind = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    both_V = np.concatenate([V, np.asarray(behind.vertices) - 400.0 * centre /
+                             np.linalg.norm(centre)])
+    both_F = np.concatenate([F, np.asarray(behind.faces, np.int64) + len(V)])
+    scene2 = RaycastScene()
+    scene2.add(both_V, both_F)
+    np.testing.assert_array_equal(silhouette_vertices(both_V, both_F, kf, scene2), ids)

@@ -20,6 +20,7 @@ means "no target" (the vertex then follows its neighbours through the stiffness 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -203,6 +204,23 @@ def boundary_distance(n: int, faces: np.ndarray, rings: int) -> np.ndarray:
     return near
 
 
+@functools.lru_cache(maxsize=4)
+def _shared_edges(faces_bytes: bytes, n_faces: int, n_vertices: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh's edges that two triangles share, (E, 2) vertex ids, and those triangles:
+    an edge between a front- and a back-facing one is on the contour. The topology is the
+    template's in every fitting step and keyframe, so it is worked out once (an edge of more
+    than two triangles pairs each with the next, in triangle order)."""
+    f = np.frombuffer(faces_bytes, np.int64).reshape(n_faces, 3)
+    he = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    key = np.minimum(he[:, 0], he[:, 1]) * n_vertices + np.maximum(he[:, 0], he[:, 1])
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    same = np.flatnonzero(ks[1:] == ks[:-1])
+    edges = np.column_stack([ks[same] // n_vertices, ks[same] % n_vertices])
+    return edges, order[same] % n_faces, order[same + 1] % n_faces
+
+
 def silhouette_vertices(vertices: np.ndarray, faces: np.ndarray, kf: Keyframe, scene,
                         exclude: np.ndarray | None = None, depth_tol: float = 1.0
                         ) -> np.ndarray:
@@ -217,15 +235,9 @@ def silhouette_vertices(vertices: np.ndarray, faces: np.ndarray, kf: Keyframe, s
     c = camera_center(kf.R, kf.t)
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     front = np.einsum("ij,ij->i", fn, c - v[f[:, 0]]) > 0
-    # Directed half-edges; an undirected edge with one front and one back face is a contour.
-    he = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    hf = np.tile(front, 3)
-    key = np.minimum(he[:, 0], he[:, 1]) * len(v) + np.maximum(he[:, 0], he[:, 1])
-    order = np.argsort(key, kind="stable")
-    ks, fs = key[order], hf[order]
-    same = ks[1:] == ks[:-1]
-    contour = same & (fs[1:] != fs[:-1])
-    ids = np.unique(np.concatenate([ks[:-1][contour] // len(v), ks[:-1][contour] % len(v)]))
+    edges, face_a, face_b = _shared_edges(f.tobytes(), len(f), len(v))
+    contour = front[face_a] != front[face_b]
+    ids = np.unique(edges[contour])
     if exclude is not None:
         ids = ids[~exclude[ids]]
     if len(ids) == 0:
