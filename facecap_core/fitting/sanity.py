@@ -52,8 +52,14 @@ def _normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def _edges(faces: np.ndarray) -> np.ndarray:
-    e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    return np.unique(e, axis=0)
+    """Unique undirected edges (E, 2), smaller id first, in lexicographic order (as one
+    integer key each: np.unique over rows is ten times slower)."""
+    e = np.sort(np.asarray(faces, np.int64)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    if not len(e):
+        return e
+    n = int(e.max()) + 1
+    keys = np.unique(e[:, 0] * n + e[:, 1])
+    return np.column_stack([keys // n, keys % n])
 
 
 def self_intersecting_pairs(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
