@@ -17,7 +17,10 @@ cameras, and the two meshes are compared over the face after a similarity (media
 what the halves disagree on is noise.
 
     python benchmarks/bench_real.py [--root ../shared/data/real] [--out out/bench_real]
-        [--only photo_set_31] [--split-half]
+        [--only photo_set_31] [--split-half] [--config CONFIG.yaml]
+
+``--config`` is given to ``facecap reconstruct`` and to the halves' stages (e.g.
+``mvs: {depth: {method: patchmatch}}`` to compare the depth searches).
 """
 
 from __future__ import annotations
@@ -85,10 +88,11 @@ def render_beside(out: Path, capture: Path, picks: int = 2) -> Path | None:
     return path
 
 
-def run(name: str, capture: Path, out: Path, store: Path) -> dict:
+def run(name: str, capture: Path, out: Path, store: Path, config: Path | None = None) -> dict:
     start = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "flows.cli", "reconstruct", str(capture),
-                           "--out", str(out), "--store", str(store)],
+                           "--out", str(out), "--store", str(store)]
+                          + (["--config", str(config)] if config else []),
                           cwd=ROOT, capture_output=True, text=True)
     row = {"capture": name, "exit": proc.returncode, "seconds": round(time.perf_counter()
                                                                        - start, 1)}
@@ -108,7 +112,8 @@ def run(name: str, capture: Path, out: Path, store: Path) -> dict:
     return row
 
 
-def split_half(name: str, out: Path, store: Path) -> dict | None:
+def split_half(name: str, out: Path, store: Path, config_file: Path | None = None
+               ) -> dict | None:
     """The dense reconstruction of two disjoint halves of a capture's keyframes (sweep order,
     dealt alternately), on the full run's cameras and coarse mesh: view selection, depth
     maps, fusion and fit per half; then the distance between the two meshes over the face.
@@ -117,7 +122,7 @@ def split_half(name: str, out: Path, store: Path) -> dict | None:
     photos to solve alone (``photo_set_31``'s halves: 10 of 16 and 2 of 15 register), and
     the cameras are measured apart (against COLMAP); what differs between the halves is
     every image the surface is made from."""
-    from facecap_core.config import PipelineConfig
+    from facecap_core.config import load_pipeline_config
     from facecap_core.evaluation import split_half_distance
     from facecap_core.fitting import stage as fitting_stage
     from facecap_core.fitting.roughness import face_vertices
@@ -132,7 +137,7 @@ def split_half(name: str, out: Path, store: Path) -> dict | None:
     keys = {k.split("-")[0]: store / "artifacts" / k
             for k in re.findall(r'"([a-z]+-[0-9a-f]{32})"', json.dumps(report))}
     frames, coarse, poses = keys["frames"], keys["coarse"], keys["poses"]
-    config = PipelineConfig()
+    config = load_pipeline_config(config_file)
     cameras = json.loads((coarse / "cameras.json").read_text())
     meshes, rows = [], []
     for half in (0, 1):
@@ -168,6 +173,7 @@ def main() -> None:
                         help="also reconstruct two disjoint halves of the keyframes of each "
                              "capture that reconstructs, and measure the distance between "
                              "their meshes")
+    parser.add_argument("--config", type=Path, help="PipelineConfig YAML for every run")
     args = parser.parse_args()
     if not args.root.is_dir():
         sys.exit(f"no real captures at {args.root}")
@@ -176,11 +182,11 @@ def main() -> None:
     for name, (rel, expected) in CAPTURES.items():
         if args.only and name not in args.only:
             continue
-        row = run(name, args.root / rel, args.out / name, store)
+        row = run(name, args.root / rel, args.out / name, store, args.config)
         row["expected"] = expected
         if args.split_half and row["exit"] == 0:
             try:
-                row["split_half"] = split_half(name, args.out, store)
+                row["split_half"] = split_half(name, args.out, store, args.config)
             except Exception as exc:  # a failed half is a figure of its own, not the end
                 row["split_half"] = {"error": f"{type(exc).__name__}: {exc}"}
         rows.append(row)

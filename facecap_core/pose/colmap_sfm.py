@@ -96,6 +96,12 @@ def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tup
         reader.camera_params = f"{f_sfm!r},{w / 2!r},{h / 2!r},0,0"  # a prior focal length
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = extraction_threads
+    # Images enter the database first, one after another (their ids in name order): with
+    # several extraction threads COLMAP would number them in the order their features
+    # finish, and matching and mapping follow the ids.
+    pycolmap.Database.open(str(db)).close()  # creates it
+    pycolmap.import_images(db, img_dir, camera_mode=pycolmap.CameraMode.SINGLE,
+                           options=reader)
     pycolmap.extract_features(db, img_dir, camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader, extraction_options=extraction,
                               device=pycolmap.Device.cpu)
