@@ -686,13 +686,14 @@ class DepthMapConfig(StrictModel):
     """Half-width of the depth search range around the coarse mesh."""
     head_dilation_px: int = Field(6, ge=0, le=100)
     """Pixels the coarse mesh's silhouette is grown by to form the computed region."""
-    method: Literal["patchmatch", "sweep"] = "sweep"
-    """How the depths are searched: ``sweep`` (fronto-parallel planes every ``sweep_step_mm``
-    around the coarse depth, dense box window, ``sweep.py``) or ``patchmatch`` (the paper's:
-    slanted planes, sparse bilateral window, ``patchmatch.py``). On the calibration captures
-    (docs/mvs.md, "Which depth search") the sweep's meshes were as accurate or more at a
-    sixth of the depth stage's time. Both use the window radius, the best-views aggregation
-    and the filter below; the PatchMatch fields only PatchMatch."""
+    method: Literal["patchmatch", "sweep"] = "patchmatch"
+    """How the depths are searched: ``patchmatch`` (the paper's: slanted planes, sparse
+    bilateral window, ``patchmatch.py``) or ``sweep`` (fronto-parallel planes every
+    ``sweep_step_mm`` around the coarse depth, dense box window, ``sweep.py``): a fifth of
+    the depth stage's time, as accurate or more on rendered faces, less consistent on real
+    photos and on the real head scan (docs/mvs.md, "Which depth search"). Both use the
+    window radius, the best-views aggregation and the filter below; the PatchMatch fields
+    only PatchMatch."""
     sweep_step_mm: float = Field(0.5, gt=0, le=10)
     """Spacing of the sweep's planes (a parabola through the best one and its neighbours
     gives the depth between them)."""

@@ -3,7 +3,7 @@
 * :mod:`.views`: which keyframes get a depth map and their source views (the paper's
   view-selection score); ``views.main`` → ``views.json``;
 * :mod:`.depth`: one keyframe's depth map from the coarse mesh's prior (:mod:`.prior`) and
-  the plane sweep (:mod:`.sweep`, the default) or PatchMatch (:mod:`.patchmatch`), filtered
+  PatchMatch (:mod:`.patchmatch`, the default) or the plane sweep (:mod:`.sweep`), filtered
   (:mod:`.filtering`); ``depth.main`` →
   ``depth_<index>.npz``;
 * :mod:`.fusion`: the consistency filter across maps and the fused cloud; ``fusion.main``

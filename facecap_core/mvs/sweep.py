@@ -9,8 +9,10 @@ through its neighbours' costs gives the sub-step depth. Normals come from the de
 central differences.
 
 The window is dense (every pixel of a (2r+1)² box, against PatchMatch's sparse 36 samples)
-and assumed to face the camera; on the benchmark's renders and on the pipeline's own inputs
-it is as accurate as PatchMatch or more, at about a seventh of the CPU time (docs/mvs.md).
+and follows the coarse mesh's shape (each pixel at its own coarse depth plus the offset); on
+rendered faces it is as accurate as PatchMatch or more at about a seventh of the CPU time,
+on real photos and the real head scan less consistent, so it is the fast setting
+(``mvs.depth.method: sweep``), not the default (docs/mvs.md, "Which depth search").
 OpenCV releases the GIL, so depth maps in Python threads run in parallel.
 """
 
