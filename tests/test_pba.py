@@ -8,21 +8,27 @@ from facecap_core.camera import Intrinsics, project, rotation_matrix, undistort
 from facecap_core.pose import pba
 
 
-def test_kernel_residuals_match_a_direct_warp():
-    rng = np.random.default_rng(0)
-    intr = Intrinsics(320, 240, 300.0, 300.0, 161.2, 118.7, -0.08, 0.02)
-    # Two smooth random images; the point's true depth plays no role in this check.
+def _smooth_images(rng, count: int):
+    """``count`` smooth random 320x240 images and their gradients, as the kernel takes them."""
     imgs = [np.asarray(__import__("cv2").GaussianBlur(rng.uniform(0, 255, (240, 320)).astype(
-        np.float32), (0, 0), 2.0)) for _ in range(2)]
-    R = [np.eye(3), rotation_matrix([0.1, 1.0, 0.0], 0.05)]
-    t = [np.zeros(3), np.array([-20.0, 1.0, 2.0])]
-    uv = rng.uniform([40, 40], [280, 200], (50, 2))
-    rho = 1.0 / rng.uniform(300, 600, 50)
+        np.float32), (0, 0), 2.0)) for _ in range(count)]
     gx, gy = nb.typed.List(), nb.typed.List()
     for im in imgs:
         a, b = pba._gradients(im)
         gx.append(a)
         gy.append(b)
+    return imgs, gx, gy
+
+
+def test_kernel_residuals_match_a_direct_warp():
+    rng = np.random.default_rng(0)
+    intr = Intrinsics(320, 240, 300.0, 300.0, 161.2, 118.7, -0.08, 0.02)
+    # Two smooth random images; the point's true depth plays no role in this check.
+    imgs, gx, gy = _smooth_images(rng, 2)
+    R = [np.eye(3), rotation_matrix([0.1, 1.0, 0.0], 0.05)]
+    t = [np.zeros(3), np.array([-20.0, 1.0, 2.0])]
+    uv = rng.uniform([40, 40], [280, 200], (50, 2))
+    rho = 1.0 / rng.uniform(300, 600, 50)
     R_rel, t_rel = pba._relative(R, t)
     n = len(uv)
     stats = np.zeros(3)
@@ -51,8 +57,7 @@ def test_the_normal_equations_do_not_depend_on_how_the_points_are_split():
     # system (to rounding) as one run, and per-point blocks written where one run writes them.
     rng = np.random.default_rng(3)
     intr = Intrinsics(320, 240, 300.0, 300.0, 161.2, 118.7, -0.08, 0.02)
-    imgs = [np.asarray(__import__("cv2").GaussianBlur(rng.uniform(0, 255, (240, 320)).astype(
-        np.float32), (0, 0), 2.0)) for _ in range(3)]
+    imgs, gx, gy = _smooth_images(rng, 3)
     R = [np.eye(3), rotation_matrix([0.1, 1.0, 0.0], 0.05), rotation_matrix([0, 1.0, 0], -0.05)]
     t = [np.zeros(3), np.array([-20.0, 1.0, 2.0]), np.array([20.0, -1.0, 1.0])]
     n = 61
@@ -61,11 +66,6 @@ def test_the_normal_equations_do_not_depend_on_how_the_points_are_split():
     host = rng.integers(0, 3, n)
     targets = np.array([k for h in host for k in range(3) if k != h], np.int64)
     target_start = np.arange(0, 2 * n + 1, 2, dtype=np.int64)
-    gx, gy = nb.typed.List(), nb.typed.List()
-    for im in imgs:
-        a, b = pba._gradients(im)
-        gx.append(a)
-        gy.append(b)
     R_rel, t_rel = pba._relative(R, t)
     n_cam, local = pba.N_INTR + 2 * pba.N_FRAME, pba.N_INTR + 3 * pba.N_FRAME
 
