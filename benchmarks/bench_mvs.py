@@ -163,7 +163,8 @@ def run_subject(subject, args, config, out):
             prior = coarse_prior(views[i], coarse, F, config.depth.depth_margin_mm,
                                  config.depth.head_dilation_px)
             dm = plane_sweep(views[i], [views[j] for j in sources[i]], prior,
-                             config.depth.depth_margin_mm, radius=config.depth.window_radius,
+                             config.depth.depth_margin_mm, config.depth.sweep_step_mm,
+                             radius=config.depth.window_radius,
                              nbest=config.depth.num_best_views)
             return dm, filter_with_prior(dm, prior, config.depth.max_cost,
                                          config.depth.coarse_max_distance_mm, config.depth.depth_margin_mm)
@@ -256,7 +257,8 @@ def pipeline_subject(result: Path, config, peer: bool):
             prior = coarse_prior(by_index[i], coarse.vertices, coarse.faces,
                                  config.depth.depth_margin_mm, config.depth.head_dilation_px)
             dm = plane_sweep(by_index[i], [all_views[j] for j in sources[i]], prior,
-                             config.depth.depth_margin_mm, radius=config.depth.window_radius,
+                             config.depth.depth_margin_mm, config.depth.sweep_step_mm,
+                             radius=config.depth.window_radius,
                              nbest=config.depth.num_best_views)
             return dm, filter_with_prior(dm, prior, config.depth.max_cost,
                                          config.depth.coarse_max_distance_mm, config.depth.depth_margin_mm)

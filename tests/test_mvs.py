@@ -138,6 +138,20 @@ def test_depth_map_recovers_the_face(scene, method):
     assert np.array_equal(again.depth, raw.depth)
 
 
+def test_a_sweep_step_as_wide_as_the_margin_still_sweeps_three_planes(scene):
+    views, src = scene["views"], scene["sources"]
+    cfg = scene["config"].model_copy(update={"method": "sweep", "sweep_step_mm": 10.0})
+    i = len(views) // 2
+    raw, _ = compute_depth_map(views[i], [views[j] for j in src[i]], scene["coarse"],
+                               scene["F"], cfg)
+    coarse_d, _ = gt_depth(views[i], scene["coarse"], scene["F"])
+    hit = (raw.depth > 0) & np.isfinite(coarse_d)
+    # Planes at -10, 0, +10 mm; the parabola through the best one's neighbours keeps the
+    # depth within a step of the middle plane.
+    assert hit.sum() > 1000
+    assert np.all(np.abs(raw.depth[hit] - coarse_d[hit]) <= 10.0 + 1e-2)
+
+
 # --------------------------------------------------------------------------- fusion
 
 

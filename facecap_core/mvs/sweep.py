@@ -51,8 +51,8 @@ def depth_normals(depth: np.ndarray, intr) -> np.ndarray:
 def sweep_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, margin_mm: float,
                 step_mm: float = 0.5, radius: int = 5, nbest: int = 8) -> DepthMap:
     """Depth, normal and cost maps of ``ref`` over the prior's region: the best of the
-    fronto-parallel planes at offsets in [-margin, margin] from the coarse depth. Raw: no
-    filtering."""
+    planes at offsets from the coarse depth every ``step_mm``, symmetric, covering ±margin
+    (at least one on each side). Raw: no filtering."""
     start, cpu = time.perf_counter(), time.thread_time()
     check_inputs(ref, sources, prior)
     rows, cols = np.nonzero(prior.mask)
@@ -68,7 +68,9 @@ def sweep_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, margin
     ref_g = ref.grey[r0:r1, c0:c1]
     mr = _box(ref_g, radius)
     sr = np.sqrt(np.maximum(_box(ref_g * ref_g, radius) - mr * mr, 1e-8))
-    offsets = np.arange(-margin_mm, margin_mm + 1e-9, step_mm)
+    # Symmetric, and at least three planes (the parabola needs the best one's neighbours).
+    half = max(1, int(np.ceil(margin_mm / step_mm - 1e-9)))
+    offsets = step_mm * np.arange(-half, half + 1)
     agg = np.empty((len(offsets),) + base.shape, np.float32)
     nb = min(nbest, len(sources))
     costs = np.empty((len(sources),) + base.shape, np.float32)
