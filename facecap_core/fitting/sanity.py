@@ -17,6 +17,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from facecap_core.fitting.solver import edges_of
+
 MAX_EDGE_STRETCH = 3.0
 """An edge beyond this many times its (similarity-scaled) template length counts as
 stretched: the fit's smooth deformations (landmark pulls, cloud attraction) change edge
@@ -51,17 +53,6 @@ def _normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nd
     return n / np.maximum(area2, 1e-300)[:, None], area2
 
 
-def _edges(faces: np.ndarray) -> np.ndarray:
-    """Unique undirected edges (E, 2), smaller id first, in lexicographic order (as one
-    integer key each: np.unique over rows is ten times slower)."""
-    e = np.sort(np.asarray(faces, np.int64)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    if not len(e):
-        return e
-    n = int(e.max()) + 1
-    keys = np.unique(e[:, 0] * n + e[:, 1])
-    return np.column_stack([keys // n, keys % n])
-
-
 def self_intersecting_pairs(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(P, 2) indices (sorted, unique) of the triangle pairs that cut through each other
     (sharing a vertex or an edge is not an intersection).
@@ -79,7 +70,7 @@ def self_intersecting_pairs(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor((v - centre).astype(np.float32)),
                         o3d.core.Tensor(f.astype(np.uint32)))
-    edges = _edges(f)
+    edges = edges_of(f)
     start, end = v[edges[:, 0]] - centre, v[edges[:, 1]] - centre
     hits = scene.list_intersections(o3d.core.Tensor(
         np.concatenate([start, end - start], 1).astype(np.float32)))
@@ -152,7 +143,7 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.nd
     vertices = np.asarray(vertices, float)
     template = np.asarray(template_vertices, float)
     faces = np.asarray(faces, np.int64)
-    c = _compare(vertices, _moved_template(template, vertices), faces, _edges(faces))
+    c = _compare(vertices, _moved_template(template, vertices), faces, edges_of(faces))
     return MeshSanity(triangles=len(faces), flipped=int(c.flipped.sum()),
                       degenerate=int(c.degenerate.sum()),
                       stretched_edges=int((c.stretch > max_stretch).sum()),
@@ -165,7 +156,7 @@ def _adjacency(faces: np.ndarray, n: int):
     """Row-normalised vertex adjacency (sparse): A @ x averages x over each one-ring."""
     import scipy.sparse as sp
 
-    e = _edges(faces)
+    e = edges_of(faces)
     A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
                       shape=(n, n)).tocsr()
     degree = np.asarray(A.sum(1)).ravel()
@@ -197,7 +188,7 @@ def relax_folds(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.n
     faces = np.asarray(faces, np.int64)
     moved = _moved_template(T, V)
     A = _adjacency(faces, len(V))
-    edges = _edges(faces)
+    edges = edges_of(faces)
     region = np.zeros(len(V), bool)
 
     def relax(bad_faces: np.ndarray, rings: int) -> None:

@@ -1133,12 +1133,11 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
             intr_l = _level_intrinsics(intr_, s)
             vel = frozen_velocity if frozen_velocity is not None else velocity(R_, t_)
             _accumulate_in_chunks(host, uv_l, rho_, target_start, targets, imgs, gxs, gys,
-                                  host_weights,
-                        vel * (exposure_s / 2), config.blur_samples, vel, readout_s,
-                        imgs[0].shape[0], R_rel, t_rel, aff_, intr_l,
-                        huber, max_residual, with_cameras,
-                        e.H, e.b, e.Hpp, e.bpp, e.Hcp, e.idx, e.stats,
-                        residuals if residuals is not None else np.zeros(0))
+                                  host_weights, vel * (exposure_s / 2), config.blur_samples,
+                                  vel, readout_s, imgs[0].shape[0], R_rel, t_rel, aff_, intr_l,
+                                  huber, max_residual, with_cameras,
+                                  e.H, e.b, e.Hpp, e.bpp, e.Hcp, e.idx, e.stats,
+                                  residuals if residuals is not None else np.zeros(0))
             if with_tracks and len(X_):
                 _accumulate_tracks(X_, obs_start, obs_frame, obs_xy / s, np.asarray(R_),
                                    np.asarray(t_), intr_l, track_w * s * s,
