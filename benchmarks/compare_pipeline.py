@@ -20,6 +20,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 
 from facecap_core.camera import camera_center, read_cameras_json
 from facecap_core.evaluation import distances, region_sphere
@@ -70,8 +71,6 @@ def capture_figures(result: Path) -> dict:
 
 
 def _cloud_points(path: Path) -> np.ndarray:
-    import open3d as o3d
-
     return np.asarray(o3d.io.read_point_cloud(str(path)).points, float)
 
 
