@@ -18,7 +18,7 @@ MEDIAPIPE := mediapipe==0.10.21
 .PHONY: demo test test-fast lint install constraints system-libs compose-tool browser bench clean
 
 demo: install
-	$(PY) -m flows.cli demo --out out/demo --ict-model "$(ICT_MODEL)"
+	$(PY) -m facecap demo --out out/demo --ict-model "$(ICT_MODEL)"
 
 test: install compose-tool browser
 	$(PY) -m pytest -q

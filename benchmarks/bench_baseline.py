@@ -15,10 +15,10 @@ import resource
 import time
 from pathlib import Path
 
+from facecap.synthetic import synthesize
 from facecap_core.baselines import mean_template
 from facecap_core.config import SynthConfig
 from facecap_core.evaluation import paper_table, score_json
-from facecap_core.synthetic import synthesize
 from facecap_core.template import Template
 
 PAPER_MEAN_BASEL = "paper, Mean Basel (10 real subjects): accuracy 3.09 / 1.24 / 2.62, completion 3.02 / 1.25 / 2.76 mm"
@@ -30,10 +30,10 @@ def landmark_agreement(capture, max_yaw_deg: float = 12.0) -> tuple[float, int]:
     import av
     import numpy as np
 
+    from facecap.synthetic import load_gt_cameras
     from facecap_core.camera import camera_center, project
     from facecap_core.face import detect
     from facecap_core.meshio import load_landmarks
-    from facecap_core.synthetic import load_gt_cameras
 
     intr, poses = load_gt_cameras(capture.gt_cameras)
     landmarks = load_landmarks(capture.gt_landmarks)

@@ -60,7 +60,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import facecap_core.ear_training as et  # noqa: E402
+import facecap.ear_training as et  # noqa: E402
+from facecap.synthetic import Room, load_gt_cameras, make_subject  # noqa: E402
 from facecap_core.camera import camera_center, project  # noqa: E402
 from facecap_core.config import EarTrainingConfig, SynthConfig, load_yaml  # noqa: E402
 from facecap_core.landmarks.ears import (  # noqa: E402
@@ -70,7 +71,6 @@ from facecap_core.landmarks.ears import (  # noqa: E402
     models_dir,
 )
 from facecap_core.render import RaycastScene  # noqa: E402
-from facecap_core.synthetic import Room, load_gt_cameras, make_subject  # noqa: E402
 from facecap_core.template import Template  # noqa: E402
 
 BARS = {"detection_rate": 0.90, "nme": 0.08}

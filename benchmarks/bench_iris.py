@@ -35,10 +35,10 @@ sys.path.insert(0, str(ROOT))
 
 from iris_limbus import LEFT_EYE, RIGHT_EYE, fit_iris  # noqa: E402
 
+from facecap.synthetic import load_gt_cameras  # noqa: E402
 from facecap_core.camera import camera_center, project  # noqa: E402
 from facecap_core.face import detect  # noqa: E402
 from facecap_core.landmarks import iris  # noqa: E402
-from facecap_core.synthetic import load_gt_cameras  # noqa: E402
 from facecap_core.video import iter_frames  # noqa: E402
 
 

@@ -47,6 +47,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from facecap.synthetic import load_gt_cameras, synthesize, write_gt_keyframe_cameras  # noqa: E402
 from facecap_core import coarse  # noqa: E402
 from facecap_core.camera import (  # noqa: E402
     CameraSet,
@@ -60,7 +61,6 @@ from facecap_core.geometry import umeyama  # noqa: E402
 from facecap_core.landmarks import stage  # noqa: E402
 from facecap_core.landmarks.convention import OFFSETS_FILE, convention_offsets  # noqa: E402
 from facecap_core.meshio import load_landmarks, load_mesh  # noqa: E402
-from facecap_core.synthetic import load_gt_cameras, synthesize  # noqa: E402
 from facecap_core.template import INNER_LANDMARKS, Template  # noqa: E402
 
 CAPTURES = [ROOT / "out/captures" / f"{s}_1280x720_60fps_8s" for s in ("ict_0", "ict_1", "james")]
@@ -125,7 +125,7 @@ def pipeline_cameras(capture: Path, out: Path) -> Path | None:
     if not path.is_file():
         print(f"  reconstructing poses of {capture.name} (facecap reconstruct --until poses)",
               flush=True)
-        cmd = [sys.executable, "-m", "flows.cli", "reconstruct", str(capture / "video.mp4"),
+        cmd = [sys.executable, "-m", "facecap", "reconstruct", str(capture / "video.mp4"),
                "--out", str(folder), "--until", "poses"]
         result = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
         if result.returncode != 0 or not path.is_file():
@@ -140,7 +140,7 @@ def run_capture(capture: Path, out: Path, cameras: str, deformations: list[str],
     G = load_landmarks(capture / "gt" / "landmarks.json")
     gt_mesh = load_mesh(capture / "gt" / "mesh.ply")
     if cameras == "gt":
-        cams_path = stage.write_gt_keyframe_cameras(capture / "gt" / "cameras.json",
+        cams_path = write_gt_keyframe_cameras(capture / "gt" / "cameras.json",
                                                     work / "cameras.json", step=KEYFRAME_STEP,
                                                     **WORLD)
         mm_per_unit = 1.0 / WORLD["scale"]
@@ -309,7 +309,7 @@ def calibrate(seeds: list[int], out: Path, ict_model: str) -> None:
     calibrate_mesh_vertices(folders, command)
     for seed, folder in zip(seeds, folders):
         work = out / "calibration_runs" / folder.name
-        cams = stage.write_gt_keyframe_cameras(folder / "gt" / "cameras.json",
+        cams = write_gt_keyframe_cameras(folder / "gt" / "cameras.json",
                                                work / "cameras.json", step=1, **WORLD)
         L, _ = stage.load_landmarks3d(stage.main(folder / "video.mp4", cams, work, config))
         L_mm = (L - WORLD["translation"]) @ WORLD["rotation"] / WORLD["scale"]

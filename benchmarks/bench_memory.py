@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tasks.graph import STEPS
+from facecap.tasks.graph import STEPS
 
 ROOT = Path(__file__).resolve().parents[1]
 BAR_GB = 4.0
@@ -239,7 +239,7 @@ def face_steps(args, out: Path, py: list[str], env: dict) -> tuple[Path, list, s
     synth = out / "synth"
     if not (synth / "video.mp4").is_file():
         print("facecap synth " + " ".join(SYNTH), flush=True)
-        subprocess.run(py + ["-m", "flows.cli", "synth", "--out", str(synth), "--quiet", *SYNTH],
+        subprocess.run(py + ["-m", "facecap", "synth", "--out", str(synth), "--quiet", *SYNTH],
                        cwd=ROOT, env=env, check=True)
     video = out / f"face_{args.width}x{args.height}_{args.fps}fps_{args.seconds:g}s.mp4"
     if not video.is_file():
@@ -261,7 +261,7 @@ def face_steps(args, out: Path, py: list[str], env: dict) -> tuple[Path, list, s
         scan = (["--scan", str(synth / "gt" / "mesh.ply"), "--scan-landmarks",
                  str(synth / "gt" / "landmarks.json")] if stage == "evaluation" else [])
         steps.append((f"reconstruct --until {stage}",
-                      py + ["-m", "flows.cli", "reconstruct", str(video), "--out", str(result),
+                      py + ["-m", "facecap", "reconstruct", str(video), "--out", str(result),
                             "--until", stage, *config, *scan]))
     return video, steps, tag
 
@@ -304,14 +304,14 @@ def main() -> None:
         steps = [("decode (full resolution)", py + ["-c", DECODE, str(video)]),
                  ("keyframes stage", py + ["-c", KEYFRAMES, str(video), str(out / "keyframes")]),
                  ("reconstruct --until keyframes",
-                  py + ["-m", "flows.cli", "reconstruct", str(video), "--out",
+                  py + ["-m", "facecap", "reconstruct", str(video), "--out",
                         str(out / "result"), "--store", str(out / "store"), "--until",
                         "keyframes"])]
         if args.poses:
             config = out / "poses.yaml"
             config.write_text("poses: {method: geometric}\n")
             steps.append(("reconstruct --until poses",
-                          py + ["-m", "flows.cli", "reconstruct", str(video), "--out",
+                          py + ["-m", "facecap", "reconstruct", str(video), "--out",
                                 str(out / "result"), "--store", str(out / "store"), "--until",
                                 "poses", "--config", str(config)]))
     rows = []

@@ -33,6 +33,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from facecap.synthetic import load_gt_cameras, synthesize
+from facecap.synthetic.ground_truth import coarse_from_gt, even_keyframes, gt_depth, load_views
 from facecap_core.config import MVSConfig, SynthConfig
 from facecap_core.evaluation import distances, region_sphere
 from facecap_core.meshio import load_landmarks, load_mesh
@@ -42,8 +44,6 @@ from facecap_core.mvs.fusion import fuse, write_ply
 from facecap_core.mvs.prior import coarse_prior
 from facecap_core.mvs.sweep import sweep_depth as plane_sweep
 from facecap_core.mvs.views import choose_sources, sparse_from_mesh, visible_points
-from facecap_core.synthetic import load_gt_cameras, synthesize
-from facecap_core.synthetic.ground_truth import coarse_from_gt, even_keyframes, gt_depth, load_views
 
 BARS = {"depth_median_mm": 0.5, "coverage_pct": 90.0, "accuracy_median_mm": 0.5,
         "completion_pct": 95.0, "s_per_map": 10.0}
@@ -194,12 +194,12 @@ def pipeline_subject(result: Path, config, peer: bool):
     import json
     from types import SimpleNamespace
 
+    from facecap.tasks.store import open_store
     from facecap_core.camera import camera_center, read_cameras_json
     from facecap_core.geometry import umeyama
     from facecap_core.mvs.depth import load_depth_map
     from facecap_core.mvs.images import load_view
     from facecap_core.mvs.views import read_views
-    from tasks.store import open_store
 
     report = json.loads((result / "report.json").read_text())
     store, stages = open_store(report["store"]), report["stages"]

@@ -27,7 +27,7 @@ def main() -> None:
     parser.add_argument("--results", default="out/demo/result")
     parser.add_argument("--loads", type=int, default=5)
     args = parser.parse_args()
-    from flows.page import build_page, mesh_glb
+    from facecap.flows.page import build_page, mesh_glb
     from tests.browser import look_at_page
 
     folder = Path(args.results)
@@ -40,7 +40,7 @@ def main() -> None:
     accuracy, frames = None, None
     stages = report.get("stages", {})
     if store:
-        from tasks.store import open_store
+        from facecap.tasks.store import open_store
 
         if "evaluation" in stages:
             path = open_store(store).get(stages["evaluation"]["key"]) / "accuracy_metric.npy"

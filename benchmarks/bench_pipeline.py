@@ -34,8 +34,8 @@ BAR_S, GOAL_S = 600, 300
 
 def capture_for(subject: str, captures: Path, ict_model: str | None, fps: int = 60,
                 seconds: float = 8) -> Path:
+    from facecap.synthetic import synthesize
     from facecap_core.config import SynthConfig
-    from facecap_core.synthetic import synthesize
 
     folder = captures / f"{subject.replace(':', '_')}_1280x720_{fps}fps_{seconds:g}s"
     if not (folder / "gt" / "render.json").is_file():
@@ -75,10 +75,10 @@ def _lm_dir(gt: Path, folder: Path) -> Path:
 
 def depth_speedup(store: str, report: dict, maps: int, scratch: Path) -> dict:
     """Seconds for ``maps`` depth maps one at a time and two at a time (same inputs)."""
+    from facecap.tasks.store import open_store
     from facecap_core.config import DepthMapConfig
     from facecap_core.mvs import depth
     from facecap_core.mvs.views import read_views
-    from tasks.store import open_store
 
     st = open_store(store)
     stages = report["stages"]
@@ -107,10 +107,10 @@ def depth_speedup(store: str, report: dict, maps: int, scratch: Path) -> dict:
 
 def run(subjects, out: Path, captures: Path, store: str, ict_model, speedup_maps: int,
         fps: int = 60, seconds: float = 8) -> str:
+    from facecap.flows.capture import reconstruct_capture
     from facecap_core.baselines import mean_template
     from facecap_core.evaluation import paper_table, score_json
     from facecap_core.template import Template
-    from flows.capture import reconstruct_capture
 
     rows = {name: {"similarity": [], "metric": []} for name, _ in ROWS}
     lines, speed = [], None

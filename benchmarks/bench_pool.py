@@ -33,8 +33,8 @@ CONFIG = {"mvs": {"views": {"num_sources": 6}, "depth": {"processing_width": 480
 
 
 def render(root: Path) -> None:
+    from facecap.synthetic import synthesize
     from facecap_core.config import SynthConfig
-    from facecap_core.synthetic import synthesize
 
     for subject, take, identity, seed in CAPTURES:
         video = root / subject / f"{take}.mp4"
@@ -107,7 +107,7 @@ def main() -> Path:
         print(f"pool: {dataset.state.name}, {pool_s:.0f} s wall, {at_once} captures at once",
               flush=True)
         t0 = time.perf_counter()
-        serial = subprocess.run([sys.executable, "-m", "flows.cli", "dataset", str(root),
+        serial = subprocess.run([sys.executable, "-m", "facecap", "dataset", str(root),
                                  "--out", str(out / "serial"), "--config", str(config)],
                                 env={**env, "FACECAP_STORE": str(out / "store_serial")},
                                 cwd=REPO)

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from facecap.synthetic import load_gt_cameras, synthesize
 from facecap_core.assets import default_ict_model
 from facecap_core.config import KeyframeConfig, PoseConfig, SynthConfig
 from facecap_core.keyframes import select_keyframes
@@ -38,7 +39,6 @@ from facecap_core.pose.colmap_sfm import run_sfm
 from facecap_core.pose.evaluate import pose_errors
 from facecap_core.pose.geometric import refine_with_tracks, triangulate
 from facecap_core.pose.stage import photometric_refinement
-from facecap_core.synthetic import load_gt_cameras, synthesize
 from facecap_core.video import read_frames
 
 CAPTURES = {

@@ -8,7 +8,7 @@ coverage, focal length, metric scale, mesh sanity), and the seconds. For each me
 profile keyframe, beside those photos, to look at.
 
 Two measures need no reference. *Roughness* (``report.json`` ``figures.roughness``,
-:mod:`facecap_core.fitting.roughness`): the share of the face's edges bent over 20° and the
+:mod:`facecap_core.nonrigid.roughness`): the share of the face's edges bent over 20° and the
 median bend; skin is smooth, the template itself has 2 % and 1.2°. *Split-half distance*
 (``--split-half``): the keyframes in sweep order are dealt alternately into two halves, the
 dense reconstruction (views, depth maps, fusion, fit) is run on each with the full run's
@@ -90,7 +90,7 @@ def render_beside(out: Path, capture: Path, picks: int = 2) -> Path | None:
 
 def run(name: str, capture: Path, out: Path, store: Path, config: Path | None = None) -> dict:
     start = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "flows.cli", "reconstruct", str(capture),
+    proc = subprocess.run([sys.executable, "-m", "facecap", "reconstruct", str(capture),
                            "--out", str(out), "--store", str(store)]
                           + (["--config", str(config)] if config else []),
                           cwd=ROOT, capture_output=True, text=True)
@@ -125,9 +125,9 @@ def split_half(name: str, out: Path, store: Path, config_file: Path | None = Non
     from facecap_core.config import load_pipeline_config
     from facecap_core.evaluation import split_half_distance
     from facecap_core.fitting import stage as fitting_stage
-    from facecap_core.fitting.roughness import face_vertices
     from facecap_core.meshio import load_mesh
     from facecap_core.mvs import depth, fusion, views
+    from facecap_core.nonrigid.roughness import face_vertices
     from facecap_core.template import Template
 
     full = out / name

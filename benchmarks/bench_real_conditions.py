@@ -75,9 +75,9 @@ def _run(cmd: list[str], log: Path, env: dict) -> tuple[int, float, float]:
 
 def pose_figures(result: Path, gt_cameras: Path) -> dict | None:
     """Camera errors of the reconstruction's keyframes against the ground truth."""
+    from facecap.synthetic import load_gt_cameras
     from facecap_core.camera import read_cameras_json
     from facecap_core.pose.evaluate import pose_errors
-    from facecap_core.synthetic import load_gt_cameras
 
     if not (result / "cameras.json").is_file():
         return None
@@ -102,7 +102,7 @@ def run_condition(name: str, overrides: dict, args, out: Path, env: dict) -> dic
     py = sys.executable
     rec = {"condition": name, "what": CONDITIONS[name][1], "synth": values}
     print(f"{name}: rendering ...", flush=True)
-    rc, secs, peak = _run([py, "-m", "flows.cli", "synth", "--config",
+    rc, secs, peak = _run([py, "-m", "facecap", "synth", "--config",
                            str(folder / "synth.yaml"), "--out", str(capture), "--quiet"],
                           folder / "synth.log", env)
     rec["render_rc"], rec["render_s"], rec["render_peak_mb"] = rc, round(secs, 1), round(peak)
@@ -113,7 +113,7 @@ def run_condition(name: str, overrides: dict, args, out: Path, env: dict) -> dic
     gt = capture / "gt"
     print(f"{name}: {rec['frames']} frames rendered in {secs:.0f} s; reconstructing ...",
           flush=True)
-    rc, secs, peak = _run([py, "-m", "flows.cli", "reconstruct", str(capture / "video.mp4"),
+    rc, secs, peak = _run([py, "-m", "facecap", "reconstruct", str(capture / "video.mp4"),
                            "--out", str(result), "--scan", str(gt / "mesh.ply"),
                            "--scan-landmarks", str(gt / "landmarks.json")],
                           folder / "reconstruct.log", env)

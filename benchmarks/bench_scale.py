@@ -48,13 +48,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from facecap.synthetic import synthesize, write_gt_keyframe_cameras  # noqa: E402
 from facecap_core import coarse  # noqa: E402
 from facecap_core.assets import default_ict_model  # noqa: E402
 from facecap_core.camera import rotation_matrix  # noqa: E402
 from facecap_core.config import CoarseConfig, SynthConfig  # noqa: E402
 from facecap_core.landmarks import stage  # noqa: E402
 from facecap_core.meshio import load_landmarks  # noqa: E402
-from facecap_core.synthetic import synthesize  # noqa: E402
 from facecap_core.template import (  # noqa: E402
     INNER_LANDMARKS,
     Template,
@@ -162,7 +162,7 @@ def triangulated_eye_distance_mm(subject: str, out: Path, ict_model: str) -> flo
     folder = capture(subject, out, ict_model)
     work = out / "runs" / folder.name
     if not (work / "landmarks3d.json").is_file():
-        cams = stage.write_gt_keyframe_cameras(folder / "gt" / "cameras.json",
+        cams = write_gt_keyframe_cameras(folder / "gt" / "cameras.json",
                                                work / "cameras.json", step=2, **WORLD)
         stage.main(folder / "video.mp4", cams, work)
     L, _ = stage.load_landmarks3d(work / "landmarks3d.json")

@@ -22,12 +22,12 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from facecap.synthetic import load_gt_cameras
 from facecap_core.camera import camera_center, read_cameras_json
 from facecap_core.evaluation import distances, region_sphere
 from facecap_core.geometry import umeyama
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.pose.evaluate import pose_errors
-from facecap_core.synthetic import load_gt_cameras
 
 STAGES = ("keyframes", "poses", "landmarks", "depth", "fusion", "fitting", "evaluation")
 WORKERS = 2

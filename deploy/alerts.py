@@ -19,9 +19,14 @@ automation of each name, and an automation the operator paused stays paused.
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
+from urllib.parse import urlsplit
 from uuid import UUID
 
+from facecap.flows.capture import reconstruct_capture
+from facecap.flows.dataset import reconstruct_dataset
+from facecap.flows.evaluate import evaluate_dataset
 from facecap_core.errors import InputError
+from facecap_core.settings import settings
 
 if TYPE_CHECKING:
     from prefect.automations import Automation
@@ -65,23 +70,17 @@ ended {{ event.resource['prefect.state-name'] }}:
 
 def webhook_from_environment() -> str | None:
     """The operator's webhook URL from ``$FACECAP_ALERT_WEBHOOK`` (the only place it is read)."""
-    from facecap_core.settings import settings
 
     return settings().alert_webhook
 
 
 def facecap_flow_names() -> list[str]:
     """The names of the flows whose failures are reported, read from the flows themselves."""
-    from flows.capture import reconstruct_capture
-    from flows.dataset import reconstruct_dataset
-    from flows.evaluate import evaluate_dataset
 
     return sorted(f.name for f in (reconstruct_capture, reconstruct_dataset, evaluate_dataset))
 
 
 def check_webhook_url(url: str) -> str:
-    from urllib.parse import urlsplit
-
     parts = urlsplit(url)
     if parts.scheme not in ("http", "https") or not parts.hostname:
         raise InputError(f"the alert webhook {url!r} is not an http(s) URL")

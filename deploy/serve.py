@@ -17,14 +17,15 @@ from __future__ import annotations
 from prefect.client.schemas.objects import ConcurrencyLimitConfig, ConcurrencyLimitStrategy
 from prefect.schedules import Cron
 
+from facecap.flows.capture import reconstruct_capture
+from facecap.flows.dataset import reconstruct_dataset
+from facecap.flows.evaluate import evaluate_dataset
+
 NIGHTLY_CRON = "0 2 * * *"
 
 
 def deployments(root: str, out: str, cron: str = NIGHTLY_CRON, timezone: str = "UTC"):
     """The three deployments (not yet applied to a server)."""
-    from flows.capture import reconstruct_capture
-    from flows.dataset import reconstruct_dataset
-    from flows.evaluate import evaluate_dataset
 
     return [
         reconstruct_dataset.to_deployment(

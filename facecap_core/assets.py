@@ -19,11 +19,15 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import ssl
 import subprocess
 import sys
 import tarfile
 import tempfile
+import urllib.request
+from html.parser import HTMLParser
 from pathlib import Path
+from urllib.parse import urldefrag, urljoin
 
 from facecap_core.errors import FacecapError
 from facecap_core.settings import settings
@@ -102,8 +106,6 @@ def _pip_settings() -> dict[str, str | None]:
 def _sdist_links(index: str, cert: str | None) -> list[str]:
     """The URLs of the sdist on an index's page of the project (its links to any other file
     are ignored)."""
-    from html.parser import HTMLParser
-    from urllib.parse import urldefrag, urljoin
 
     page = f"{index.rstrip('/')}/{MENPO3D_PROJECT}/"
     with _open_url(page, cert) as response:
@@ -121,9 +123,6 @@ def _sdist_links(index: str, cert: str | None) -> list[str]:
 
 
 def _open_url(url: str, cert: str | None):
-    import ssl
-    import urllib.request
-
     if url.startswith("file:"):  # a local index: a folder per project with its index.html
         path = Path(urllib.request.url2pathname(url.removeprefix("file://")))
         return open(path / "index.html" if path.is_dir() else path, "rb")

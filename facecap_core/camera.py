@@ -13,9 +13,13 @@ Conventions (the same everywhere in facecap, and OpenCV's):
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
+
+from facecap_core.errors import InputError
 
 CAMERAS_JSON = "cameras.json"
 """The keyframe cameras of the pose stage (its own units) and of the coarse stage (mm)."""
@@ -170,10 +174,7 @@ class CameraSet:
 def read_cameras_json(path) -> CameraSet:
     """Load a ``cameras.json`` written by the pose or coarse stage (full-resolution pixels,
     OpenCV world-to-camera R, t)."""
-    import json
-    from pathlib import Path
 
-    from facecap_core.errors import InputError
 
     path = Path(path)
     if not path.is_file():

@@ -42,12 +42,13 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from facecap_core.camera import CAMERAS_JSON
-from facecap_core.config import CoarseConfig
+from facecap_core.camera import CAMERAS_JSON, read_cameras_json
+from facecap_core.config import CoarseConfig, FittingConfig
 from facecap_core.errors import InputError
 from facecap_core.geometry import robust_similarity
 from facecap_core.landmarks.ear_check import reliability
 from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_3D
+from facecap_core.nonrigid.nicp import fit
 from facecap_core.template import INNER_LANDMARKS, Template
 
 COARSE_PLY = "coarse.ply"
@@ -227,9 +228,6 @@ def coarse_mesh(template: Template, landmarks_mm: np.ndarray, ear_ids: np.ndarra
 
 def _nicp(placed: Template, landmarks_mm, ear_ids, ear_points_mm, config: CoarseConfig,
           ear_weights):
-    from facecap_core.config import FittingConfig
-    from facecap_core.fitting.nicp import fit
-
     L = np.array(landmarks_mm, float)
     L[:17] = placed.landmark_points[:17]  # unused by the fit; keeps the input finite
     L[~np.all(np.isfinite(L), axis=1)] = placed.landmark_points[~np.all(np.isfinite(L), axis=1)]
@@ -257,7 +255,6 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     ``landmarks_dir``; writes ``coarse.ply``, ``cameras.json``, ``landmarks3d.json``,
     ``ears3d.json`` and ``coarse.json`` into ``out_dir``; returns the path of
     ``coarse.ply``."""
-    from facecap_core.camera import read_cameras_json
     from facecap_core.landmarks.stage import EAR_TEMPLATE, load_ears3d, load_landmarks3d
 
     config = config or CoarseConfig()

@@ -922,7 +922,7 @@ class CoarseConfig(StrictModel):
 
 class EarTrainingConfig(StrictModel):
     """Training set (renders of ICT identities) and training of the ear detector (dlib HOG)
-    and ear-contour shape predictor (dlib ERT) (``facecap_core/ear_training/``)."""
+    and ear-contour shape predictor (dlib ERT) (``facecap/ear_training/``)."""
 
     ict_model: Path | None = None
     """ICT Face Model Light ``.npz``; default ``$FACECAP_ICT_MODEL``."""

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from facecap_core.errors import InputError
+from facecap_core.geometry import umeyama
 from facecap_core.photos import list_photos
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
@@ -114,7 +115,6 @@ def mesh_consistency(a_vertices: np.ndarray, b_vertices: np.ndarray) -> dict:
     """Vertex-to-vertex distances (mm) between two meshes of one subject in template
     topology, after a rigid alignment (the captures' world frames differ): mean, median,
     95th percentile, max."""
-    from facecap_core.geometry import umeyama
 
     a = np.asarray(a_vertices, float)
     b = np.asarray(b_vertices, float)

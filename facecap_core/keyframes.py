@@ -17,6 +17,7 @@ same keyframes at 30 or 240 fps.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,7 +27,8 @@ import numpy as np
 from facecap_core.config import KeyframeConfig
 from facecap_core.errors import InputError
 from facecap_core.face import face_box
-from facecap_core.video import iter_frames, probe
+from facecap_core.photos import probe_photos
+from facecap_core.video import is_photo_folder, iter_frames, probe
 
 
 @dataclass
@@ -255,7 +257,6 @@ def photo_keyframes(folder: str | Path, progress: bool = False) -> Keyframes:
     views); there are no tracks between photos, and their order is not a sweep's."""
     from tqdm import tqdm
 
-    from facecap_core.photos import probe_photos
 
     info = probe_photos(folder)
     sharp = [sharpness(f.image) for f in tqdm(iter_frames(folder, width=640, grey=True),
@@ -319,9 +320,7 @@ def main(video: str | Path, out_dir: str | Path, config: KeyframeConfig | None =
          progress: bool = False) -> Path:
     """Select the keyframes of ``video`` (a photo folder: all its photos); writes
     ``out_dir/keyframes.json`` (+ tracks)."""
-    import time
 
-    from facecap_core.video import is_photo_folder
 
     start, cpu = time.perf_counter(), time.process_time()
     if is_photo_folder(video):

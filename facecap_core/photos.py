@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from facecap_core.errors import InputError
+from facecap_core.settings import settings
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".heic", ".heif")
 """File types read as photos (case-insensitive); HEIC/HEIF through ``pillow-heif``."""
@@ -109,7 +110,6 @@ def _damaged(path: Path, exc: Exception) -> InputError:
 def _check_size(image, path: Path) -> None:
     """Refuse (and close) a photo whose header's size is over the longest side a run
     accepts, as a video of that size is: decoding it could take more memory than there is."""
-    from facecap_core.settings import settings
 
     limit, (w, h) = settings().max_side_px, image.size
     if max(w, h) > limit:

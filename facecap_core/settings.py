@@ -19,6 +19,7 @@ import re
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any
+from urllib.parse import urlsplit
 
 from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict, SettingsError
@@ -149,8 +150,6 @@ class FacecapSettings(BaseSettings):
     @field_validator("pages_url")
     @classmethod
     def _check_pages_url(cls, value: str | None) -> str | None:
-        from urllib.parse import urlsplit
-
         if value is None:
             return value
         parts = urlsplit(value)

@@ -25,8 +25,10 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from facecap_core import assets
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_landmarks, load_mesh
+from facecap_core.render import RaycastScene, vertex_normals
 
 INNER_LANDMARKS = np.arange(17, 68)  # the 68 without the jaw contour (paper: 50 of them + 1)
 REGIONS = ("face", "ears", "scalp_neck")
@@ -75,7 +77,6 @@ def region_masks(vertices: np.ndarray, landmarks: np.ndarray,
 
 def _inward_thickness(vertices: np.ndarray, faces: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Distance along the inward normal to the next surface, for masked vertices (inf: none)."""
-    from facecap_core.render import RaycastScene, vertex_normals
 
     normals = vertex_normals(np.asarray(vertices, float), faces)[mask]
     scene = RaycastScene()
@@ -156,7 +157,6 @@ class Template:
     @classmethod
     def default(cls) -> Template:
         """menpo3d's face-and-ears template (Basel topology), converted from µm to mm."""
-        from facecap_core import assets
 
         mesh_path, lm_path = assets.default_template_files()
         return cls.from_files(mesh_path, lm_path, scale=1e-3, name="menpo3d-bfm")

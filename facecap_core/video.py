@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from facecap_core.errors import InputError
+from facecap_core.photos import list_photos, probe_photos, read_photo
 
 
 @dataclass(frozen=True)
@@ -94,8 +95,6 @@ def probe(path: str | Path) -> VideoInfo:
     """Size, rate, length and rotation of a video (decodes its first frame)."""
     path = Path(path)
     if is_photo_folder(path):
-        from facecap_core.photos import probe_photos
-
         photos = probe_photos(path)
         return VideoInfo(path, photos.width, photos.height, 0.0, len(photos.paths), 0.0, 0,
                          "photos")
@@ -128,8 +127,6 @@ def stored_frame_count(path: str | Path) -> int:
     file cut short holds fewer than its header's count, which :func:`probe` reports."""
     path = Path(path)
     if is_photo_folder(path):
-        from facecap_core.photos import list_photos
-
         return len(list_photos(path))
     container = _open(path)
     try:
@@ -205,8 +202,6 @@ def _resize(image: np.ndarray, width: int | None) -> np.ndarray:
 
 def _iter_photos(folder: Path, width: int | None, grey: bool,
                  wanted: list[int] | None) -> Iterator[Frame]:
-    from facecap_core.photos import list_photos, read_photo
-
     paths = list_photos(folder)
     for index in range(len(paths)) if wanted is None else wanted:
         if index >= len(paths):

@@ -21,6 +21,7 @@ a worker without a second process or API server), and exports the results to ``o
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import tempfile
 import time
@@ -31,11 +32,10 @@ from typing import Literal
 from prefect import flow, get_run_logger
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from facecap_core.config import PipelineConfig, load_pipeline_config
-from facecap_core.errors import InputError
-from facecap_core.settings import settings, time_limit
-from flows.service import guard
-from tasks.graph import (
+from facecap.flows.page import run_summary, store_page
+from facecap.flows.service import guard
+from facecap.flows.ui import mesh_preview, publish_capture
+from facecap.tasks.graph import (
     BY_NAME,
     EXPORTED,
     OUTPUT_NAMES,
@@ -47,11 +47,17 @@ from tasks.graph import (
     producer,
     stages_until,
 )
-from tasks.outputs import ResultWriter, check_output_place
-from tasks.runner import default_store_url, run_leases
-from tasks.scratch import process_scratch
-from tasks.stages import call_ingest, call_stage, stage_result
-from tasks.store import open_store
+from facecap.tasks.outputs import ResultWriter, check_output_place
+from facecap.tasks.runner import default_store_url, run_leases
+from facecap.tasks.scratch import process_scratch
+from facecap.tasks.stages import call_ingest, call_stage, stage_result
+from facecap.tasks.store import open_store
+from facecap_core import assets
+from facecap_core.config import CoarseConfig, PipelineConfig, build, load_pipeline_config
+from facecap_core.errors import InputError
+from facecap_core.photos import list_photos
+from facecap_core.settings import settings, time_limit
+from facecap_core.video import probe, stored_frame_count
 
 Step = Literal[STEPS + tuple(UNTIL_ALIASES)]
 """What ``until`` can stop after, in order: the stages of the graph (``mvs`` is fusion)."""
@@ -222,8 +228,7 @@ def _export(store: str, keys: dict[str, str], writer: ResultWriter, scratch: Pat
             if (folder / name).is_file():
                 writer.add(name, source=folder / name)
                 staged[name] = folder / name
-    from flows.page import GLB_NAME, mesh_glb
-    from flows.ui import mesh_preview
+    from facecap.flows.page import GLB_NAME, mesh_glb
 
     made = {"preview.png": mesh_preview(staged, scratch / "preview.png")}
     if "mesh.ply" in staged:
@@ -241,8 +246,8 @@ def _page(store: str, keys: dict[str, str], report: dict, results: dict[str, Pat
     evaluation's metric protocol."""
     import numpy as np
 
+    from facecap.flows.page import GLB_NAME, build_page
     from facecap_core.evaluation.stage import ACCURACY_NPY
-    from flows.page import GLB_NAME, build_page
 
     st, accuracy = open_store(store), None
     if "evaluation" in keys:
@@ -320,7 +325,6 @@ def reconstruct_capture(video: str, out: str, config: ConfigParameter = None,
         try:
             with ResultWriter(out_dir, inputs) as writer:
                 results = _export(store, keys, writer, scratch)
-                from flows.page import store_page
 
                 page = _page(store, keys, report, results)
                 try:
@@ -334,7 +338,6 @@ def reconstruct_capture(video: str, out: str, config: ConfigParameter = None,
             _publish(report, out_dir, label, results)
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
-    from flows.page import run_summary
 
     logger.info(f"{label}: {run_summary(report)}; results in {out_dir}")
     return report
@@ -352,7 +355,6 @@ def _figures(store: str, runs: dict[str, tuple[str, bool]]) -> dict:
 
 def _publish(report: dict, out: Path, label: str, results: dict[str, Path]) -> None:
     """UI artifacts (stage table, preview images) and a completion event."""
-    from flows.ui import publish_capture
 
     publish_capture(report, out, label, results)
 
@@ -368,7 +370,6 @@ def preflight(video: str | Path, config: ConfigParameter | Path = None, scan: st
     enough and within the input limits (``FACECAP_MAX_*``, :mod:`facecap_core.settings`), the
     config is valid, the output folder is writable. Run before anything is started so bad
     input fails in a second with one line."""
-    from facecap_core.video import probe, stored_frame_count
 
     limits = settings()  # the environment's limits, never the run's config
     photos = Path(video).is_dir()
@@ -411,7 +412,6 @@ def preflight(video: str | Path, config: ConfigParameter | Path = None, scan: st
     if scan and not scan_landmarks:
         raise InputError(f"scan {scan} needs its 68 3D landmarks (--scan-landmarks) to cut the "
                          "face region it is scored on")
-    from facecap_core import assets
 
     assets.default_template_files()  # fetched once; a damaged copy fails here, not at fitting
     if out is not None:
@@ -437,8 +437,6 @@ def check_file_size(capture: str | Path, max_mb: float) -> None:
     before anything opens them."""
     path = Path(capture)
     if path.is_dir():
-        from facecap_core.photos import list_photos
-
         size = sum(p.stat().st_size for p in list_photos(path))
     else:
         size = path.stat().st_size
@@ -452,7 +450,6 @@ def with_ipd(cfg: PipelineConfig, ipd_mm: float | None) -> PipelineConfig:
     the config file's ``coarse.ipd_mm``)."""
     if ipd_mm is None:
         return cfg
-    from facecap_core.config import CoarseConfig, build
 
     coarse = build(CoarseConfig, {**cfg.coarse.model_dump(), "ipd_mm": ipd_mm},
                    source="--ipd-mm")
@@ -464,9 +461,8 @@ def as_user_sees_it(message: str, video: str | Path) -> str:
     (stages read the capture from the artifact store, so they name the stored copy): the
     stored video file, or the stored photo folder, whose photos keep their names
     (``.../input-<key>/photos/IMG_2.jpg`` is ``<the user's folder>/IMG_2.jpg``)."""
-    import re
 
-    from tasks.graph import PHOTOS, VIDEO
+    from facecap.tasks.graph import PHOTOS, VIDEO
 
     # Not a stored scan whose name begins like them (photos.ply).
     stored = re.compile(rf"\S*/input-[0-9a-f]{{32}}/(?:{re.escape(VIDEO)}|{re.escape(PHOTOS)})"
@@ -476,7 +472,6 @@ def as_user_sees_it(message: str, video: str | Path) -> str:
 
 def check_output_folder(folder: Path) -> None:
     """Create the output folder if needed and write a scratch file into it."""
-    import tempfile
 
     if folder.exists() and not folder.is_dir():
         raise InputError(f"the output folder {folder} is a file; give the path of a folder "

@@ -18,19 +18,22 @@ import httpx
 from prefect import flow, get_run_logger
 from prefect.flow_engine import FlowRunTimeoutError
 
-from facecap_core.config import PipelineConfig
-from facecap_core.dataset import SUMMARY_NAMES, CaptureEntry, mesh_consistency, scan_dataset
-from facecap_core.errors import FacecapError, InputError
-from flows.capture import (
+from facecap.flows.capture import (
     ConfigParameter,
     Step,
     as_user_sees_it,
     config_file,
     reconstruct_capture,
 )
-from flows.service import guard
-from tasks.outputs import check_output_place, write_results
-from tasks.stages import capture_time_limit_message
+from facecap.flows.dataset_page import rewrite_dataset_page
+from facecap.flows.service import guard
+from facecap.flows.ui import publish_dataset_page
+from facecap.tasks.outputs import check_output_place, write_results
+from facecap.tasks.stages import capture_time_limit_message
+from facecap_core.config import PipelineConfig
+from facecap_core.dataset import SUMMARY_NAMES, CaptureEntry, mesh_consistency, scan_dataset
+from facecap_core.errors import FacecapError, InputError
+from facecap_core.meshio import load_mesh
 
 CAPTURE_DEPLOYMENT = "reconstruct-capture/reconstruct-capture"
 """The deployment a dataset run on a work pool submits each capture to (deploy/prefect.yaml)."""
@@ -56,7 +59,6 @@ def check_dataset_output(entries: list[CaptureEntry], out: Path) -> None:
 
 def consistency_report(out: Path, done: dict[tuple[str, str], Path]) -> list[dict]:
     """Vertex-to-vertex agreement of every pair of captures of one subject."""
-    from facecap_core.meshio import load_mesh
 
     by_subject: dict[str, list[tuple[str, Path]]] = {}
     for (subject, capture), folder in done.items():
@@ -116,10 +118,8 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
     summary = {"captures": len(entries), "done": [f"{s}/{c}" for s, c in done],
                "failed": failed, "consistency": rows, "captures_at_once": at_once}
     write_results(out_root, {"dataset.json": json.dumps(summary, indent=1).encode()})
-    from flows.dataset_page import rewrite_dataset_page
 
     rewrite_dataset_page(out_root)  # from what OUT holds now, dataset.json's failures too
-    from flows.ui import publish_dataset_page
 
     publish_dataset_page(out_root, store)
     if failed:

@@ -19,7 +19,9 @@ from urllib.parse import quote
 
 import numpy as np
 
-from flows.page import PAGE_HEAD
+from facecap.flows.page import PAGE_HEAD
+from facecap.tasks.lifecycle import report_keys
+from facecap.tasks.outputs import write_results
 
 THUMB_WIDTH = 160
 
@@ -165,18 +167,15 @@ def rewrite_dataset_page(out: Path) -> None:
     """``OUT/index.html`` from what ``out`` holds now (after a dataset run, an evaluation or
     ``facecap forget``): the captures with results there and the failures ``dataset.json``
     records."""
-    from tasks.outputs import write_results
 
     write_results(out, {"index.html": build_dataset_page(out, *_dataset_contents(out))})
 
 
 def store_dataset_page(out: Path, store) -> str:
     """Keep a copy of the dataset page in the store whose links open each capture's page
-    from there (:func:`flows.ui.stored_link`, a day), for the link from the Prefect UI;
+    from there (:func:`flows.page.stored_link`, a day), for the link from the Prefect UI;
     returns its key. Made from the captures' stored pages: ``forget`` removes it with them."""
-    from flows.page import PAGE_NAME, keep_page
-    from flows.ui import stored_link
-    from tasks.lifecycle import report_keys
+    from facecap.flows.page import PAGE_NAME, keep_page, stored_link
 
     inputs: dict[str, str] = {}
 

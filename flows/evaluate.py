@@ -15,15 +15,17 @@ from pathlib import Path
 
 from prefect import flow, get_run_logger
 
+from facecap.flows.dataset_page import rewrite_dataset_page
+from facecap.flows.service import guard
+from facecap.flows.ui import publish_dataset_page
+from facecap.tasks.outputs import check_output_place, write_results
+from facecap.tasks.runner import run_leases
+from facecap.tasks.stages import call_ingest, call_stage
+from facecap.tasks.store import open_store
 from facecap_core.dataset import inside, scan_dataset
 from facecap_core.errors import InputError
+from facecap_core.evaluation import paper_table
 from facecap_core.settings import time_limit
-from flows.dataset_page import rewrite_dataset_page
-from flows.service import guard
-from flows.ui import publish_dataset_page
-from tasks.outputs import check_output_place, write_results
-from tasks.runner import run_leases
-from tasks.stages import call_ingest, call_stage
 
 
 def _run_name() -> str:
@@ -120,7 +122,6 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
                       "scan_landmarks": call_ingest(store, entry.scan_landmarks,
                                                     entry.scan_landmarks.name, name)}
             key, _ = call_stage("evaluation", store, inputs, {}, name)
-            from tasks.store import open_store
 
             doc = json.loads((open_store(store).get(key) / "evaluation.json").read_text())
             current[name] = doc["similarity"]
@@ -162,6 +163,4 @@ def scale_error_pct(similarity_record: dict) -> float:
 
 
 def _table(current: dict) -> str:
-    from facecap_core.evaluation import paper_table
-
     return paper_table([("facecap (similarity)", list(current.values()))])

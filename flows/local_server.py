@@ -18,8 +18,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from facecap.tasks.scratch import start_ticks
 from facecap_core.assets import facecap_home
-from tasks.scratch import start_ticks
 
 LOG_NAME = "server.log"
 MAX_LOG_BYTES = 4 * 2**20

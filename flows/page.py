@@ -12,14 +12,22 @@ the stages' times, and the viewer: the three.js bundle vendored in ``flows/viewe
 from __future__ import annotations
 
 import base64
+import hashlib
 import html
 import json
+import logging
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
+from facecap.tasks.runner import lease, network_errors
+from facecap.tasks.store import artifact_key
 from facecap_core.coarse import ears_summary, scale_summary
+from facecap_core.errors import FacecapError
+from facecap_core.frames import frame_name
+
+_log = logging.getLogger(__name__)
 
 PAGE_NAME = "index.html"
 GLB_NAME = "mesh.glb"
@@ -41,10 +49,7 @@ artifacts: what a link from the Prefect UI opens (:func:`flows.ui.results_link`)
 def keep_page(store, inputs: dict[str, str], page: bytes) -> str:
     """Keep ``page`` in the store as an artifact made from ``inputs`` (name -> key), held
     for the run in progress; returns its key."""
-    import hashlib
 
-    from tasks.runner import lease
-    from tasks.store import artifact_key
 
     config = {"sha256": hashlib.sha256(page).hexdigest()}
     key = artifact_key(PAGE_STAGE, inputs, config, "1")
@@ -95,7 +100,6 @@ def _keyframe_image(frames: Path | None, index: int) -> str | None:
     URI (None where the frames stage's folder does not hold it)."""
     import cv2
 
-    from facecap_core.frames import frame_name
 
     if frames is None or not (frames / frame_name(index)).is_file():  # OpenCV would warn
         return None
@@ -238,7 +242,7 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
     for name, label in (("cloud", "Cloud"), ("cameras", "Cameras")):
         if name in data:
             buttons.append(f'<button data-toggle="{name}" aria-pressed="false">{label}</button>')
-    viewer = resources.files("flows") / "viewer"
+    viewer = resources.files("facecap.flows") / "viewer"
     page = TEMPLATE.format(
         title=html.escape(title),
         summary=html.escape(run_summary(report)),
@@ -320,3 +324,28 @@ TEMPLATE = PAGE_HEAD + """<style>
 </body>
 </html>
 """
+
+
+RESULTS_LINK_SECONDS = 24 * 3600
+"""How long the link from the Prefect UI to a capture's page lasts: whoever has it can open
+the page (the face in 3D) until then, without credentials. A rerun (every stage reused,
+seconds) publishes a fresh one; ``facecap forget`` deletes the link and the page."""
+
+
+def stored_link(store, key: str | None, name: str) -> str | None:
+    """A link that opens file ``name`` of artifact ``key`` of ``store`` (an ArtifactStore)
+    in a browser for :data:`RESULTS_LINK_SECONDS`: S3's presigned URL, or for a folder store
+    the page server's (``FACECAP_PAGES_URL``); None where the store can make none or does not
+    hold the artifact."""
+    from facecap.tasks.store.keys import KEY_PATTERN
+
+    if not isinstance(key, str) or not KEY_PATTERN.fullmatch(key):
+        return None
+    try:
+        return store.presigned_url(key, name, RESULTS_LINK_SECONDS)
+    except (OSError, FacecapError, *network_errors()) as exc:
+        # The results are made: a link is not worth failing for (a missing or damaged page,
+        # an unreadable link secret, a store that cannot be reached).
+        _log.warning("no link to %s of %s: %s", name, key, str(exc).splitlines()[0]
+                     if str(exc) else type(exc).__name__)
+        return None

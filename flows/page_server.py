@@ -12,14 +12,15 @@ from __future__ import annotations
 
 import logging
 import re
+import socket
 import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from urllib.parse import parse_qs, unquote, urlsplit
 
-from tasks.store import ArtifactStore
-from tasks.store.keys import KEY_PATTERN
-from tasks.store.links import content_type, link_problem
+from facecap.tasks.store import ArtifactStore
+from facecap.tasks.store.keys import KEY_PATTERN
+from facecap.tasks.store.links import content_type, link_problem
 
 DEFAULT_PORT = 4280
 PATH = re.compile(r"/artifacts/([a-z0-9_]+-[0-9a-f]+)/([^/]+)")
@@ -114,7 +115,6 @@ def serve_in_background(server: ThreadingHTTPServer) -> threading.Thread:
 
 def address(server: ThreadingHTTPServer) -> str:
     """``http://host:port`` of a server (a wildcard host as this machine's name)."""
-    import socket
 
     host, port = server.server_address[:2]
     if host in ("0.0.0.0", "::", ""):

@@ -32,9 +32,12 @@ from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 
+from facecap.tasks.runner import default_store_url
+from facecap.tasks.store import open_store
+from facecap.tasks.store.base import redact
 from facecap_core.errors import InputError
+from facecap_core.photos import list_photos
 from facecap_core.settings import settings
-from tasks.store.base import redact
 
 LOCAL_COMMAND: ContextVar[bool] = ContextVar("facecap_local_command", default=False)
 """Set by the ``facecap`` command for the flows it runs in its own process: a user on their
@@ -61,8 +64,6 @@ class ServicePolicy:
 
     @classmethod
     def from_env(cls) -> ServicePolicy:
-        from tasks.runner import default_store_url
-
         configured = settings()
         output = configured.output_root
         return cls(tuple(root.resolve() for root in configured.input_roots),
@@ -144,8 +145,6 @@ def guard(out: str | os.PathLike, store: str | None,
           **inputs: str | os.PathLike | None) -> str:
     """Check a flow's parameters against the service's limits (when served); returns the
     store to use. ``inputs`` are named by what they are (``video``, ``config``, ...)."""
-    from tasks.runner import default_store_url
-    from tasks.store import open_store
 
     policy = service_policy()
     if policy is None:
@@ -154,8 +153,6 @@ def guard(out: str | os.PathLike, store: str | None,
         for what, path in inputs.items():
             policy.input(path, what.replace("_", " "))
             if what == "video" and path is not None and Path(path).is_dir():
-                from facecap_core.photos import list_photos
-
                 for photo in list_photos(path):  # a photo folder: a linked photo is read too
                     policy.input(photo, "photo")
         policy.output(out)

@@ -4,12 +4,25 @@ results, and an event that automations can react to."""
 
 from __future__ import annotations
 
+import asyncio
 import base64
+import html
 import logging
+import re
+import shutil
+import unicodedata
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from facecap.flows.dataset_page import store_dataset_page
+from facecap.flows.page import RESULTS_LINK_SECONDS, figure_rows, run_summary, stored_link
+from facecap.tasks.lifecycle import report_keys
+from facecap.tasks.store import open_store
+from facecap_core.evaluation import mesh_render
+from facecap_core.meshio import load_mesh
+from facecap_core.template import Template, head_frame
 
 _log = logging.getLogger(__name__)
 
@@ -19,7 +32,6 @@ def _slug(text: str) -> str:
     # ("ann/lee-1" and "ann-lee/1", "Bob" and "bob", "Zoë" and "Zoe"): a hash of the exact
     # name keeps every capture's pages apart (and facecap forget from deleting another's).
     import hashlib
-    import unicodedata
 
     plain = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode()
     out = "".join(c if c.isalnum() else "-" for c in plain.lower())
@@ -30,8 +42,6 @@ def _slug(text: str) -> str:
 def markdown_text(text: object) -> str:
     """Text shown as itself in the UI's markdown: a capture or folder name cannot add a link,
     an image, HTML or formatting to the page (names come from whoever fills the dataset)."""
-    import html
-    import re
 
     return re.sub(r"([\\`*_{}\[\]()#+\-.!|>~])", r"\\\1", html.escape(str(text), quote=False))
 
@@ -52,11 +62,7 @@ def mesh_preview(results: dict[str, Path], target: Path) -> Path | None:
     """Render ``target`` from a run's results (name -> file, as :func:`flows.capture._export`
     staged them): the accuracy heat map (metric protocol) when a scan was given, otherwise
     the mesh in its own colours turned to face the viewer; None without a mesh."""
-    import shutil
 
-    from facecap_core.evaluation import mesh_render
-    from facecap_core.meshio import load_mesh
-    from facecap_core.template import Template, head_frame
 
     if "heatmap_metric.png" in results:
         shutil.copyfile(results["heatmap_metric.png"], target)
@@ -84,8 +90,6 @@ def stage_rows(report: dict) -> list[dict]:
 
 
 def capture_markdown(report: dict, out: Path, images: list[tuple[str, Path]]) -> str:
-    from flows.page import figure_rows, run_summary
-
     lines = [f"# {markdown_text(report['subject'])} / {markdown_text(report['capture'])}", "",
              f"{run_summary(report)}. Results in {markdown_text(out)}.", ""]
     lines += [f"- {label}: {markdown_text(text)}" for _, label, text in figure_rows(report)]
@@ -103,38 +107,11 @@ def artifact_keys(label: str) -> list[str]:
     return [f"stages-{key}", f"capture-{key}", f"results-{key}"]
 
 
-RESULTS_LINK_SECONDS = 24 * 3600
-"""How long the link from the Prefect UI to a capture's page lasts: whoever has it can open
-the page (the face in 3D) until then, without credentials. A rerun (every stage reused,
-seconds) publishes a fresh one; ``facecap forget`` deletes the link and the page."""
-
-
-def stored_link(store, key: str | None, name: str) -> str | None:
-    """A link that opens file ``name`` of artifact ``key`` of ``store`` (an ArtifactStore)
-    in a browser for :data:`RESULTS_LINK_SECONDS`: S3's presigned URL, or for a folder store
-    the page server's (``FACECAP_PAGES_URL``); None where the store can make none or does not
-    hold the artifact."""
-    from facecap_core.errors import FacecapError
-    from tasks.runner import network_errors
-    from tasks.store.keys import KEY_PATTERN
-
-    if not isinstance(key, str) or not KEY_PATTERN.fullmatch(key):
-        return None
-    try:
-        return store.presigned_url(key, name, RESULTS_LINK_SECONDS)
-    except (OSError, FacecapError, *network_errors()) as exc:
-        # The results are made: a link is not worth failing for (a missing or damaged page,
-        # an unreadable link secret, a store that cannot be reached).
-        _log.warning("no link to %s of %s: %s", name, key, str(exc).splitlines()[0]
-                     if str(exc) else type(exc).__name__)
-        return None
-
-
 def page_link(store, key: str | None, folder: Path) -> tuple[str, str]:
     """``(link, where)`` to a page: a link that opens stored page ``key`` from the Prefect UI
     (:func:`stored_link`), else the ``file://`` address of ``index.html`` in ``folder``,
     which a browser opens only when typed in."""
-    from flows.page import PAGE_NAME
+    from facecap.flows.page import PAGE_NAME
 
     link = stored_link(store, key, PAGE_NAME)
     if link:
@@ -147,8 +124,6 @@ def page_link(store, key: str | None, folder: Path) -> tuple[str, str]:
 def results_link(report: dict, out: Path) -> tuple[str, str]:
     """``(link, where)`` to a capture run's page (:mod:`flows.page`): :func:`page_link` to
     the page its report names, or to ``index.html`` in the output folder."""
-    from tasks.lifecycle import report_keys
-    from tasks.store import open_store
 
     page, _ = report_keys(report)
     store = open_store(report["store"]) if page else None
@@ -171,7 +146,6 @@ def _describes(description: str | None, label: str) -> bool:
 def forget_artifacts(labels: list[str]) -> int:
     """Delete every version of the UI artifacts of these captures (``subject/capture``) from
     the Prefect server the runs reported to; returns how many went."""
-    import asyncio
 
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
@@ -247,8 +221,6 @@ def publish_dataset_page(out: Path, store: str) -> None:
     store_dataset_page`), for :data:`RESULTS_LINK_SECONDS`; else the page on disk."""
     from prefect.artifacts import create_link_artifact
 
-    from flows.dataset_page import store_dataset_page
-    from tasks.store import open_store
 
     st = open_store(store)
     try:

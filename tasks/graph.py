@@ -11,13 +11,17 @@ changes its output.
 from __future__ import annotations
 
 import hashlib
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel
 
+from facecap.tasks.store import artifact_key
+from facecap_core import coarse, evaluation, frames, keyframes, pose
 from facecap_core import config as cfg
 from facecap_core.camera import CAMERAS_JSON
 from facecap_core.coarse import COARSE_JSON, COARSE_PLY
@@ -26,12 +30,14 @@ from facecap_core.face import MESH_TO_68_FILE
 from facecap_core.fitting.run import FIT_JSON, MESH_LANDMARKS, MESH_OBJ, MESH_PLY
 from facecap_core.frames import FRAMES_JSON
 from facecap_core.keyframes import KEYFRAMES_JSON, TRACKS_NPZ
+from facecap_core.landmarks import stage
 from facecap_core.landmarks.convention import OFFSETS_FILE
+from facecap_core.landmarks.ears import model_digest
 from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_2D, LANDMARKS_3D
+from facecap_core.mvs import depth, fusion, views
 from facecap_core.mvs.fusion import CLOUD, FUSION
 from facecap_core.mvs.views import VIEWS, read_views
 from facecap_core.pose.stage import COLMAP_MODEL, POINTS, SPARSE
-from tasks.store import artifact_key
 
 VIDEO = "video.mp4"
 PHOTOS = "photos"
@@ -122,52 +128,36 @@ def _capture(folder: Path) -> Path:
 
 
 def compute_keyframes(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core import keyframes
-
     keyframes.main(_capture(f["video"]), out, config)
 
 
 def compute_poses(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core import pose
-
     pose.main(_capture(f["video"]), f["keyframes"] / KEYFRAMES_JSON, out, config)
 
 
 def compute_frames(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core import frames
-
     frames.main(_capture(f["video"]), f["poses"] / CAMERAS_JSON, out)
 
 
 def compute_landmarks(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core.landmarks import stage
-
     stage.main(_capture(f["video"]), f["poses"] / CAMERAS_JSON, out, config)
 
 
 def compute_coarse(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core import coarse
-
     coarse.main(f["landmarks"], f["poses"] / CAMERAS_JSON, out, config=config)
 
 
 def compute_views(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core.mvs import views
-
     views.main(f["frames"], f["coarse"] / CAMERAS_JSON, f["coarse"] / COARSE_PLY, out,
                config, f["poses"] / SPARSE)
 
 
 def compute_depth(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core.mvs import depth
-
     depth.main(params["index"], f["frames"], f["coarse"] / CAMERAS_JSON, f["views"] / VIEWS,
                f["coarse"] / COARSE_PLY, out, config)
 
 
 def compute_fusion(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core.mvs import fusion
-
     maps = sorted(p for name, folder in f.items() if name.startswith("depth_")
                   for p in folder.glob("depth_*.npz"))
     fusion.main(maps, f["frames"], f["coarse"] / CAMERAS_JSON, out, config)
@@ -180,8 +170,6 @@ def compute_fitting(f: Folders, out: Path, config, params: dict) -> None:
 
 
 def compute_evaluation(f: Folders, out: Path, config, params: dict) -> None:
-    from facecap_core import evaluation
-
     evaluation.main(f["mesh"], f["scan"], out, scan_landmarks=f.get("scan_landmarks"))
 
 
@@ -192,8 +180,6 @@ def _reference_keyframes(f: Folders) -> list[int]:
 def _figures(module: str) -> Callable[[Path], dict]:
     """The ``figures(folder)`` function of a stage module, imported when called."""
     def figures(folder: Path) -> dict:
-        import importlib
-
         return importlib.import_module(f"facecap_core.{module}").figures(folder)
     return figures
 
@@ -204,9 +190,7 @@ def _landmark_models() -> str:
     installed apart from the other dependencies, so its version is not fixed by the
     package's), and the calibrated tables that turn mesh vertices into 3D landmarks (a
     recalibration changes every landmark)."""
-    from importlib.metadata import PackageNotFoundError, version
 
-    from facecap_core.landmarks.ears import model_digest
 
     try:
         mesh = f"mediapipe-{version('mediapipe')}"

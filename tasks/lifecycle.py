@@ -16,11 +16,13 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
+from facecap.tasks.outputs import write_results
+from facecap.tasks.runner import key_lock, unleased
+from facecap.tasks.store import ArtifactStore, CorruptArtifactError, input_key
+from facecap.tasks.store.base import redact
+from facecap.tasks.store.keys import KEY_PATTERN
 from facecap_core.dataset import SUMMARY_NAMES
 from facecap_core.errors import InputError
-from tasks.store import ArtifactStore, CorruptArtifactError, input_key
-from tasks.store.base import redact
-from tasks.store.keys import KEY_PATTERN
 
 
 @dataclass
@@ -125,7 +127,6 @@ def _delete(store: ArtifactStore, removal: Removal) -> None:
     them finishes its commit first, and a later run computes it again); one that a run in
     progress reads or made is kept (moved to ``removal.in_use``): the run would fail or
     hand out results whose artifacts are gone."""
-    from tasks.runner import key_lock, unleased
 
     kept = []
     for key in removal.artifacts:
@@ -209,8 +210,6 @@ def _same_store(a: str, b: str) -> bool:
 
 
 def _rewrite(path: Path, doc) -> None:
-    from tasks.outputs import write_results
-
     write_results(path.parent, {path.name: json.dumps(doc, indent=1).encode()})
 
 

@@ -29,10 +29,13 @@ import os
 import re
 import secrets
 import stat
+import time
 from collections.abc import Iterable
 from pathlib import Path, PurePosixPath
 
+from facecap.tasks.store.remote import cache_root
 from facecap_core.errors import FacecapError, InputError
+from facecap_core.settings import settings
 
 RECORD_NAME = ".facecap-results.json"
 """What facecap last wrote into the folder (name -> sha256): the only files it removes."""
@@ -261,7 +264,6 @@ def _sha256_at(fd: int, name: str) -> str:
 
 def _remove_abandoned(fd: int) -> None:
     """Remove the staged files a killed writer left in the folder (they may hold a mesh)."""
-    import time
 
     try:
         names = os.listdir(fd)
@@ -304,8 +306,6 @@ def check_output_place(out: str | os.PathLike, store: str | None,
                        inputs: Iterable[str | os.PathLike | None] = ()) -> None:
     """Refuse an output folder that lies in the artifact store or in facecap's own folders
     (results would replace committed files), or that is an input folder (a photo folder)."""
-    from facecap_core.settings import settings
-    from tasks.store.remote import cache_root
 
     try:
         target = Path(out).resolve()

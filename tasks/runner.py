@@ -25,13 +25,20 @@ from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
 
+from facecap.tasks.graph import INPUT_VERSION, Stage
+from facecap.tasks.scratch import process_scratch
+from facecap.tasks.store import (
+    ArtifactStore,
+    CorruptArtifactError,
+    StoreWriteError,
+    input_key,
+    open_store,
+)
+from facecap.tasks.store.base import redact
 from facecap_core.assets import facecap_home
 from facecap_core.errors import FacecapError, InputError
+from facecap_core.photos import list_photos
 from facecap_core.settings import settings
-from tasks.graph import INPUT_VERSION, Stage
-from tasks.scratch import process_scratch
-from tasks.store import ArtifactStore, CorruptArtifactError, StoreWriteError, input_key, open_store
-from tasks.store.base import redact
 
 
 def default_store_url() -> str:
@@ -267,8 +274,6 @@ def ingest(store_url: str, path: str | os.PathLike, name: str) -> str:
     its photos stored under ``name/``) into the store under its content key."""
     path = Path(path)
     if path.is_dir():
-        from facecap_core.photos import list_photos
-
         files = {f"{name}/{photo.name}": photo for photo in list_photos(path)}
     elif path.is_file():
         files = {name: path}

@@ -11,6 +11,7 @@ is in the task run's log (:mod:`tasks.logs`).
 
 from __future__ import annotations
 
+import concurrent.futures
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -20,11 +21,13 @@ from prefect.cache_policies import NO_CACHE
 from prefect.futures import PrefectFuture
 from prefect.states import Completed, State
 
+from facecap.tasks.graph import BY_NAME, STAGES
+from facecap.tasks.logs import send_core_logs_to_runs
+from facecap.tasks.runner import default_store_url, ingest, retry_condition, run_stage
+from facecap.tasks.store import open_store
+from facecap_core.coarse import scale_summary
 from facecap_core.errors import FacecapError
 from facecap_core.settings import settings
-from tasks.graph import BY_NAME, STAGES
-from tasks.logs import send_core_logs_to_runs
-from tasks.runner import default_store_url, ingest, retry_condition, run_stage
 
 send_core_logs_to_runs()  # every process that runs a stage: facecap_core's log in its runs
 
@@ -44,8 +47,6 @@ def _headline(stage, store: str, key: str) -> str:
     """The figure a stage's log line gives: the metric scale of the coarse stage."""
     if stage.name != "coarse" or stage.figures is None:
         return ""
-    from facecap_core.coarse import scale_summary
-    from tasks.store import open_store
 
     scale = stage.figures(open_store(store).get(key)).get("scale") or {}
     if scale.get("metric_scale") is None:
@@ -133,7 +134,6 @@ def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: 
     limit from ``started``, or the capture's ``deadline``) or the call itself. A stage
     stopped at either limit raises a one-line FacecapError naming that limit; the task's
     own errors pass through."""
-    import concurrent.futures
 
     from prefect.task_engine import TaskRunTimeoutError
 

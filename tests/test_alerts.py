@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from deploy import alerts
+from facecap.cli import main
+from facecap.deploy import alerts
 from facecap_core.errors import InputError
-from flows.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 

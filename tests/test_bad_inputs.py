@@ -33,9 +33,9 @@ import cv2
 import numpy as np
 import pytest
 
+from facecap.cli import main
+from facecap.tasks.store import ArtifactStore, artifact_key, open_store
 from facecap_core.camera import look_at
-from flows.cli import main
-from tasks.store import ArtifactStore, artifact_key, open_store
 from tests.media import write_video
 from tests.test_photos import png_claiming
 
@@ -566,7 +566,7 @@ def test_read_only_output_folder(media, kept, tmp_path):
             prefix = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"]
         before = snapshot(kept["store"], kept["out"])
         proc = subprocess.run(
-            [*prefix, sys.executable, "-m", "flows.cli", "reconstruct", str(media["orbit"]),
+            [*prefix, sys.executable, "-m", "facecap", "reconstruct", str(media["orbit"]),
              "--out", str(kept["out"]), "--store", str(kept["store"])],
             capture_output=True, text=True, cwd=ROOT, timeout=300)
         assert_one_line_error(proc.returncode, proc.stderr,
@@ -580,7 +580,7 @@ def test_read_only_output_folder(media, kept, tmp_path):
 def test_an_oversized_photo_is_one_line_without_pillow_warnings(kept, tmp_path):
     """The promise on the console itself (pytest's own capture keeps warnings off stderr):
     a 96-megapixel photo, which Pillow warns about, is one line in a process of its own."""
-    proc = subprocess.run([sys.executable, "-m", "flows.cli", "reconstruct",
+    proc = subprocess.run([sys.executable, "-m", "facecap", "reconstruct",
                            str(_photos_with_a_large_png(tmp_path)), "--out", str(kept["out"]),
                            "--store", str(kept["store"])],
                           capture_output=True, text=True, cwd=ROOT, timeout=300)
@@ -591,11 +591,11 @@ def test_a_damaged_photo_is_named_as_the_user_gave_it(tmp_path):
     """The stages read a photo folder from the store's copy (``input-<key>/photos/``), so a
     photo that does not decode is refused there under its stored path; the message names
     the user's photo instead (the IN_A_FLOW case shows it through the command)."""
+    from facecap.flows.capture import as_user_sees_it
+    from facecap.tasks.graph import PHOTOS
+    from facecap.tasks.runner import ingest
     from facecap_core.errors import InputError
     from facecap_core.video import iter_frames
-    from flows.capture import as_user_sees_it
-    from tasks.graph import PHOTOS
-    from tasks.runner import ingest
 
     folder = _photos_with_a_truncated_one(tmp_path)
     key = ingest(str(tmp_path / "store"), folder, PHOTOS)
@@ -611,8 +611,8 @@ def test_a_damaged_photo_is_named_as_the_user_gave_it(tmp_path):
 def test_8k_is_accepted_and_streamed_at_processing_width(media, tmp_path):
     """8K passes the preflight checks; the stages read it one frame at a time at their own
     processing width (the 2-frame file needs ``min_frames: 2``)."""
+    from facecap.flows.capture import preflight
     from facecap_core.video import iter_frames
-    from flows.capture import preflight
 
     config = _config(tmp_path, "keyframes: {min_frames: 2}\n")
     cfg = preflight(media["8k"], config, out=tmp_path / "out")
@@ -636,8 +636,8 @@ def test_a_resolution_change_midway_is_refused_by_the_keyframe_stage(media):
 def test_the_capture_stream_is_chosen_over_a_preview_stream(media, tmp_path):
     """A file whose first video stream is a one-frame preview: the capture is the stream
     with the frames, in every reader (probe, frame count, decoding)."""
+    from facecap.flows.capture import preflight
     from facecap_core.video import iter_frames, probe, stored_frame_count
-    from flows.capture import preflight
 
     preflight(media["two_streams"], out=tmp_path / "out")
     info = probe(media["two_streams"])
@@ -688,7 +688,7 @@ def test_an_s3_store_without_credentials_or_endpoint(media, kept, tmp_path, capf
 def test_files_that_are_not_evaluations_are_not_a_baseline(tmp_path):
     """A junk ``OUT/evaluations/0.json`` (not named by a time) is no evaluation: the newest
     real one is the baseline, as if the junk were not there."""
-    from flows.evaluate import check_history
+    from facecap.flows.evaluate import check_history
 
     history = tmp_path / "evaluations"
     history.mkdir()
@@ -708,7 +708,7 @@ def _run_without_dac_override(argv: list[str]) -> subprocess.CompletedProcess:
         if not shutil.which("setpriv"):
             pytest.skip("running as root without setpriv to drop CAP_DAC_OVERRIDE")
         prefix = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"]
-    return subprocess.run([*prefix, sys.executable, "-m", "flows.cli", *map(str, argv)],
+    return subprocess.run([*prefix, sys.executable, "-m", "facecap", *map(str, argv)],
                           capture_output=True, text=True, cwd=ROOT, timeout=600)
 
 
@@ -774,7 +774,7 @@ def test_refused_by_a_stage(case, media, kept, tmp_path, capfd, prefect_server):
 def test_full_disk(media, kept, capfd, monkeypatch, prefect_server):
     """The store's disk fills up (ENOSPC on every write): one line, not retried, nothing
     half-written left in the store."""
-    from tasks.store import local
+    from facecap.tasks.store import local
 
     def disk_full(path, chunks):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
@@ -892,10 +892,10 @@ def test_credentials_come_only_from_the_environment():
     alone and leaves authentication to botocore's environment."""
     import inspect
 
-    from flows.capture import reconstruct_capture
-    from flows.dataset import reconstruct_dataset
-    from flows.evaluate import evaluate_dataset
-    from tasks.store import open_store
+    from facecap.flows.capture import reconstruct_capture
+    from facecap.flows.dataset import reconstruct_dataset
+    from facecap.flows.evaluate import evaluate_dataset
+    from facecap.tasks.store import open_store
 
     secretive = ("key", "secret", "password", "token", "credential", "auth")
     entry_points = [ArtifactStore.__init__, open_store, reconstruct_capture.fn,
@@ -913,9 +913,9 @@ def test_served_flows_validate_their_parameters():
     unknown parameter or a wrong type is refused."""
     from prefect.exceptions import ParameterTypeError, SignatureMismatchError
 
-    from flows.capture import reconstruct_capture
-    from flows.dataset import reconstruct_dataset
-    from flows.evaluate import evaluate_dataset
+    from facecap.flows.capture import reconstruct_capture
+    from facecap.flows.dataset import reconstruct_dataset
+    from facecap.flows.evaluate import evaluate_dataset
 
     good = reconstruct_capture.validate_parameters({"video": "v.mp4", "out": "o"})
     assert good["video"] == "v.mp4"

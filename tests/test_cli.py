@@ -14,7 +14,7 @@ from facecap_core.template import Template
 
 
 def facecap(*args, cwd=None):
-    proc = subprocess.run([sys.executable, "-m", "flows.cli", *map(str, args)],
+    proc = subprocess.run([sys.executable, "-m", "facecap", *map(str, args)],
                           capture_output=True, text=True, cwd=cwd, timeout=600)
     return proc.returncode, proc.stdout, proc.stderr
 
@@ -186,8 +186,8 @@ def test_an_unexpected_exception_is_reported_as_a_bug_with_its_log(tmp_path, mon
                                                                    capsys):
     """A failure nobody anticipated is not blamed on the input: one line says it is a bug
     and names the log file that holds its traceback; the exit code is not bad input's 2."""
+    from facecap import cli
     from facecap_core import evaluation
-    from flows import cli
 
     def broken(*args, **kwargs):
         raise ZeroDivisionError("float division by zero")
@@ -233,7 +233,7 @@ USAGE_ERRORS = {
 def test_a_usage_error_is_one_line_naming_the_commands_help(case, capfd):
     """argparse's own message, no usage lines: ``facecap: error: <message>; see 'facecap
     <command> --help'``, exit code 2."""
-    from flows.cli import main
+    from facecap.cli import main
 
     argv, message, command = USAGE_ERRORS[case]
     code = main(argv)
@@ -246,7 +246,7 @@ def test_a_usage_error_is_one_line_naming_the_commands_help(case, capfd):
 
 
 def test_help_still_prints_the_help(capfd):
-    from flows.cli import main
+    from facecap.cli import main
 
     for argv in (["--help"], ["store", "prune", "--help"]):
         with pytest.raises(SystemExit) as exit_:
@@ -271,7 +271,7 @@ def test_a_store_in_memory_is_refused_by_every_command(orbit, tmp_path, monkeypa
     """``memory://`` lives as long as the process: a run's artifacts would vanish at exit.
     Refused in one line by each command that opens the store, given as ``--store`` or as
     FACECAP_STORE; no result is written."""
-    from flows.cli import main
+    from facecap.cli import main
 
     root, out = tmp_path / "dataset", tmp_path / "out"
     (root / "anna").mkdir(parents=True)
@@ -302,8 +302,8 @@ def test_a_bug_on_a_full_disk_is_still_one_line(tmp_path, monkeypatch, capsys):
     import errno
     import os
 
+    from facecap import cli
     from facecap_core import evaluation
-    from flows import cli
 
     def broken(*args, **kwargs):
         raise ZeroDivisionError("float division by zero")
@@ -333,7 +333,7 @@ def test_a_facecap_home_that_is_not_a_folder_is_one_line(home, orbit, tmp_path, 
                                                          capfd):
     """Before anything: not the traceback of the first folder made under it (the assets,
     the crash log)."""
-    from flows.cli import main
+    from facecap.cli import main
 
     (tmp_path / "file").write_text("a file")
     value = home if home.startswith("/") else str(tmp_path / home)

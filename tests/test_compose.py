@@ -357,9 +357,10 @@ def test_worker_image_installs_the_project_as_a_non_root_user():
 
     # Every package of the project, and the README pyproject names, is copied in.
     copied = " ".join(args for word, args in instructions if word == "COPY")
-    for pattern in pyproject["tool"]["setuptools"]["packages"]["find"]["include"]:
-        package = pattern.rstrip("*")
-        assert re.search(rf"(^|\s){package}/?(\s|$)", copied), f"{package} not copied"
+    setuptools = pyproject["tool"]["setuptools"]
+    folders = {setuptools["package-dir"].get(p, p.replace(".", "/")) for p in setuptools["packages"]}
+    for folder in {f.split("/")[0] for f in folders}:
+        assert re.search(rf"(^|\s){folder}/?(\s|$)", copied), f"{folder} not copied"
     assert pyproject["project"]["readme"] in copied
 
     # No credential is baked in.

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
+from facecap.tasks.store import open_store
 from facecap_core.config import PipelineConfig
-from tasks.store import open_store
 from tests.test_faults import (  # noqa: F401 - prefect_api is a fixture
     committed,
     computed_in,
@@ -50,7 +50,7 @@ def seed_poses_and_coarse(store_url: str, video: Path, capture: Path, config: Pi
                           tmp: Path) -> set[str]:
     """The capture's ground-truth poses and coarse mesh, stored under the keys the capture
     flow computes for ``video`` with ``config``; returns the seeded keys."""
-    from tasks.graph import stage_key
+    from facecap.tasks.graph import stage_key
     from tests.test_flows import seed_upstream
 
     gt = seed_upstream(store_url, capture, tmp)  # the files, under keys of their own

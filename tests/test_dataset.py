@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
+from facecap.flows.evaluate import regressions
 from facecap_core.dataset import mesh_consistency, scan_dataset
 from facecap_core.errors import InputError
-from flows.evaluate import regressions
 
 
 def _touch(path, data=b"x"):
@@ -111,7 +111,7 @@ def test_a_scored_capture_that_lost_its_mesh_is_a_regression():
 def test_a_capture_without_a_mesh_keeps_its_last_score_as_the_baseline(tmp_path):
     """The night after "mesh missing", the capture is compared with its last score again
     (carried forward), so neither its absence nor a worse mesh on its return goes unseen."""
-    from flows.evaluate import previous_evaluation
+    from facecap.flows.evaluate import previous_evaluation
 
     (tmp_path / "20261101T020000000000Z.json").write_text(json.dumps(
         {"captures": {"b/1": _score(0.5, 0.5)}, "carried": {"a/1": _score(1.0, 1.0)}}))
@@ -125,8 +125,8 @@ def test_scale_error_is_the_meshs_size_against_the_scans():
     the reported scale error is +2 %."""
     import trimesh
 
+    from facecap.flows.evaluate import scale_error_pct
     from facecap_core.evaluation import score, score_json
-    from flows.evaluate import scale_error_pct
 
     scan = trimesh.creation.icosphere(subdivisions=3, radius=80.0)
     landmarks = np.asarray(scan.vertices[:68])

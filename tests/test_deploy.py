@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from deploy.serve import deployments
+from facecap.deploy.serve import deployments
 
 
 def test_deployments_name_their_flows_and_parameters():
@@ -32,9 +32,9 @@ def test_served_flows_accept_only_documented_parameters():
     docs/deploy.md names, and the required ones are the ones it names first."""
     import re
 
-    from flows.capture import reconstruct_capture
-    from flows.dataset import reconstruct_dataset
-    from flows.evaluate import evaluate_dataset
+    from facecap.flows.capture import reconstruct_capture
+    from facecap.flows.dataset import reconstruct_dataset
+    from facecap.flows.evaluate import evaluate_dataset
 
     table = (Path(__file__).parents[1] / "docs" / "deploy.md").read_text()
     for deployment, served, required in [

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facecap_core.ear_training.contour import load_contour_file
+from facecap.ear_training.contour import load_contour_file
 from facecap_core.landmarks import ear_check
 from facecap_core.landmarks.ears import MODELS_DIR
 from facecap_core.template import Template, head_frame, ict_identity_vertices, load_ict_model

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import facecap_core.ear_training as et
+import facecap.ear_training as et
 from facecap_core.errors import InputError
 from facecap_core.landmarks import ears
 
@@ -13,7 +13,7 @@ from facecap_core.landmarks import ears
 @pytest.fixture(scope="module")
 def held_out_renderer(ict_model):
     """ICT identity 0 (never used for training) in a textured room."""
-    from facecap_core.synthetic import Room
+    from facecap.synthetic import Room
 
     transfer = et.load_contour_file(ears.MODELS_DIR / et.CONTOUR_FILE)["ict"]
     return et.ict_ear_renderer(ict_model, 0, transfer,
@@ -102,8 +102,8 @@ def test_james_hand_labelled_contour_is_reproducible_and_on_his_scan():
 
     import trimesh
 
+    from facecap.synthetic import make_subject
     from facecap_core.config import SynthConfig
-    from facecap_core.synthetic import make_subject
 
     root = Path(__file__).resolve().parents[1]
     doc = json.loads((root / "benchmarks/data/james_ear_contour.json").read_text())

@@ -19,8 +19,8 @@ import pytest
 import trimesh
 from pydantic import ValidationError
 
+from facecap.ear_training.contour import SIDES, load_contour_file
 from facecap_core.camera import rotation_matrix
-from facecap_core.ear_training.contour import SIDES, load_contour_file
 from facecap_core.errors import InputError
 from facecap_core.evaluation import (
     COLORBAR_HEIGHT,
@@ -315,7 +315,7 @@ def test_preview_is_the_heat_map_with_a_scan_and_the_coloured_mesh_without(head,
     heat map."""
     import trimesh
 
-    from flows.ui import mesh_preview
+    from facecap.flows.ui import mesh_preview
 
     v, f, lm = head
     colours = np.where(v[:, :1] > 0, [[220, 30, 30]], [[30, 30, 220]]).astype(np.uint8)

@@ -28,15 +28,15 @@ from pathlib import Path
 
 import pytest
 
-from tasks.store import CorruptArtifactError, open_store
+from facecap.tasks.store import CorruptArtifactError, open_store
 
 ROOT = Path(__file__).resolve().parents[1]
 
 WORKER = """
 import dataclasses, json, sys
-import tasks.stages as stages
-from tasks.store import input_key, open_store
-from tasks.runner import ingest, run_stage
+import facecap.tasks.stages as stages
+from facecap.tasks.store import input_key, open_store
+from facecap.tasks.runner import ingest, run_stage
 
 mode, store, args, log_path = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), sys.argv[4]
 
@@ -61,13 +61,13 @@ def logged_ingest(store_url, path, name):
 
 stages.run_stage, stages.ingest = logged_run_stage, logged_ingest
 if mode == "head":  # the real capture flow, up to the poses
-    from flows.capture import reconstruct_capture
+    from facecap.flows.capture import reconstruct_capture
     report = reconstruct_capture(args["video"], args["out"], config=args["config"],
                                  until="poses", store=store)
     keys = {name: info["key"] for name, info in report["stages"].items()}
     keys["video"] = input_key(args["video"])
 elif mode == "dataset":  # the dataset flow, every capture through the real capture flow
-    from flows.dataset import reconstruct_dataset
+    from facecap.flows.dataset import reconstruct_dataset
     keys = reconstruct_dataset(args["root"], args["out"], config=args["config"], store=store)
 elif mode == "middle":  # landmarks and coarse mesh from seeded poses
     from tests.test_faults import make_middle_flow
@@ -83,7 +83,7 @@ print("KEYS " + json.dumps(keys))
 def make_middle_flow():
     from prefect import flow
 
-    from tasks.stages import call_stage
+    from facecap.tasks.stages import call_stage
 
     @flow(name="middle")
     def middle(store: str, seeded: dict) -> dict:
@@ -109,8 +109,8 @@ def prefect_api(tmp_path_factory) -> str:
 
 def shared_capture(tmp_path_factory, ict_model) -> Path:
     """The capture of tests/test_flows.py, rendered once per test session."""
+    from facecap.synthetic import synthesize
     from facecap_core.config import SynthConfig
-    from facecap_core.synthetic import synthesize
     from tests.test_flows import FRAMES, HEIGHT, WIDTH
 
     folder = tmp_path_factory.getbasetemp() / "robustness-capture" / "subject a"
@@ -325,13 +325,13 @@ def assert_same_cameras(a_path: Path, b_path: Path) -> None:
 def test_a_process_killed_during_a_put_leaves_nothing_readable(tmp_path):
     """The commit itself is cut short (the process dies between two files): no manifest, no
     key, nothing a reader would take; the next put commits the whole artifact."""
-    from tasks.store import artifact_key
+    from facecap.tasks.store import artifact_key
 
     store_dir = tmp_path / "store"
     key = artifact_key("fusion", {}, {"x": 1}, "1")
     script = f"""
 import os
-from tasks.store import open_store
+from facecap.tasks.store import open_store
 
 class DiesMidway:
     def read(self, size=-1):
@@ -368,8 +368,8 @@ def test_a_corrupt_artifact_is_refused_and_recomputed_once_deleted(finished, cap
     """A committed file damaged on disk is never read: the next stage refuses it with one
     line that says what to delete; deleted, it is recomputed (the same bytes) and nothing
     else is."""
-    from tasks.graph import BY_NAME
-    from tasks.runner import run_stage
+    from facecap.tasks.graph import BY_NAME
+    from facecap.tasks.runner import run_stage
     from tests.test_flows import run_tail, small_config
 
     store = open_store(finished["store"])
@@ -400,7 +400,7 @@ def test_a_corrupt_artifact_is_refused_and_recomputed_once_deleted(finished, cap
 @pytest.mark.slow
 def test_a_transient_fault_is_retried_within_the_run(finished, capture, monkeypatch):
     """An I/O error in a stage (injected once) is retried by the task and the run finishes."""
-    from tasks import runner
+    from facecap.tasks import runner
     from tests.test_flows import run_tail, small_config
 
     store = open_store(finished["store"])
@@ -447,7 +447,7 @@ def test_a_store_outage_is_retried_and_then_succeeds(prefect_api, tmp_path, monk
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
 
-    from tasks.stages import call_ingest
+    from facecap.tasks.stages import call_ingest
     from tests.test_store_s3 import CREDENTIALS, LocalS3
 
     server = LocalS3()

@@ -13,20 +13,20 @@ import open3d as o3d
 import pytest
 import trimesh
 
+from facecap.synthetic.cloud import mvs_like_cloud
 from facecap_core.camera import Intrinsics, look_at
 from facecap_core.errors import InputError
 from facecap_core.evaluation import distances, score
 from facecap_core.fitting import FittingConfig, Keyframe, NicpSystem, fit, fit_and_write
-from facecap_core.fitting.constraints import (
+from facecap_core.nonrigid.constraints import (
     CloudGrid,
     cloud_targets,
     nearest_edge_pixels,
     silhouette_vertices,
 )
-from facecap_core.fitting.nicp import initial_similarity
-from facecap_core.fitting.roughness import face_edges, roughness
+from facecap_core.nonrigid.nicp import initial_similarity
+from facecap_core.nonrigid.roughness import face_edges, roughness
 from facecap_core.render import RaycastScene, interpolate
-from facecap_core.synthetic.cloud import mvs_like_cloud
 from facecap_core.template import INNER_LANDMARKS, Template, head_frame
 from facecap_core.texture import vertex_colours
 

@@ -17,9 +17,9 @@ import pytest
 # Every test here runs the tail of the pipeline on a real Prefect server.
 pytestmark = pytest.mark.slow
 
+from facecap.tasks.store import open_store
 from facecap_core.config import PipelineConfig, SynthConfig
 from facecap_core.meshio import load_landmarks, load_mesh, save_landmarks
-from tasks.store import open_store
 
 WIDTH, HEIGHT, FRAMES = 320, 180, 18
 KEYFRAMES = list(range(5, 13))
@@ -38,7 +38,7 @@ def prefect_server(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory, ict_model):
-    from facecap_core.synthetic import synthesize
+    from facecap.synthetic import synthesize
 
     folder = tmp_path_factory.mktemp("capture") / "subject a"
     fps = FRAMES / 6.0
@@ -66,10 +66,10 @@ def _cameras_doc(intr, frames, indices, scale: float, units: str) -> dict:
 
 def seed_upstream(store_url: str, capture: Path, tmp: Path) -> dict[str, str]:
     """Store ground-truth pose and coarse artifacts; returns their keys and the video's."""
-    from facecap_core.synthetic import load_gt_cameras
-    from facecap_core.synthetic.ground_truth import coarse_from_gt
-    from tasks.graph import stage_key
-    from tasks.runner import ingest
+    from facecap.synthetic import load_gt_cameras
+    from facecap.synthetic.ground_truth import coarse_from_gt
+    from facecap.tasks.graph import stage_key
+    from facecap.tasks.runner import ingest
 
     store = open_store(store_url)
     intr, frames = load_gt_cameras(capture / "gt" / "cameras.json")
@@ -104,9 +104,9 @@ def make_tail_flow():
     from prefect import flow
     from prefect.task_runners import ThreadPoolTaskRunner
 
-    from flows.capture import run_stages
-    from tasks.graph import STAGES
-    from tasks.stages import call_ingest
+    from facecap.flows.capture import run_stages
+    from facecap.tasks.graph import STAGES
+    from facecap.tasks.stages import call_ingest
 
     @flow(name="tail", task_runner=ThreadPoolTaskRunner(max_workers=2))
     def tail(store: str, seeded: dict, config: dict, scan: str, scan_landmarks: str) -> dict:
@@ -168,7 +168,7 @@ def test_tail_reconstructs_the_capture(first_run, capture):
 
 
 def _capture_report(first_run) -> dict:
-    from flows.capture import _figures, _stage_report
+    from facecap.flows.capture import _figures, _stage_report
 
     keys = first_run["keys"]
     runs = {name: (key, True) for name, key in keys.items()
@@ -185,7 +185,7 @@ def _publish_and_read_link(report: dict, out: Path, results: dict) -> tuple[str,
     from prefect import flow
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
 
-    from flows.ui import artifact_keys, publish_capture
+    from facecap.flows.ui import artifact_keys, publish_capture
 
     label = f"{report['subject']}/{report['capture']}"
 
@@ -208,10 +208,10 @@ def test_the_ui_link_opens_the_capture_page(first_run, tmp_path, monkeypatch):
     run does, opened in headless Chromium through the link the Prefect UI shows (the page
     server of a folder store): the face is drawn, the heat map of its accuracy changes the
     picture, the cameras show, the figures are the report's, no console error."""
-    from flows.capture import _export, _page
-    from flows.page import PAGE_NAME, store_page
-    from flows.page_server import address, page_server, serve_in_background
-    from tasks.outputs import ResultWriter
+    from facecap.flows.capture import _export, _page
+    from facecap.flows.page import PAGE_NAME, store_page
+    from facecap.flows.page_server import address, page_server, serve_in_background
+    from facecap.tasks.outputs import ResultWriter
     from tests.browser import look_at_page
     from tests.test_page import SHOTS
 
@@ -245,7 +245,7 @@ def test_the_ui_link_opens_the_capture_page(first_run, tmp_path, monkeypatch):
 
 def test_without_a_page_server_the_ui_link_names_the_page_on_disk(first_run, tmp_path,
                                                                      monkeypatch):
-    from flows.page import store_page
+    from facecap.flows.page import store_page
 
     monkeypatch.delenv("FACECAP_PAGES_URL", raising=False)
     report = _capture_report(first_run)  # its page kept: only the server is missing
@@ -381,9 +381,9 @@ def test_the_ui_link_opens_the_dataset_page_and_its_rows_open_the_captures(first
     from prefect import flow
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
 
-    from flows.page import store_page
-    from flows.page_server import address, page_server, serve_in_background
-    from flows.ui import dataset_link_key, publish_dataset_page
+    from facecap.flows.page import store_page
+    from facecap.flows.page_server import address, page_server, serve_in_background
+    from facecap.flows.ui import dataset_link_key, publish_dataset_page
 
     store = open_store(first_run["store"])
     report = _capture_report(first_run)

@@ -41,7 +41,7 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from flows.cli import main
+from facecap.cli import main
 from tests.media import write_video
 from tests.test_bad_inputs import orbit_frames, snapshot
 
@@ -54,8 +54,8 @@ def world(tmp_path_factory):
     """A valid recording, a store holding an earlier artifact, an output folder, a file
     where a folder is expected, a small scan with its 68 landmarks, and a FACECAP_HOME
     with the template assets."""
+    from facecap.tasks.store import artifact_key, open_store
     from facecap_core import assets
-    from tasks.store import artifact_key, open_store
 
     d = tmp_path_factory.mktemp("fuzz")
     source = assets.menpo3d_data()

@@ -10,13 +10,14 @@ here from the pipeline's data flow, not derived from the table under test.
 from __future__ import annotations
 
 import typing
+from pathlib import Path
 
 import pytest
 from pydantic import BaseModel, ValidationError
 
+from facecap.flows.capture import _inputs
+from facecap.tasks.graph import BY_NAME, STAGES, STEPS, producer, section_model, stages_until
 from facecap_core.config import PipelineConfig
-from flows.capture import _inputs
-from tasks.graph import BY_NAME, STAGES, STEPS, producer, section_model, stages_until
 
 AFTER_COARSE = {"views", "depth", "fusion", "fitting", "evaluation"}
 RECOMPUTED = {
@@ -141,48 +142,41 @@ def test_a_stage_without_its_input_is_skipped_and_fan_out_items_are_gathered():
                                                 "depth_00003": "d3", "depth_00009": "d9"}
 
 
+def _code_metrics():
+    """``tools/code_metrics.py``, which draws the import graph and its layers."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "tools" / "code_metrics.py"
+    spec = importlib.util.spec_from_file_location("code_metrics", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_dependencies_point_one_way():
-    """flows → tasks → facecap_core: the science never imports the orchestration (nor
-    Prefect), and the tasks never import the flows; imports inside functions count too."""
-    import ast
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parents[1]
-    forbidden = {"facecap_core": ("tasks", "flows", "prefect"), "tasks": ("flows",)}
-    found = []
-    for package, banned in forbidden.items():
-        for path in (root / package).rglob("*.py"):
-            for node in ast.walk(ast.parse(path.read_text())):
-                names = ([a.name for a in node.names] if isinstance(node, ast.Import)
-                         else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
-                found += [f"{path.relative_to(root)}: {n}" for n in names
-                          if n.split(".")[0] in banned]
-    assert found == []
-
-
-def test_the_face_detector_sits_below_the_stages():
-    """``facecap_core/face.py`` (face box, mesh, 68 points) is a shared helper: it imports no
-    stage, and the keyframe stage, which uses its face box, imports no later stage."""
-    import ast
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parents[1] / "facecap_core"
-    stages = ("facecap_core.landmarks", "facecap_core.coarse", "facecap_core.pose",
-              "facecap_core.mvs", "facecap_core.fitting", "facecap_core.synthetic")
-    found = []
-    for name in ("face.py", "keyframes.py"):
-        for node in ast.walk(ast.parse((root / name).read_text())):
-            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
-                     else [f"{node.module}.{a.name}" for a in node.names]
-                     if isinstance(node, ast.ImportFrom) else [])
-            found += [f"{name}: {n}" for n in names if n.startswith(stages)]
-    assert found == []
+    """cli → deploy → flows → tasks → facecap_core's stages in pipeline order → its shared
+    helpers; the synthetic world and the ear training beside the orchestration, which never
+    imports them; the science never imports Prefect; no circle. Imports inside functions
+    count too."""
+    metrics = _code_metrics()
+    figures = metrics.analyse()
+    assert figures["layers"] == []
+    assert figures["circles"] == []
+    # The checks see what they are for: an import up the layers, a forbidden one, a circle.
+    graph = {"facecap_core.camera": {"facecap_core.mvs.depth"}, "facecap_core.mvs.depth": set(),
+             "tasks.graph": {"facecap.synthetic"}, "facecap.synthetic": set()}
+    third_party = {"facecap_core.camera": set(), "facecap_core.mvs.depth": {"prefect"},
+                   "tasks.graph": {"flows"}, "facecap.synthetic": set()}
+    assert metrics.layer_violations(graph, third_party) == [
+        "facecap_core.camera -> facecap_core.mvs.depth", "tasks.graph -> facecap.synthetic",
+        "tasks.graph -> flows", "facecap_core.mvs.depth -> prefect"]
+    assert metrics.circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
 def test_a_recalibrated_landmark_table_is_a_new_landmark_stage(tmp_path, monkeypatch):
     """The landmark stage's version names its calibrated tables: a store never hands out
     landmarks made with another vertex table or convention offsets."""
-    import tasks.graph as graph
+    import facecap.tasks.graph as graph
 
     before = graph._landmark_models()
     for name in ("MESH_TO_68_FILE", "OFFSETS_FILE"):

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from facecap.synthetic import load_gt_cameras, synthesize, write_gt_keyframe_cameras
 from facecap_core.camera import (
     CameraSet,
     Intrinsics,
@@ -26,11 +27,9 @@ from facecap_core.landmarks.stage import (
     load_ears3d,
     load_landmarks3d,
     triangulate_ears,
-    write_gt_keyframe_cameras,
 )
 from facecap_core.landmarks.triangulate import dlt, normalised, triangulate
 from facecap_core.meshio import load_landmarks
-from facecap_core.synthetic import load_gt_cameras, synthesize
 from facecap_core.template import INNER_LANDMARKS, head_frame
 
 INTR = Intrinsics(1280, 720, 1000.0, 1000.0, 641.0, 358.0, -0.06, 0.015)

@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pytest
 
+from facecap.cli import main
+from facecap.flows.page import store_page
+from facecap.tasks.graph import BY_NAME
+from facecap.tasks.lifecycle import derived, forget, prune, prune_unreferenced
+from facecap.tasks.runner import ingest
+from facecap.tasks.store import open_store
 from facecap_core.errors import InputError
-from flows.cli import main
-from flows.page import store_page
-from tasks.graph import BY_NAME
-from tasks.lifecycle import derived, forget, prune, prune_unreferenced
-from tasks.runner import ingest
-from tasks.store import open_store
 
 
 def chain(store_url: str, video: Path) -> dict[str, str]:
@@ -264,7 +264,7 @@ def test_a_page_goes_with_its_face(world, tmp_path):
     """The pages kept for the UI's links show faces: a subject's capture pages and the
     dataset page that lists them go when the subject is forgotten; the page of an earlier
     run that no report names goes with a prune of what is unreferenced."""
-    from flows.dataset_page import store_dataset_page
+    from facecap.flows.dataset_page import store_dataset_page
 
     store = open_store(world["store"])
     alice = world["keys"]["alice"]

@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from facecap.synthetic.ground_truth import coarse_from_gt, gt_depth, load_views
 from facecap_core.camera import look_at
 from facecap_core.config import DepthMapConfig, SynthConfig, ViewSelectionConfig
 from facecap_core.errors import InputError
@@ -28,7 +29,6 @@ from facecap_core.mvs import (
     write_ply,
 )
 from facecap_core.render import RaycastScene
-from facecap_core.synthetic.ground_truth import coarse_from_gt, gt_depth, load_views
 
 # 320x180: 1 px ≈ 1.6 mm on the face, a quarter of the benchmark's pixels (docs/mvs.md).
 WIDTH, HEIGHT, FRAMES = 320, 180, 18
@@ -38,7 +38,7 @@ KEYFRAMES = list(range(5, 13))  # the frontal half of an 18-frame ear-to-ear swe
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory, ict_model):
     """A small capture, its views, GT mesh, coarse mesh and sources."""
-    from facecap_core.synthetic import synthesize
+    from facecap.synthetic import synthesize
 
     folder = tmp_path_factory.mktemp("mvs")
     fps = FRAMES / 6.0

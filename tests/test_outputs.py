@@ -23,14 +23,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from facecap_core.errors import InputError
-from tasks.outputs import (
+from facecap.tasks.outputs import (
     RECORD_NAME,
     OutputWriteError,
     ResultWriter,
     check_output_place,
     write_results,
 )
+from facecap_core.errors import InputError
 from tests import test_bad_inputs
 from tests.test_bad_inputs import (
     CHEAP_POSES,
@@ -170,8 +170,8 @@ def test_the_preview_is_made_from_the_runs_own_mesh(tmp_path):
     artifacts in the store."""
     import trimesh
 
-    from flows.capture import _export
-    from tasks.store import artifact_key, open_store
+    from facecap.flows.capture import _export
+    from facecap.tasks.store import artifact_key, open_store
 
     store = open_store(tmp_path / "store")
     key = artifact_key("fitting", {"fusion": "fusion-x"}, {}, "1")
@@ -348,7 +348,7 @@ def test_a_killed_run_leaves_nothing_outside_facecap_home(media, tmp_path, home)
     (tmp_path / "cheap.yaml").write_text(CHEAP_POSES)
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API")}
     env.update(TMPDIR=str(system_tmp), FACECAP_HOME=str(home), PREFECT_HOME=str(tmp_path / "ph"))
-    command = [sys.executable, "-m", "flows.cli", "reconstruct", str(media["orbit"]), "--out",
+    command = [sys.executable, "-m", "facecap", "reconstruct", str(media["orbit"]), "--out",
                str(tmp_path / "out"), "--store", str(tmp_path / "store"), "--config",
                str(tmp_path / "cheap.yaml"), "--until", "poses"]
     proc = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL,
@@ -372,7 +372,7 @@ def test_a_killed_run_leaves_nothing_outside_facecap_home(media, tmp_path, home)
     (left,) = scratch.iterdir()  # the killed run's, frames and all
     old = time.time() - 3600  # as if the next command came an hour later
     os.utime(left, (old, old))
-    code = subprocess.run([sys.executable, "-m", "flows.cli", "store", "prune",
+    code = subprocess.run([sys.executable, "-m", "facecap", "store", "prune",
                            "--older-than-days", "1", "--store", str(tmp_path / "store")],
                           env=env, capture_output=True, text=True)
     assert code.returncode == 0, code.stderr
@@ -388,9 +388,9 @@ def test_a_prune_during_a_run_keeps_what_the_run_reads(media, kept, tmp_path, ca
     and a prune after the run removes it."""
     from datetime import UTC, datetime, timedelta
 
+    from facecap.tasks import lifecycle
+    from facecap.tasks.store import open_store
     from facecap_core import keyframes
-    from tasks import lifecycle
-    from tasks.store import open_store
 
     store = open_store(kept["store"])
     seen, select = {}, keyframes.main

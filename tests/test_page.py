@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from flows.page import build_page, mesh_glb
+from facecap.flows.page import build_page, mesh_glb
 from tests.browser import look_at_page
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -151,7 +151,7 @@ def _dataset_results(out: Path, results: dict[str, Path]) -> None:
 
 
 def test_the_dataset_page_lists_each_capture_with_its_status_and_history(results, tmp_path):
-    from flows.dataset_page import build_dataset_page
+    from facecap.flows.dataset_page import build_dataset_page
     from tests.browser import chromium
 
     out = tmp_path / "results"
@@ -192,7 +192,7 @@ def test_the_dataset_page_loses_a_forgotten_subject(results, tmp_path):
     thumbnail of that subject's face."""
     import shutil
 
-    from flows.dataset_page import build_dataset_page, rewrite_dataset_page
+    from facecap.flows.dataset_page import build_dataset_page, rewrite_dataset_page
 
     out = tmp_path / "results"
     _dataset_results(out, results)

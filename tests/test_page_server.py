@@ -12,12 +12,12 @@ from urllib.parse import parse_qs, urlencode, urlsplit
 
 import pytest
 
+from facecap.flows.page_server import address, page_server, serve_in_background
+from facecap.tasks.store import ArtifactNotFoundError, artifact_key, open_store
+from facecap.tasks.store.base import scheme
+from facecap.tasks.store.links import SECRET_NAME, link
 from facecap_core.errors import InputError
 from facecap_core.settings import settings
-from flows.page_server import address, page_server, serve_in_background
-from tasks.store import ArtifactNotFoundError, artifact_key, open_store
-from tasks.store.base import scheme
-from tasks.store.links import SECRET_NAME, link
 
 PAGE = b"<!doctype html><title>anna</title>"
 
@@ -143,7 +143,7 @@ def test_a_pages_url_that_is_no_address_is_refused(value, monkeypatch):
 
 
 def test_a_port_in_use_is_one_line(served, tmp_path, capsys):
-    from flows.cli import main
+    from facecap.cli import main
 
     store, _ = served
     port = urlsplit(settings().pages_url).port  # the fixture's server holds it

@@ -11,10 +11,10 @@ import pytest
 from PIL import Image
 from PIL.TiffImagePlugin import IFDRational
 
+from facecap.tasks.store import input_key
 from facecap_core.errors import InputError
 from facecap_core.photos import probe_photos, read_photo
 from facecap_core.video import iter_frames, probe, read_frames
-from tasks.store import input_key
 
 
 def _photos(folder, sizes, orientation=None, exif_focal_35mm=None, exif_ifd=None):
@@ -175,12 +175,12 @@ def test_empty_frame_list_reads_nothing_from_a_video(tmp_path):
 def test_shuffled_photos_get_every_camera_in_sweep_order(tmp_path, ict_model):
     """Photos of a sweep saved under shuffled names: exhaustive matching registers all, the
     views come out in sweep order, and the cameras are as good as the video's."""
+    from facecap.synthetic import load_gt_cameras, synthesize
     from facecap_core.config import PoseConfig, SynthConfig
     from facecap_core.keyframes import load_keyframes
     from facecap_core.keyframes import main as keyframes_main
     from facecap_core.pose.evaluate import pose_errors
     from facecap_core.pose.stage import estimate_poses
-    from facecap_core.synthetic import load_gt_cameras, synthesize
 
     capture = synthesize(SynthConfig(subject="ict:4", ict_model=ict_model, width=640,
                                      height=360, duration_s=3.0, seed=4),

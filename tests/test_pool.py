@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from flows.dataset import most_at_once
+from facecap.flows.dataset import most_at_once
 from tests.media import write_video
 from tests.servers import stop
 from tests.test_bad_inputs import orbit_frames
@@ -213,8 +213,8 @@ def test_a_dataset_run_without_the_capture_deployment_says_so(live_server, monke
                                                                tmp_path):
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
+    from facecap.flows import dataset
     from facecap_core.errors import FacecapError
-    from flows import dataset
 
     monkeypatch.setattr(dataset, "CAPTURE_DEPLOYMENT", "reconstruct-capture/not-registered")
     with temporary_settings({PREFECT_API_URL: live_server}):

@@ -3,6 +3,7 @@ import json
 import numpy as np
 import pytest
 
+from facecap.synthetic import load_gt_cameras, synthesize
 from facecap_core.camera import Intrinsics, rotation_matrix
 from facecap_core.config import PoseConfig, SynthConfig
 from facecap_core.keyframes import load_keyframes
@@ -12,7 +13,6 @@ from facecap_core.pose.evaluate import pose_errors
 from facecap_core.pose.geometric import triangulate
 from facecap_core.pose.io import write_colmap_text, write_outputs
 from facecap_core.pose.stage import estimate_poses, track_hosts
-from facecap_core.synthetic import load_gt_cameras, synthesize
 from facecap_core.video import read_frames
 
 

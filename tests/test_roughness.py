@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from facecap_core.evaluation import split_half_distance
-from facecap_core.fitting.roughness import (
+from facecap_core.nonrigid.roughness import (
     BENT_DEG,
     bend_angles,
     face_edges,

@@ -96,7 +96,7 @@ def listener():
 
 
 def test_a_served_capture_reads_only_inside_the_input_roots(worker, prefect_server):
-    from flows.capture import reconstruct_capture
+    from facecap.flows.capture import reconstruct_capture
 
     out = str(worker["outputs"] / "anna")
     secret = worker["elsewhere"] / "secret.mp4"
@@ -124,7 +124,7 @@ def test_a_served_capture_reads_only_inside_the_input_roots(worker, prefect_serv
 
 
 def test_a_served_capture_writes_only_inside_the_output_root(worker, prefect_server):
-    from flows.capture import reconstruct_capture
+    from facecap.flows.capture import reconstruct_capture
 
     take = str(worker["inputs"] / "anna" / "take.mp4")
     (worker["outputs"] / "escape").symlink_to(worker["elsewhere"], target_is_directory=True)
@@ -139,7 +139,7 @@ def test_a_served_capture_writes_only_inside_the_output_root(worker, prefect_ser
 def test_a_served_run_uses_the_deployments_store_only(worker, prefect_server, listener):
     """No store URL but the worker's own: another scheme (an HTTP request to an internal
     API), another bucket, another folder. The listener gets no request."""
-    from flows.capture import reconstruct_capture
+    from facecap.flows.capture import reconstruct_capture
 
     url, requests = listener
     take = str(worker["inputs"] / "anna" / "take.mp4")
@@ -155,8 +155,8 @@ def test_a_served_run_uses_the_deployments_store_only(worker, prefect_server, li
 
 
 def test_served_dataset_and_evaluation_runs_are_bounded_too(worker, prefect_server):
-    from flows.dataset import reconstruct_dataset
-    from flows.evaluate import evaluate_dataset
+    from facecap.flows.dataset import reconstruct_dataset
+    from facecap.flows.evaluate import evaluate_dataset
 
     out = str(worker["outputs"] / "results")
     for flow in (reconstruct_dataset, evaluate_dataset):
@@ -173,8 +173,8 @@ def test_served_dataset_and_evaluation_runs_are_bounded_too(worker, prefect_serv
 def test_a_served_run_refuses_a_path_it_cannot_compare(worker, prefect_server):
     """A NUL byte (no file name holds one) or a path given as bytes: one line, not the
     ValueError or TypeError of resolving it."""
-    from flows.capture import reconstruct_capture
-    from flows.service import guard
+    from facecap.flows.capture import reconstruct_capture
+    from facecap.flows.service import guard
 
     out = str(worker["outputs"] / "anna")
     take = str(worker["inputs"] / "anna" / "take.mp4")
@@ -193,7 +193,7 @@ def test_a_served_run_reads_a_tilde_as_the_flow_does(worker, prefect_server, mon
     """``~`` is not expanded when a served run opens its video, so the guard does not expand
     it either: ``~/anna/take.mp4`` is the folder ``~`` of the worker's working directory,
     here outside the roots (though ``$HOME/anna/take.mp4`` lies inside them)."""
-    from flows.capture import reconstruct_capture
+    from facecap.flows.capture import reconstruct_capture
 
     monkeypatch.setenv("HOME", str(worker["inputs"]))
     monkeypatch.chdir(worker["elsewhere"])
@@ -207,7 +207,7 @@ def test_a_served_run_reads_a_tilde_as_the_flow_does(worker, prefect_server, mon
 def test_a_served_run_refuses_a_hard_link_out_of_the_roots(worker, prefect_server, videos):
     """A hard link is the file itself, wherever its other names are: an input with more
     than one (a video, a config, each photo of a photo folder) is refused; a copy is not."""
-    from flows.capture import reconstruct_capture
+    from facecap.flows.capture import reconstruct_capture
 
     out = str(worker["outputs"] / "anna")
     secret = worker["elsewhere"] / "short.mp4"
@@ -232,7 +232,7 @@ def test_a_served_run_refuses_a_hard_link_out_of_the_roots(worker, prefect_serve
 
 
 def test_a_refused_store_url_is_shown_without_its_password(worker):
-    from flows.service import ServicePolicy
+    from facecap.flows.service import ServicePolicy
 
     message = _refused(ServicePolicy.from_env().check_store, ["s3://user:***@host/bucket"],
                        store="s3://user:secret@host/bucket")
@@ -241,7 +241,7 @@ def test_a_refused_store_url_is_shown_without_its_password(worker):
 
 def test_a_deployment_without_roots_reads_and_writes_nothing(monkeypatch, tmp_path):
     """The worker's settings unset: a served run's policy admits no path at all."""
-    from flows.service import ServicePolicy
+    from facecap.flows.service import ServicePolicy
 
     monkeypatch.delenv("FACECAP_INPUT_ROOTS", raising=False)
     monkeypatch.delenv("FACECAP_OUTPUT_ROOT", raising=False)

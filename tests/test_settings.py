@@ -62,7 +62,7 @@ def test_every_variable_the_code_names_is_a_setting():
     """A FACECAP_* variable named in the code is a setting, so it is validated and
     documented (``FACECAP_MAX_...`` abbreviates the limits)."""
     named = set()
-    for package in ("facecap_core", "tasks", "flows", "deploy"):
+    for package in ("facecap_core", "facecap", "tasks", "flows", "deploy"):
         for source in (ROOT / package).rglob("*.py"):
             named |= set(re.findall(r"FACECAP_[A-Z0-9_]*[A-Z0-9]", source.read_text()))
     unknown = {name for name in named
@@ -87,10 +87,10 @@ def test_facecap_home_resolves_one_way_everywhere(value, tmp_path, monkeypatch,
                                                   template_assets):
     """``~`` expanded, an empty value and no value all mean ``~/.cache/facecap``, for the
     default store, the assets, the locks of a remote store and the copies of its artifacts."""
+    from facecap.tasks.runner import default_store_url, key_lock
+    from facecap.tasks.store import open_store
+    from facecap.tasks.store.remote import cache_root
     from facecap_core import assets
-    from tasks.runner import default_store_url, key_lock
-    from tasks.store import open_store
-    from tasks.store.remote import cache_root
 
     monkeypatch.setenv("HOME", str(tmp_path))
     if value is not None:
@@ -130,7 +130,7 @@ def test_an_empty_value_is_the_default_for_every_setting(monkeypatch):
 
 
 def test_input_roots_parse_as_a_list_of_paths(tmp_path, monkeypatch):
-    from flows.service import ServicePolicy
+    from facecap.flows.service import ServicePolicy
 
     monkeypatch.setenv("HOME", str(tmp_path))
     monkeypatch.setenv("FACECAP_INPUT_ROOTS", f"~/videos::{tmp_path / 'scans'}:")

@@ -12,8 +12,7 @@ import fsspec
 import pytest
 from pydantic import BaseModel
 
-from facecap_core.errors import FacecapError, InputError
-from tasks.store import (
+from facecap.tasks.store import (
     ArtifactNotFoundError,
     ArtifactStore,
     CorruptArtifactError,
@@ -24,6 +23,7 @@ from tasks.store import (
     input_key,
     open_store,
 )
+from facecap_core.errors import FacecapError, InputError
 
 INPUTS = {"video": "input-" + "0" * 32}
 CONFIG = {"resolution": 256, "smoothing": 0.5}
@@ -442,8 +442,8 @@ SECRET_URLS = {
 def test_a_store_url_is_shown_without_its_password(memory_url):
     """Whatever names a store in a message hides the password in its URL, in the URL and
     where a library's own message quotes it (a bucket name)."""
-    from tasks.runner import store_unreachable
-    from tasks.store.base import redact
+    from facecap.tasks.runner import store_unreachable
+    from facecap.tasks.store.base import redact
 
     for url, shown in SECRET_URLS.items():
         assert redact(url) == shown
@@ -482,7 +482,7 @@ def test_open_store_picks_the_backend_and_the_interface_is_not_a_store(tmp_path)
     nothing, and it does not import its backends (no import circle)."""
     import ast
 
-    from tasks.store import ArtifactStore, LocalStore, RemoteStore
+    from facecap.tasks.store import ArtifactStore, LocalStore, RemoteStore
 
     assert type(open_store(tmp_path / "store")) is LocalStore
     assert type(open_store(f"file://{tmp_path}/store")) is LocalStore
@@ -492,4 +492,4 @@ def test_open_store_picks_the_backend_and_the_interface_is_not_a_store(tmp_path)
     base = Path(__file__).resolve().parents[1] / "tasks" / "store" / "base.py"
     imported = {node.module for node in ast.walk(ast.parse(base.read_text()))
                 if isinstance(node, ast.ImportFrom)}
-    assert not imported & {"tasks.store.local", "tasks.store.remote"}
+    assert not imported & {"facecap.tasks.store.local", "facecap.tasks.store.remote"}

@@ -31,8 +31,7 @@ import s3fs
 import yaml
 from moto.server import ThreadedMotoServer
 
-from facecap_core.errors import InputError
-from tasks.store import (
+from facecap.tasks.store import (
     ArtifactNotFoundError,
     ArtifactStore,
     CorruptArtifactError,
@@ -40,6 +39,7 @@ from tasks.store import (
     artifact_key,
     open_store,
 )
+from facecap_core.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
 BUCKET = "facecap-store-test"
@@ -205,8 +205,8 @@ def test_the_results_link_is_a_presigned_url_of_the_page(store, prefix, tmp_path
     import urllib.parse
     import urllib.request
 
-    from flows.page import PAGE_NAME, store_page
-    from flows.ui import RESULTS_LINK_SECONDS, results_link
+    from facecap.flows.page import PAGE_NAME, store_page
+    from facecap.flows.ui import RESULTS_LINK_SECONDS, results_link
 
     page = b"<!doctype html><title>the page</title>"
     report = {"store": store.url, "stages": {"fitting": {"key": mesh_key()}}}
@@ -397,7 +397,7 @@ def test_an_outage_during_a_put_commits_nothing_and_the_retry_commits_everything
 
 
 def test_outage_errors_are_ones_the_service_retries(s3, store):
-    from tasks.runner import is_transient
+    from facecap.tasks.runner import is_transient
 
     put_mesh(store, {"mesh.ply": b"ply data"})
     errors = {}
@@ -507,8 +507,8 @@ def compose_worker_environment() -> dict[str, str]:
 
 WORKER_SCRIPT = """
 import sys
-from tasks.runner import default_store_url
-from tasks.store import artifact_key, open_store
+from facecap.tasks.runner import default_store_url
+from facecap.tasks.store import artifact_key, open_store
 store = open_store(default_store_url())
 key = artifact_key("mesh", {}, None, sys.argv[1])
 store.put(key, {"mesh.ply": b"from a worker"}, stage="mesh", inputs={}, config=None,

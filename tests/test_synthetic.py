@@ -6,12 +6,12 @@ import av
 import numpy as np
 import pytest
 
+from facecap.synthetic import load_gt_cameras, synthesize
 from facecap_core.camera import camera_center, project
 from facecap_core.config import SynthConfig
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.render import RaycastScene
-from facecap_core.synthetic import load_gt_cameras, synthesize
 
 
 def _frames(video):
@@ -107,9 +107,9 @@ def test_bad_subjects_are_named(tmp_path, monkeypatch):
 
 # -- phone-like conditions ------------------------------------------------------------------
 
+from facecap.synthetic import Room, ict_subject, prepare, to_srgb8  # noqa: E402
 from facecap_core.camera import rotation_angle_deg  # noqa: E402
 from facecap_core.config import build  # noqa: E402
-from facecap_core.synthetic import Room, ict_subject, prepare, to_srgb8  # noqa: E402
 from facecap_core.video import iter_frames, probe  # noqa: E402
 
 
@@ -258,7 +258,7 @@ def test_sensor_image_models_a_phone_sensor():
     """The phone effects on a known image: defaults are Poisson–Gaussian noise and sRGB
     only; a colour filter array over a flat colour demosaics back to it; the lens blur is a
     Gaussian of the given width; sharpening amplifies the noise."""
-    from facecap_core.synthetic.sensor import sensor_image, to_srgb8
+    from facecap.synthetic.sensor import sensor_image, to_srgb8
 
     flat = np.full((64, 64, 3), [0.2, 0.45, 0.1], np.float32)  # renders are float32
     quiet = SynthConfig(read_noise=0.0, shot_noise=0.0)

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
+from facecap.tasks.graph import BY_NAME, stage_key
+from facecap.tasks.runner import ingest, is_transient, run_stage
+from facecap.tasks.store import CorruptArtifactError, StoreWriteError, open_store
 from facecap_core.errors import FacecapError, InputError
-from tasks.graph import BY_NAME, stage_key
-from tasks.runner import ingest, is_transient, run_stage
-from tasks.store import CorruptArtifactError, StoreWriteError, open_store
 
 
 def _stage(compute, name: str = "fusion"):
@@ -123,7 +123,7 @@ def test_only_transient_faults_are_retried(exc, retried):
 def test_a_store_folder_that_is_a_file_fails_its_first_task_at_once(tmp_path):
     """The store's lock folder is a file: the task fails with one line, not retried (a
     lasting errno), instead of ~20 s of retries ending in a traceback."""
-    from tasks.runner import key_lock
+    from facecap.tasks.runner import key_lock
 
     (tmp_path / "store").mkdir()
     (tmp_path / "store" / ".locks").write_text("a file where the lock folder should be")
@@ -138,10 +138,10 @@ def test_results_are_exported_only_as_they_were_committed(tmp_path):
     """The output folder shows this run's results only (an earlier run's heat map goes, the
     user's own files stay, one named like a result too); a stored result changed after its
     commit (fx 500 -> 999 in cameras.json) is refused when exported, not handed to the user."""
-    from flows.capture import _export
-    from tasks.graph import OUTPUT_NAMES
-    from tasks.outputs import ResultWriter, write_results
-    from tasks.store import artifact_key
+    from facecap.flows.capture import _export
+    from facecap.tasks.graph import OUTPUT_NAMES
+    from facecap.tasks.outputs import ResultWriter, write_results
+    from facecap.tasks.store import artifact_key
 
     store = open_store(str(tmp_path / "store"))
     key = artifact_key("poses", {"video": "input-x"}, {}, "1")
@@ -179,7 +179,7 @@ def test_core_logs_outside_a_run_neither_warn_nor_fail(when_missing, capfd):
 
     from prefect.settings import PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW, temporary_settings
 
-    from tasks.logs import in_run, send_core_logs_to_runs
+    from facecap.tasks.logs import in_run, send_core_logs_to_runs
 
     send_core_logs_to_runs()
     assert not in_run()

@@ -30,7 +30,7 @@ def test_a_stage_past_its_time_limit_fails_the_run(worker_home, live_server, mon
     from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
-    from flows.capture import reconstruct_capture
+    from facecap.flows.capture import reconstruct_capture
 
     video = write_video(worker_home / "orbit.mp4", orbit_frames(150))
     monkeypatch.setenv("FACECAP_STAGE_TIMEOUT_S", "0.05")  # decoding 150 frames takes longer
@@ -71,7 +71,7 @@ def test_a_capture_past_its_time_limit_is_one_line_naming_that_limit(worker_home
     video = write_video(worker_home / "orbit.mp4", orbit_frames(150))
     env = {**os.environ, "PREFECT_API_URL": live_server, "FACECAP_CAPTURE_TIMEOUT_S": "2"}
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "flows.cli", "reconstruct", str(video),
+    done = subprocess.run([sys.executable, "-m", "facecap", "reconstruct", str(video),
                            "--out", str(worker_home / "out"), "--until", "poses"],
                           env=env, cwd=Path(__file__).parents[1], capture_output=True,
                           text=True, timeout=300)

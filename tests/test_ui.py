@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from flows.ui import capture_markdown, markdown_text
+from facecap.flows.ui import capture_markdown, markdown_text
 
 
 def test_capture_and_folder_names_cannot_add_links_images_or_html():
@@ -45,7 +45,7 @@ def test_a_forgotten_subjects_ui_pages_are_deleted_and_no_one_elses():
     from prefect.client.orchestration import get_client
     from prefect.testing.utilities import prefect_test_harness
 
-    from flows.ui import artifact_keys, forget_artifacts
+    from facecap.flows.ui import artifact_keys, forget_artifacts
 
     async def keys_on_server() -> list[str]:
         async with get_client() as client:
@@ -82,7 +82,7 @@ def test_the_progress_bar_follows_the_work_in_whole_percents(monkeypatch):
     equal share; it shows whole percents and ends at 100."""
     import prefect.artifacts
 
-    from flows.capture import _RunProgress
+    from facecap.flows.capture import _RunProgress
 
     shown = []
     monkeypatch.setattr(prefect.artifacts, "create_progress_artifact", lambda *a, **k: "id")

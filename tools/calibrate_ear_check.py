@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from facecap_core.ear_training.contour import load_contour_file  # noqa: E402
+from facecap.ear_training.contour import load_contour_file  # noqa: E402
 from facecap_core.landmarks import ear_check  # noqa: E402
 from facecap_core.landmarks.ears import MODELS_DIR  # noqa: E402
 from facecap_core.template import (  # noqa: E402

@@ -7,7 +7,7 @@ The ear spheres are placed from the scan's 68 landmarks alone: a centre at a fix
 from the top of the jaw contour (L16 / L0) in the landmarks' head frame, and a radius, both in
 face sizes (``face_size``). The constants come from ICT Face Model identities that no
 benchmark evaluates: seeds 1000-1199 (the benchmarks use ICT 0, 1, 3 and the scan "james"),
-each drawn as ``ict:SEED`` is (``facecap_core.synthetic.subjects.ict_subject``).
+each drawn as ``ict:SEED`` is (``facecap.synthetic.subjects.ict_subject``).
 
 Per identity and side, the ear is its points in the normalised ear frame (outwards, up,
 forwards from the side's anchor, divided by the face size): the ear vertices of the landmark
@@ -36,8 +36,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from facecap.ear_training.contour import SIDES, load_contour_file  # noqa: E402
 from facecap_core.assets import packaged_ict_model  # noqa: E402
-from facecap_core.ear_training.contour import SIDES, load_contour_file  # noqa: E402
 from facecap_core.evaluation.region import (  # noqa: E402
     EAR_CENTRE_OFFSET,
     EAR_RADIUS_FACTOR,

@@ -4,7 +4,7 @@
                                    [--modes 30] [--out facecap_core/data/ict_face_model_trimmed.npz]
 
 From the ICT Face Model Light npz (MIT, USC ICT; see facecap_core/data/README.md) it keeps
-only what facecap reads (``facecap_core/template.py`` and ``facecap_core/synthetic/``):
+only what facecap reads (``facecap_core/template.py`` and ``facecap/synthetic/``):
 
 * the vertices of the skin (face + head and neck, 0-11247), the mouth and eye sockets
   (11248-14061) and the eyeballs (sclera and iris, 21451-24590), renumbered in their original

@@ -19,7 +19,7 @@ __all__ = ["split_half_distance"]
 def split_half_distance(a_vertices: np.ndarray, b_vertices: np.ndarray, faces: np.ndarray,
                         face: np.ndarray) -> dict:
     """Distances (mm) between two fits of one face in one topology (``face``: (n,) bool,
-    the vertices to measure, e.g. :func:`facecap_core.fitting.roughness.face_vertices`):
+    the vertices to measure, e.g. :func:`facecap_core.nonrigid.roughness.face_vertices`):
     ``b`` is moved onto ``a`` by the similarity over the face vertices (the halves' scales
     and frames differ), then each side's face vertices are measured to the other's surface;
     median, mean and 95th percentile over both sides, and the similarity's scale."""

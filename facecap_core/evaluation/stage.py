@@ -13,6 +13,7 @@ from facecap_core.evaluation.alignment import EvaluationConfig
 from facecap_core.evaluation.figures import error_heatmap
 from facecap_core.evaluation.scoring import evaluate, score_json
 from facecap_core.meshio import load_mesh
+from facecap_core.template import Template
 
 EVALUATION_JSON = "evaluation.json"
 ACCURACY_NPY = "accuracy_{protocol}.npy"
@@ -48,7 +49,6 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
     if not mesh_lm.is_file():
         # A mesh in template topology carries its landmarks: the template's landmark vertices.
         from facecap_core.meshio import save_landmarks
-        from facecap_core.template import Template
 
         template = Template.default()
         if len(mesh.vertices) == len(template.vertices):

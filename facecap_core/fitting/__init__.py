@@ -10,10 +10,10 @@ local while the landmark weights fall. See docs/fitting.md.
     fit_and_write(cloud, landmarks, "out/fit")                                 # -> out/fit/mesh.ply
 """
 
-from facecap_core.fitting.constraints import Keyframe, cloud_targets, edge_targets
-from facecap_core.fitting.nicp import FitResult, FittingConfig, check_inputs, fit
 from facecap_core.fitting.run import fit_and_write, keyframes_from_video, load_cloud, write_mesh
-from facecap_core.fitting.solver import NicpSystem
+from facecap_core.nonrigid.constraints import Keyframe, cloud_targets, edge_targets
+from facecap_core.nonrigid.nicp import FitResult, FittingConfig, check_inputs, fit
+from facecap_core.nonrigid.solver import NicpSystem
 
 __all__ = ["Keyframe", "FitResult", "FittingConfig", "NicpSystem", "fit", "fit_and_write",
            "write_mesh", "load_cloud", "keyframes_from_video", "check_inputs",

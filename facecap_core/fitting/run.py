@@ -19,12 +19,14 @@ import numpy as np
 import trimesh
 
 from facecap_core.errors import InputError
-from facecap_core.fitting.constraints import Keyframe
-from facecap_core.fitting.nicp import FitResult, FittingConfig, fit
-from facecap_core.fitting.roughness import face_edges, roughness
 from facecap_core.fitting.sanity import MeshSanity, check_mesh, relax_folds
 from facecap_core.meshio import load_landmarks, save_landmarks
+from facecap_core.nonrigid.constraints import Keyframe
+from facecap_core.nonrigid.nicp import FitResult, FittingConfig, fit
+from facecap_core.nonrigid.roughness import face_edges, roughness
 from facecap_core.template import Template
+from facecap_core.texture import vertex_colours
+from facecap_core.video import read_frames
 
 MESH_PLY = "mesh.ply"
 MESH_OBJ = "mesh.obj"
@@ -76,7 +78,6 @@ def keyframes_from_video(video: str | Path, intrinsics, poses: list[dict],
                          indices: list[int], width: int | None = None) -> list[Keyframe]:
     """Keyframes (RGB images + cameras) for the frame ``indices`` of a video; ``poses`` are
     per-frame dicts with ``index``, ``R``, ``t`` (world-to-camera)."""
-    from facecap_core.video import read_frames
 
     images = read_frames(video, indices, width=width)
     by_index = {p["index"]: p for p in poses}
@@ -186,8 +187,6 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
                     sanity.stretched_edges, sanity.self_intersecting_pairs)
     colours = None
     if config.texture and len(keyframes):
-        from facecap_core.texture import vertex_colours
-
         colours, _ = vertex_colours(result.vertices, result.faces, keyframes,
                                     config.texture_min_cos)
     out = Path(out_dir)

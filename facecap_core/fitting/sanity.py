@@ -17,7 +17,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from facecap_core.fitting.solver import edges_of
+from facecap_core.geometry import umeyama
+from facecap_core.nonrigid.solver import edges_of
 
 MAX_EDGE_STRETCH = 3.0
 """An edge beyond this many times its (similarity-scaled) template length counts as
@@ -131,8 +132,6 @@ def _compare(vertices: np.ndarray, moved: np.ndarray, faces: np.ndarray,
 
 
 def _moved_template(template: np.ndarray, vertices: np.ndarray) -> np.ndarray:
-    from facecap_core.geometry import umeyama
-
     s, R, t = umeyama(template, vertices, with_scale=True)
     return s * template @ R.T + t
 

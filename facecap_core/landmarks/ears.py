@@ -1,7 +1,7 @@
 """Ear detection and ear-contour landmarks (our own dlib HOG detector + ERT shape predictor).
 
 No registry package ships an ear model; facecap trains one on renders of ICT Face Model
-identities (:mod:`facecap_core.ear_training`, ``facecap train-ears``) and ships the
+identities (:mod:`facecap.ear_training`, ``facecap train-ears``) and ships the
 small model files in ``facecap_core/landmarks/models/`` (``$FACECAP_EAR_MODELS`` points to
 another folder holding the same three files, e.g. a fresh training run).
 
@@ -15,6 +15,7 @@ views; a right-ear image is mirrored before detection and the points mirrored ba
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass
 from functools import lru_cache
@@ -55,8 +56,6 @@ def model_digest() -> str:
 
 @lru_cache(maxsize=8)
 def _digest(folder: str, stats: tuple) -> str:
-    import hashlib
-
     h = hashlib.sha256()
     for name, _, _ in stats:
         h.update((Path(folder) / name).read_bytes())
@@ -102,7 +101,7 @@ def _models(folder: str):
     path = Path(folder)
     if not model_available():
         raise FacecapError(f"ear model files missing in {path}: run `facecap train-ears` "
-                           "(or python -m facecap_core.ear_training --out DIR) "
+                           "(or python -m facecap.ear_training --out DIR) "
                            "and point FACECAP_EAR_MODELS at DIR")
     detector = dlib.fhog_object_detector(str(path / DETECTOR_FILE))
     predictor = dlib.shape_predictor(str(path / PREDICTOR_FILE))

@@ -36,6 +36,7 @@ cameras' intrinsics (video frames of another size are mapped to it).
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import time
@@ -57,6 +58,7 @@ from facecap_core.landmarks.convention import (
 from facecap_core.landmarks.ear_check import check_ears
 from facecap_core.landmarks.triangulate import Triangulation, box_size, triangulate
 from facecap_core.template import INNER_LANDMARKS
+from facecap_core.video import iter_frames
 
 LANDMARKS_2D = "landmarks2d.json"
 LANDMARKS_3D = "landmarks3d.json"
@@ -65,49 +67,9 @@ EARS_3D = "ears3d.json"
 log = logging.getLogger(__name__)
 
 __all__ = ["main", "load_landmarks3d", "load_ears3d",
-           "camera_yaw_pitch_deg", "write_gt_keyframe_cameras", "robust_head_frame"]
+           "camera_yaw_pitch_deg", "robust_head_frame"]
 
 EAR_TEMPLATE = "menpo3d-bfm"  # the template whose vertex ids ears3d.json refers to
-
-
-# --------------------------------------------------------------------------- cameras
-
-
-def write_gt_keyframe_cameras(gt_cameras: str | Path, out_path: str | Path,
-                              frame_indices: list[int] | None = None, step: int = 8,
-                              scale: float = 1.0, rotation: np.ndarray | None = None,
-                              translation: np.ndarray | None = None) -> Path:
-    """Convert a synthetic capture's ``gt/cameras.json`` (one pose per video frame) into a
-    keyframe ``cameras.json``, in the world ``x' = scale * rotation @ x + translation``.
-
-    Keyframes are ``frame_indices`` or every ``step``-th frame. The transformed world proves
-    that a stage relies neither on the ground-truth frame nor on its millimetres.
-    """
-    from facecap_core.synthetic import load_gt_cameras
-
-    intr, poses = load_gt_cameras(gt_cameras)
-    Q = np.eye(3) if rotation is None else np.asarray(rotation, float)
-    d = np.zeros(3) if translation is None else np.asarray(translation, float)
-    wanted = set(frame_indices) if frame_indices is not None else None
-    keyframes = []
-    for p in poses:
-        i = int(p["index"])
-        if (wanted is not None and i not in wanted) or (wanted is None and i % step):
-            continue
-        # x_cam' = scale * x_cam = R Q^T (x' - d) + scale * t
-        R = p["R"] @ Q.T
-        keyframes.append({"frame_index": i, "R": R.tolist(),
-                          "t": (scale * p["t"] - R @ d).tolist()})
-    doc = {"convention": "world-to-camera x_cam = R x_world + t (OpenCV); pixel centres at "
-                         "integer coordinates; distortion RADIAL (k1, k2) on normalised "
-                         "coordinates",
-           "units": "arbitrary (ground truth in a transformed world)",
-           "intrinsics": intr.to_dict(), "keyframes": keyframes,
-           "world_from_gt": {"scale": scale, "rotation": Q.tolist(), "translation": d.tolist()}}
-    out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1))
-    return out
 
 
 # --------------------------------------------------------------------------- geometry
@@ -157,7 +119,6 @@ def _at_intrinsics(det: Detection, irises: dict | None, image_shape, intr: Intri
 def detect_keyframes(video: str | Path, cams: CameraSet, config: LandmarkConfig
                      ) -> list[Detection | None]:
     """One :class:`Detection` (points at the intrinsics' resolution) or None per keyframe."""
-    from facecap_core.video import iter_frames
 
     found: dict[int, Detection | None] = {}
     for frame in iter_frames(video, indices=cams.frame_indices):
@@ -177,7 +138,6 @@ def detect_keyframes(video: str | Path, cams: CameraSet, config: LandmarkConfig
 
 def _ear_module():
     """The ear module when it and its trained model are installed, else None."""
-    import importlib
 
     try:
         ears = importlib.import_module("facecap_core.landmarks.ears")
@@ -224,7 +184,6 @@ def _gate(records: list[dict], config: LandmarkConfig) -> tuple[list[int], bool]
 
 def _detect_ears(video, cams: CameraSet, records: list[dict], ears, config: LandmarkConfig):
     """Ear detections of the profile-side keyframes: {side: [(keyframe position, det)]}."""
-    from facecap_core.video import iter_frames
 
     side_of = {}
     for k, r in enumerate(records):

@@ -15,10 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
+from facecap_core.camera import camera_center, project
 from facecap_core.config import ViewSelectionConfig
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_mesh
 from facecap_core.mvs.images import MVSView, metric_cameras
+from facecap_core.render import RaycastScene
 
 log = logging.getLogger(__name__)
 
@@ -79,8 +81,6 @@ def visible_points(points: np.ndarray, cameras: list, vertices: np.ndarray,
                    faces: np.ndarray, tolerance_mm: float = 0.5) -> np.ndarray:
     """Visibility (K, N) of ``points`` (lying on the mesh) from pinhole ``cameras``
     [(intrinsics, R, t)]: inside the image and not occluded by the mesh (ray casting)."""
-    from facecap_core.camera import camera_center, project
-    from facecap_core.render import RaycastScene
 
     scene = RaycastScene()
     scene.add(vertices, faces)

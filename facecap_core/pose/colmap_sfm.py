@@ -8,8 +8,10 @@ full-resolution pixels.
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,7 +53,6 @@ links distant parts of a sweep."""
 def _unwritable(path: Path) -> OSError:
     """OpenCV says only that a write failed: a full disk is the usual cause, told apart
     by the free space left."""
-    import errno
 
     full = shutil.disk_usage(path.parent).free < 64 * 2**20
     code = errno.ENOSPC if full else errno.EIO
@@ -72,7 +73,6 @@ def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tup
     centre); sequential matching pairs each keyframe with the next ``overlap``. Images not
     ``ordered`` along a sweep (photos) are matched exhaustively. ``focal_px`` (full
     resolution), when known, is the initial focal length instead of COLMAP's guess."""
-    import time
 
     import pycolmap
 

@@ -20,6 +20,7 @@ import numpy as np
 from facecap_core.camera import Intrinsics, camera_center, project, undistort
 from facecap_core.native_logs import native_stderr_to_log
 from facecap_core.pose.colmap_sfm import Poses
+from facecap_core.pose.io import write_colmap_text
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +83,6 @@ def bundle_adjust(poses: Poses, work_dir: str | Path, refine_intrinsics: bool = 
     principal point and k1, k2 over ``poses.observations``."""
     import pycolmap
 
-    from facecap_core.pose.io import write_colmap_text
 
     start = time.perf_counter()
     work = Path(work_dir)

@@ -47,6 +47,7 @@ import numpy as np
 from facecap_core.camera import Intrinsics, project, rotation_matrix
 from facecap_core.config import PBAConfig
 from facecap_core.errors import FacecapError
+from facecap_core.video import processing_size
 
 PATTERN = np.array([(0, -2), (-1, -1), (1, -1), (-2, 0), (0, 0), (2, 0), (-1, 1), (0, 2)],
                    np.float64)  # DSO's 8-pixel pattern (dx, dy)
@@ -908,7 +909,6 @@ def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def _processing_grey(image: np.ndarray, max_width: int | None) -> np.ndarray:
     """A keyframe as float32 grey, at most ``max_width`` wide (area filter, aspect kept)."""
-    from facecap_core.video import processing_size
 
     grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
     w, h = processing_size(grey.shape[1], grey.shape[0], max_width)

@@ -22,9 +22,12 @@ import numpy as np
 from facecap_core.camera import CAMERAS_JSON
 from facecap_core.config import MIN_YAW_SPAN_DEG, PoseConfig
 from facecap_core.errors import InputError
+from facecap_core.keyframes import load_keyframes
 from facecap_core.pose.colmap_sfm import Poses, run_sfm
 from facecap_core.pose.geometric import refine_with_tracks, triangulate
 from facecap_core.pose.io import write_outputs
+from facecap_core.pose.pba import photometric_bundle_adjustment
+from facecap_core.video import read_frames
 
 POINTS = "points.ply"
 SPARSE = "sparse.npz"
@@ -53,7 +56,6 @@ def photometric_refinement(poses: Poses, grey_keyframes: list[np.ndarray], confi
     from their observations with the refined cameras (full-resolution intrinsics).
     ``keyframes``: the video's keyframes, whose times let PBA model motion blur and the
     rolling shutter (None, or photos: neither is modelled)."""
-    from facecap_core.pose.pba import photometric_bundle_adjustment
 
     times = interval = None
     if keyframes is not None and keyframes.ordered and len(keyframes.indices) > 1:
@@ -143,7 +145,6 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
     """The cameras of ``keyframes`` after each step: {"sfm", "geometric", "pba"} (the last
     two as configured). Keyframes SfM cannot register are left out (the cameras file lists
     them); too few registered raises InputError. Photos are put in sweep order."""
-    from facecap_core.video import read_frames
 
     config = config or PoseConfig()
     work = Path(work_dir)
@@ -175,7 +176,6 @@ def main(video: str | Path, keyframes_json: str | Path, out_dir: str | Path,
          config: PoseConfig | None = None, progress: bool = False) -> Path:
     """Cameras of the keyframes in ``keyframes_json``; writes ``out_dir/cameras.json``,
     ``points.ply``, ``sparse.npz`` and ``colmap/`` and returns the cameras.json path."""
-    from facecap_core.keyframes import load_keyframes
 
     config = config or PoseConfig()
     keyframes = load_keyframes(keyframes_json)

@@ -49,8 +49,8 @@ import os
 
 from fsspec.implementations.local import LocalFileSystem
 
-from tasks.store.base import ArtifactStore, _filesystem
-from tasks.store.files import (
+from facecap.tasks.store.base import ArtifactStore, _filesystem
+from facecap.tasks.store.files import (
     MANIFEST_NAME,
     ArtifactNotFoundError,
     CorruptArtifactError,
@@ -59,9 +59,9 @@ from tasks.store.files import (
     Manifest,
     StoreWriteError,
 )
-from tasks.store.keys import KEY_DIGEST_LENGTH, artifact_key, file_digest, input_key
-from tasks.store.local import LocalStore
-from tasks.store.remote import RemoteStore
+from facecap.tasks.store.keys import KEY_DIGEST_LENGTH, artifact_key, file_digest, input_key
+from facecap.tasks.store.local import LocalStore
+from facecap.tasks.store.remote import RemoteStore
 
 
 def open_store(url: str | os.PathLike[str]) -> ArtifactStore:

@@ -14,8 +14,7 @@ from fsspec.core import url_to_fs
 from fsspec.implementations.memory import MemoryFileSystem
 from pydantic import BaseModel, ValidationError
 
-from facecap_core.errors import InputError
-from tasks.store.files import (
+from facecap.tasks.store.files import (
     MANIFEST_NAME,
     ArtifactNotFoundError,
     CorruptArtifactError,
@@ -28,7 +27,7 @@ from tasks.store.files import (
     now_utc,
     reason,
 )
-from tasks.store.keys import (
+from facecap.tasks.store.keys import (
     KEY_PATTERN,
     WRITER_PATTERN,
     check_file_names,
@@ -36,6 +35,7 @@ from tasks.store.keys import (
     check_stage,
     config_as_json,
 )
+from facecap_core.errors import InputError
 
 MakeManifest = Callable[[dict[str, FileEntry]], Manifest]
 
@@ -105,7 +105,7 @@ class ArtifactStore:
         """
         if type(self) is ArtifactStore:
             raise TypeError("ArtifactStore is the backends' interface: open a store with "
-                            "tasks.store.open_store(url)")
+                            "facecap.tasks.store.open_store(url)")
         fs, root = _filesystem(url)
         self._fs: fsspec.AbstractFileSystem = fs
         self._root: str = root.rstrip("/") or "/"

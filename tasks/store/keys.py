@@ -12,8 +12,9 @@ from typing import Any
 
 from pydantic import BaseModel
 
+from facecap.tasks.store.files import MANIFEST_NAME, reason
 from facecap_core.errors import InputError
-from tasks.store.files import MANIFEST_NAME, reason
+from facecap_core.photos import list_photos
 
 KEY_DIGEST_LENGTH = 32  # 128 bits of sha256 is plenty to avoid collisions, and keeps paths short
 
@@ -62,8 +63,6 @@ def input_key(path: str | os.PathLike[str]) -> str:
     """Key of a raw input file (such as a video) or a folder of photos, derived from its
     content alone (a folder's: its photos' names and bytes)."""
     if os.path.isdir(path):
-        from facecap_core.photos import list_photos
-
         digest = hashlib.sha256(b"photos")
         for photo in list_photos(path):
             digest.update(photo.name.encode("utf-8") + b"\0")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import mimetypes
 import os
 import re
 import secrets
@@ -36,7 +37,6 @@ def check_link_seconds(expires: int) -> None:
 def content_type(name: str) -> str:
     """The media type a browser is told a stored file has: a page opens as a page, and
     anything unknown downloads."""
-    import mimetypes
 
     kind = {".glb": "model/gltf-binary"}.get(os.path.splitext(name)[1].lower()) \
         or mimetypes.guess_type(name)[0] or "application/octet-stream"

@@ -8,9 +8,8 @@ import uuid
 from collections.abc import Mapping
 from pathlib import Path
 
-from facecap_core.errors import InputError
-from tasks.store.base import ArtifactStore, MakeManifest
-from tasks.store.files import (
+from facecap.tasks.store.base import ArtifactStore, MakeManifest
+from facecap.tasks.store.files import (
     MANIFEST_NAME,
     ArtifactNotFoundError,
     FileSource,
@@ -24,7 +23,10 @@ from tasks.store.files import (
     write_durably,
     write_local_file,
 )
-from tasks.store.keys import check_key
+from facecap.tasks.store.keys import check_key
+from facecap.tasks.store.links import link
+from facecap_core.errors import InputError
+from facecap_core.settings import settings
 
 
 class LocalStore(ArtifactStore):
@@ -44,8 +46,6 @@ class LocalStore(ArtifactStore):
         """A link to the file on the page server of ``FACECAP_PAGES_URL``
         (:mod:`tasks.store.links`), valid ``expires`` seconds (at most 7 days); None where no
         page server is configured."""
-        from facecap_core.settings import settings
-        from tasks.store.links import link
 
         self._entry(self.manifest(key), name)
         base = settings().pages_url

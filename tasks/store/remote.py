@@ -14,9 +14,8 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from facecap_core.assets import facecap_home
-from tasks.store.base import ArtifactStore, MakeManifest, scheme
-from tasks.store.files import (
+from facecap.tasks.store.base import ArtifactStore, MakeManifest, scheme
+from facecap.tasks.store.files import (
     MANIFEST_NAME,
     ArtifactNotFoundError,
     FileEntry,
@@ -33,8 +32,9 @@ from tasks.store.files import (
     write_durably,
     write_local_file,
 )
-from tasks.store.keys import check_key
-from tasks.store.links import check_link_seconds, content_type
+from facecap.tasks.store.keys import check_key
+from facecap.tasks.store.links import check_link_seconds, content_type
+from facecap_core.assets import facecap_home
 
 
 def cache_root() -> Path:

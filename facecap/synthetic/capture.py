@@ -13,18 +13,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from facecap_core.camera import (
-    Intrinsics,
-    project,
-)
-from facecap_core.config import SynthConfig, dump_yaml
-from facecap_core.errors import InputError
-from facecap_core.meshio import save_landmarks
-from facecap_core.render import (
-    Hits,
-)
-from facecap_core.synthetic.scene import CameraPath, HeadSway, Room, SmoothNoise
-from facecap_core.synthetic.sensor import (
+from facecap.synthetic.scene import CameraPath, HeadSway, Room, SmoothNoise
+from facecap.synthetic.sensor import (
     Readout,
     Renderer,
     draw_intrinsics,
@@ -35,7 +25,17 @@ from facecap_core.synthetic.sensor import (
     sensor_image,
     turn_image,
 )
-from facecap_core.synthetic.subjects import Subject, make_subject
+from facecap.synthetic.subjects import Subject, make_subject
+from facecap_core.camera import (
+    Intrinsics,
+    project,
+)
+from facecap_core.config import SynthConfig, dump_yaml
+from facecap_core.errors import InputError
+from facecap_core.meshio import save_landmarks
+from facecap_core.render import (
+    Hits,
+)
 
 
 @dataclass
@@ -284,3 +284,38 @@ def load_gt_cameras(path: str | Path) -> tuple[Intrinsics, list[dict]]:
     doc = json.loads(Path(path).read_text())
     frames = [{**f, "R": np.asarray(f["R"]), "t": np.asarray(f["t"])} for f in doc["frames"]]
     return Intrinsics.from_dict(doc["intrinsics"]), frames
+
+
+def write_gt_keyframe_cameras(gt_cameras: str | Path, out_path: str | Path,
+                              frame_indices: list[int] | None = None, step: int = 8,
+                              scale: float = 1.0, rotation: np.ndarray | None = None,
+                              translation: np.ndarray | None = None) -> Path:
+    """Convert a synthetic capture's ``gt/cameras.json`` (one pose per video frame) into a
+    keyframe ``cameras.json``, in the world ``x' = scale * rotation @ x + translation``.
+
+    Keyframes are ``frame_indices`` or every ``step``-th frame. The transformed world proves
+    that a stage relies neither on the ground-truth frame nor on its millimetres.
+    """
+    intr, poses = load_gt_cameras(gt_cameras)
+    Q = np.eye(3) if rotation is None else np.asarray(rotation, float)
+    d = np.zeros(3) if translation is None else np.asarray(translation, float)
+    wanted = set(frame_indices) if frame_indices is not None else None
+    keyframes = []
+    for p in poses:
+        i = int(p["index"])
+        if (wanted is not None and i not in wanted) or (wanted is None and i % step):
+            continue
+        # x_cam' = scale * x_cam = R Q^T (x' - d) + scale * t
+        R = p["R"] @ Q.T
+        keyframes.append({"frame_index": i, "R": R.tolist(),
+                          "t": (scale * p["t"] - R @ d).tolist()})
+    doc = {"convention": "world-to-camera x_cam = R x_world + t (OpenCV); pixel centres at "
+                         "integer coordinates; distortion RADIAL (k1, k2) on normalised "
+                         "coordinates",
+           "units": "arbitrary (ground truth in a transformed world)",
+           "intrinsics": intr.to_dict(), "keyframes": keyframes,
+           "world_from_gt": {"scale": scale, "rotation": Q.tolist(), "translation": d.tolist()}}
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1))
+    return out

@@ -12,8 +12,10 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from facecap.synthetic import load_gt_cameras
 from facecap_core.mvs.images import MVSView, prepare_view
 from facecap_core.render import RaycastScene, vertex_normals
+from facecap_core.video import read_frames
 
 
 def coarse_from_gt(vertices: np.ndarray, faces: np.ndarray, smooth_iterations: int = 10,
@@ -54,8 +56,6 @@ def even_keyframes(n_frames: int, count: int) -> list[int]:
 
 def load_views(capture_folder: str | Path, indices: list[int], width: int) -> list[MVSView]:
     """MVS views of some frames of a synthetic capture, with its ground-truth cameras."""
-    from facecap_core.synthetic import load_gt_cameras
-    from facecap_core.video import read_frames
 
     folder = Path(capture_folder)
     intr, frames = load_gt_cameras(folder / "gt" / "cameras.json")

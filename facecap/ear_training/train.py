@@ -1,5 +1,5 @@
 """Training the ear detector (dlib HOG) and contour predictor (dlib ERT), and the
-``facecap train-ears`` / ``python -m facecap_core.ear_training`` entry point."""
+``facecap train-ears`` / ``python -m facecap.ear_training`` entry point."""
 
 from __future__ import annotations
 
@@ -13,8 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facecap_core.config import EarTrainingConfig
-from facecap_core.ear_training.contour import (
+from facecap.ear_training.contour import (
     CONTOUR_FILE,
     DETECTOR_FILE,
     MODEL_FILES,
@@ -23,7 +22,7 @@ from facecap_core.ear_training.contour import (
     load_contour_file,
     write_contour_file,
 )
-from facecap_core.ear_training.render import (
+from facecap.ear_training.render import (
     EarSample,
     grey,
     load_dataset,
@@ -31,7 +30,8 @@ from facecap_core.ear_training.render import (
     render_key,
     save_dataset,
 )
-from facecap_core.errors import InputError
+from facecap_core.config import EarTrainingConfig, load_yaml
+from facecap_core.errors import FacecapError, InputError
 from facecap_core.settings import settings
 
 
@@ -213,14 +213,12 @@ def train(out_dir: str | Path, config: EarTrainingConfig | None = None,
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m facecap_core.ear_training",
+        prog="python -m facecap.ear_training",
         description="Render ICT heads and train the ear detector + ear contour predictor.")
     parser.add_argument("--out", required=True, help="output folder for the model files")
     parser.add_argument("--config", help="EarTrainingConfig YAML (defaults otherwise)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     args = parser.parse_args(argv)
-    from facecap_core.config import load_yaml
-    from facecap_core.errors import FacecapError
 
     try:
         config = load_yaml(EarTrainingConfig, args.config) if args.config else EarTrainingConfig()

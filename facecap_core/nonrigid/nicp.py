@@ -18,7 +18,8 @@ import numpy as np
 
 from facecap_core.config import FittingConfig
 from facecap_core.errors import InputError
-from facecap_core.fitting.constraints import (
+from facecap_core.geometry import umeyama
+from facecap_core.nonrigid.constraints import (
     CloudGrid,
     Keyframe,
     boundary_distance,
@@ -28,9 +29,8 @@ from facecap_core.fitting.constraints import (
     landmark_targets,
     nearest_edge_pixels,
 )
-from facecap_core.fitting.roughness import face_vertices
-from facecap_core.fitting.solver import NicpSystem
-from facecap_core.geometry import umeyama
+from facecap_core.nonrigid.roughness import face_vertices
+from facecap_core.nonrigid.solver import NicpSystem
 from facecap_core.render import RaycastScene, vertex_normals
 from facecap_core.template import INNER_LANDMARKS, Template
 

@@ -8,8 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
+from facecap.synthetic import ict_subject
+from facecap.synthetic.cloud import mvs_like_cloud
 from facecap_core.config import EarTrainingConfig, FittingConfig
 from facecap_core.errors import InputError
+from facecap_core.fitting import fit
 from facecap_core.landmarks.ears import CONTOUR_FILE, DETECTOR_FILE, PREDICTOR_FILE
 from facecap_core.template import Template, head_frame
 
@@ -103,8 +106,6 @@ def snap_to_surface(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
 def fit_template_to_head(template: Template, vertices: np.ndarray, faces: np.ndarray,
                          landmarks: np.ndarray) -> np.ndarray:
     """Template vertices fitted (NICP, dense surface samples + 68 landmarks) to a head mesh."""
-    from facecap_core.fitting import fit
-    from facecap_core.synthetic.cloud import mvs_like_cloud
 
     cloud, normals = mvs_like_cloud(vertices, faces, density=2.0, noise_mm=0.0, holes=0.0,
                                     outliers=0.0, normal_jitter_deg=0.0)
@@ -125,7 +126,6 @@ def fitted_ear_contour(template: Template, contour_ids: dict[str, np.ndarray],
 def ict_contour_transfer(template: Template, contour_ids: dict[str, np.ndarray],
                          ict_model: str | Path) -> dict:
     """The contour on the ICT topology (via a fit to the ICT mean head), as JSON-ready data."""
-    from facecap_core.synthetic import ict_subject
 
     mean = ict_subject(ict_model, None)
     skin = mean.faces[mean.gt_faces]

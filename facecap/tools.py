@@ -4,7 +4,9 @@ training the ear model, and removing a subject's data or old artifacts."""
 from __future__ import annotations
 
 import json
+import logging
 import sys
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from facecap_core.errors import InputError
@@ -35,7 +37,7 @@ def synth_config(args):
 
 
 def synth(args) -> int:
-    from facecap_core.synthetic import synthesize
+    from facecap.synthetic import synthesize
 
     config = synth_config(args)
     capture = synthesize(config, args.out, progress=not args.quiet)
@@ -91,9 +93,9 @@ def print_removal(removal, dry_run: bool) -> None:
 
 
 def forget(args) -> int:
-    from tasks import lifecycle
-    from tasks.runner import check_store, default_store_url
-    from tasks.scratch import remove_orphans
+    from facecap.tasks import lifecycle
+    from facecap.tasks.runner import check_store, default_store_url
+    from facecap.tasks.scratch import remove_orphans
 
     remove_orphans()  # a killed run's scratch holds frames of the face too
     store = check_store(args.store or default_store_url())
@@ -106,7 +108,7 @@ def forget(args) -> int:
               f"{', '.join(planned.captures)}")
     removal = lifecycle.remove(store, planned, args.subject, out, dry_run=args.dry_run)
     if out is not None and not args.dry_run and (out / "index.html").is_file():
-        from flows.dataset_page import rewrite_dataset_page
+        from facecap.flows.dataset_page import rewrite_dataset_page
 
         rewrite_dataset_page(out)  # its thumbnails show the faces: the subject's go
     print_removal(removal, args.dry_run)
@@ -116,10 +118,10 @@ def forget(args) -> int:
 def _forget_ui(captures: list[str]) -> int:
     import httpx
 
-    from flows.cli import _prefect_env
-    from flows.ui import forget_artifacts
+    from facecap.console import prefect_env
+    from facecap.flows.ui import forget_artifacts
 
-    _prefect_env()
+    prefect_env()
     try:
         return forget_artifacts(captures)
     except (httpx.HTTPError, OSError) as exc:
@@ -132,11 +134,9 @@ def _forget_ui(captures: list[str]) -> int:
 
 
 def store_prune(args) -> int:
-    from datetime import UTC, datetime, timedelta
-
-    from tasks import lifecycle
-    from tasks.runner import check_store, default_store_url
-    from tasks.scratch import remove_orphans
+    from facecap.tasks import lifecycle
+    from facecap.tasks.runner import check_store, default_store_url
+    from facecap.tasks.scratch import remove_orphans
 
     remove_orphans()  # what killed runs left in FACECAP_HOME
     if args.unreferenced and not args.out:
@@ -162,7 +162,7 @@ def store_prune(args) -> int:
 
 
 def train_ears(args) -> int:
-    from facecap_core.ear_training import train
+    from facecap.ear_training import train
 
     path = train(args.out, progress=True)
     print(f"ear model written to {path}")
@@ -171,10 +171,9 @@ def train_ears(args) -> int:
 
 def pages(args) -> int:
     """``facecap pages``: serve the store's pages until interrupted."""
-    import logging
 
-    from flows.page_server import address, page_server
-    from tasks.runner import check_store, default_store_url
+    from facecap.flows.page_server import address, page_server
+    from facecap.tasks.runner import check_store, default_store_url
 
     store = check_store(args.store or default_store_url())
     if not store.is_local:

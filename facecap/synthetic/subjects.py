@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from facecap_core.assets import default_ict_model, james_files
 from facecap_core.camera import (
     rotation_matrix,
 )
@@ -321,8 +322,6 @@ def make_subject(config: SynthConfig) -> Subject:
     """The subject a config names (see :attr:`SynthConfig.subject`)."""
     spec = config.subject
     if spec.startswith("ict:"):
-        from facecap_core.assets import default_ict_model
-
         # --ict-model, else $FACECAP_ICT_MODEL, else the trimmed model in the package.
         model = config.ict_model or default_ict_model()
         arg = spec[4:]  # ict:mean or ict:SEED, as SynthConfig checked
@@ -332,8 +331,6 @@ def make_subject(config: SynthConfig) -> Subject:
         raise InputError(f"skin_detail {config.skin_detail}: only the procedural skin of ict: "
                          "subjects can be smoothed; leave it at 1 for a textured mesh")
     if spec == "james":
-        from facecap_core.assets import james_files
-
         mesh, lms = james_files()
         return textured_subject(mesh, lms, name="james")
     if config.subject_landmarks is None:

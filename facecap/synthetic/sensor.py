@@ -10,6 +10,8 @@ import cv2
 import numpy as np
 import trimesh
 
+from facecap.synthetic.scene import Room
+from facecap.synthetic.subjects import Subject
 from facecap_core.camera import (
     Intrinsics,
     distort,
@@ -24,8 +26,6 @@ from facecap_core.render import (
     shade_lambert,
     vertex_normals,
 )
-from facecap_core.synthetic.scene import Room
-from facecap_core.synthetic.subjects import Subject
 
 
 def turn_image(image: np.ndarray, rotation_deg: int) -> np.ndarray:

@@ -41,17 +41,18 @@ Output folder::
     gt/render.json       every drawn quantity (focal, distortion, lights, ...)
 """
 
-from facecap_core.synthetic.capture import (
+from facecap.synthetic.capture import (
     CODECS,
     Capture,
     Shot,
     load_gt_cameras,
     prepare,
     synthesize,
+    write_gt_keyframe_cameras,
 )
-from facecap_core.synthetic.scene import CameraPath, HeadSway, Room
-from facecap_core.synthetic.sensor import Renderer, draw_intrinsics, to_srgb8
-from facecap_core.synthetic.subjects import (
+from facecap.synthetic.scene import CameraPath, HeadSway, Room
+from facecap.synthetic.sensor import Renderer, draw_intrinsics, to_srgb8
+from facecap.synthetic.subjects import (
     HAIR_COLOURS,
     IRIS_DIAMETER_MM,
     SolidNoise,
@@ -64,6 +65,6 @@ from facecap_core.synthetic.subjects import (
 __all__ = [
     "CODECS", "HAIR_COLOURS", "IRIS_DIAMETER_MM", "CameraPath", "Capture", "HeadSway",
     "Renderer", "Room", "Shot", "SolidNoise", "Subject", "draw_intrinsics", "ict_subject",
-    "load_gt_cameras", "make_subject", "prepare", "synthesize", "textured_subject",
-    "to_srgb8",
+    "load_gt_cameras", "make_subject", "prepare", "synthesize", "textured_subject", "to_srgb8",
+    "write_gt_keyframe_cameras",
 ]

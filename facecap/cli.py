@@ -7,103 +7,22 @@ that escapes is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
+import time
+import traceback
 from pathlib import Path
 
+from facecap import console, tools
 from facecap_core.errors import FacecapError, InputError
-from flows import tools
-
-
-def _prefect_defaults() -> None:
-    """Defaults for running flows on the embedded server of a 2-core machine. Prefect reads
-    its settings when it is first imported, so :func:`main` sets them before anything else."""
-    import os
-
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
-    # No PREFECT_LOGGING_LEVEL: the UI keeps every log line; the console is quieted by a
-    # logging configuration (see _quiet_console).
-
-
-_VERBOSE = False
-"""``facecap --verbose``: third-party logs (COLMAP, Prefect) and facecap's own debug log
-on the console."""
-
-
-def _prefect_env(console_level: str = "WARNING") -> None:
-    """What a command that runs flows sets up first: its scratch folder under FACECAP_HOME
-    (the folders of killed commands removed), quiet consoles (unless ``--verbose``) and its
-    own Prefect server unless PREFECT_API_URL names one."""
-    from flows.local_server import start_local_server
-    from tasks.scratch import process_scratch, remove_orphans
-
-    remove_orphans()
-    process_scratch()  # before COLMAP loads: its glog files go there too
-    _logging(console_level)
-    start_local_server(quiet=not _VERBOSE)
-
-
-def _logging(console_level: str) -> None:
-    """Quiet consoles for a command that runs flows (unless ``--verbose``)."""
-    import logging
-    import os
-
-    _prefect_defaults()
-    if _VERBOSE:
-        core = logging.getLogger("facecap_core")
-        if not core.handlers:
-            handler = logging.StreamHandler()
-            handler.setFormatter(logging.Formatter("%(asctime)s %(name)s: %(message)s",
-                                                   "%H:%M:%S"))
-            core.addHandler(handler)
-        core.setLevel(logging.DEBUG)
-        _quiet_console("DEBUG")
-        return
-    # COLMAP (pose stage) logs through glog straight to stderr; its failures reach the user
-    # as the pose stage's one-line message.
-    os.environ.setdefault("GLOG_minloglevel", "3")
-    if "pycolmap" in sys.modules:  # already loaded: glog read its environment then
-        sys.modules["pycolmap"].logging.minloglevel = int(os.environ["GLOG_minloglevel"])
-    _quiet_console(console_level)
-
-
-RUN_LOGGERS = ("prefect.flow_runs", "prefect.task_runs")
-"""Prefect's loggers of flow and task runs (what the run pages of the UI show)."""
-
-
-def console_logging(level: str, runs_on_console: bool = False) -> dict:
-    """The command line's logging configuration, applied over Prefect's own (``logging.yml``,
-    whose console handler is named ``console``) with :func:`logging.config.dictConfig`: the
-    runs' logs go to the API alone unless ``runs_on_console``, and the console shows
-    ``level`` and above of the other loggers."""
-    from prefect.logging.configuration import PROCESS_LOGGING_CONFIG
-
-    console = "console" in PROCESS_LOGGING_CONFIG.get("handlers", {})  # a logging.yml of
-    handlers = {"console": {"level": level}} if console else {}  # one's own may lack it
-    return {"version": 1, "incremental": True, "handlers": handlers,
-            "loggers": {name: {"propagate": runs_on_console} for name in RUN_LOGGERS}}
-
-
-def _quiet_console(level: str = "WARNING") -> None:
-    """A failed run reaches the user once, from :func:`main`: bad input as one line, a bug
-    as one line naming the log file with its traceback. So the runs' logs (the failed state,
-    the traceback) go to the API and the UI alone, not to the console, unless ``--verbose``
-    asks for them; and below ``level`` nothing reaches the console (the API logs still get
-    everything). Prefect is imported before the environment defaults are set, so this is
-    applied over its logging setup rather than through ``PREFECT_LOGGING_*`` settings."""
-    import logging.config
-
-    from prefect.logging.configuration import ensure_logging_setup
-
-    ensure_logging_setup()
-    logging.config.dictConfig(console_logging(level, runs_on_console=_VERBOSE))
 
 
 def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
     """The stage table, the accuracy table (after ``baseline_rows``) and, last, where the
     mesh, the report and the preview are."""
+    from facecap.flows.page import run_summary
     from facecap_core.evaluation import paper_table
-    from flows.page import run_summary
 
     print(f"{report['subject']}/{report['capture']}: {run_summary(report)}")
     for name, info in report["stages"].items():
@@ -140,19 +59,19 @@ def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
 def _check_store(args) -> None:
     """The store opens and answers before any flow starts (a bad URL, a file where its
     folder should be, missing credentials, a server that is down)."""
-    from tasks.runner import check_store, default_store_url
+    from facecap.tasks.runner import check_store, default_store_url
 
     check_store(args.store or default_store_url())
 
 
 def _cmd_reconstruct(args) -> int:
-    from flows.capture import preflight, with_ipd
+    from facecap.flows.capture import preflight, with_ipd
 
     with_ipd(preflight(args.video, args.config, args.scan, args.scan_landmarks, args.out,
                        args.store), args.ipd_mm)
     _check_store(args)
-    _prefect_env()
-    from flows.capture import reconstruct_capture
+    console.prefect_env()
+    from facecap.flows.capture import reconstruct_capture
 
     report = reconstruct_capture(args.video, args.out, config=args.config, scan=args.scan,
                                  scan_landmarks=args.scan_landmarks, until=args.until,
@@ -162,18 +81,18 @@ def _cmd_reconstruct(args) -> int:
 
 
 def _cmd_dataset(args) -> int:
+    from facecap.flows.capture import check_output_folder
+    from facecap.flows.dataset import check_dataset_output
+    from facecap.tasks.outputs import check_output_place
+    from facecap.tasks.runner import default_store_url
     from facecap_core.dataset import scan_dataset
-    from flows.capture import check_output_folder
-    from flows.dataset import check_dataset_output
-    from tasks.outputs import check_output_place
-    from tasks.runner import default_store_url
 
     check_dataset_output(scan_dataset(args.root), Path(args.out))  # before any flow starts
     check_output_place(args.out, args.store or default_store_url(), (args.root,))
     check_output_folder(Path(args.out))
     _check_store(args)
-    _prefect_env()
-    from flows.dataset import reconstruct_dataset
+    console.prefect_env()
+    from facecap.flows.dataset import reconstruct_dataset
 
     summary = reconstruct_dataset(args.root, args.out, config=args.config, store=args.store,
                                   until=args.until)
@@ -186,14 +105,14 @@ def _cmd_dataset(args) -> int:
 
 
 def _cmd_evaluate_dataset(args) -> int:
+    from facecap.flows.evaluate import check_history
     from facecap_core.dataset import scan_dataset
-    from flows.evaluate import check_history
 
     scan_dataset(args.root)
     check_history(Path(args.out))
     _check_store(args)
-    _prefect_env()
-    from flows.evaluate import _table, evaluate_dataset, scale_error_pct
+    console.prefect_env()
+    from facecap.flows.evaluate import _table, evaluate_dataset, scale_error_pct
 
     result = evaluate_dataset(args.root, args.out, store=args.store)
     if result["captures"]:
@@ -208,10 +127,8 @@ def _cmd_evaluate_dataset(args) -> int:
 
 
 def _cmd_serve(args) -> int:
-    import os
-
+    from facecap.flows.service import INPUT_ROOTS_ENV, OUTPUT_ROOT_ENV
     from facecap_core.settings import settings
-    from flows.service import INPUT_ROOTS_ENV, OUTPUT_ROOT_ENV
 
     # Served runs (processes of their own) read only under ROOT and write only under OUT
     # unless the environment sets other folders (an empty variable counts as unset, as everywhere).
@@ -220,9 +137,9 @@ def _cmd_serve(args) -> int:
         os.environ[INPUT_ROOTS_ENV] = str(Path(args.root).resolve())
     if configured.output_root is None:
         os.environ[OUTPUT_ROOT_ENV] = str(Path(args.out).resolve())
-    _prefect_env("INFO")  # a server's console is its log
+    console.prefect_env("INFO")  # a server's console is its log
     _serve_pages(args.pages_host, args.pages_port)
-    from deploy.serve import serve
+    from facecap.deploy.serve import serve
 
     print(f"serving reconstruct-dataset, reconstruct-capture and nightly-evaluation "
           f"({args.cron}, {args.timezone}); Ctrl-C stops")
@@ -233,11 +150,10 @@ def _cmd_serve(args) -> int:
 def _serve_pages(host: str, port: int) -> None:
     """Serve a local store's pages beside the deployments, and have the served runs link to
     them (unless FACECAP_PAGES_URL names a server already)."""
-    import os
 
+    from facecap.flows.page_server import address, page_server, serve_in_background
+    from facecap.tasks.runner import check_store, default_store_url
     from facecap_core.settings import env_name, settings
-    from flows.page_server import address, page_server, serve_in_background
-    from tasks.runner import check_store, default_store_url
 
     store = check_store(default_store_url())
     if port == 0 or not store.is_local:
@@ -254,7 +170,7 @@ def _serve_pages(host: str, port: int) -> None:
 
 
 def _cmd_alerts(args) -> int:
-    from deploy.alerts import set_up_alerts
+    from facecap.deploy.alerts import set_up_alerts
 
     for line in set_up_alerts(webhook=args.webhook, block=args.block):
         print(line)
@@ -262,11 +178,11 @@ def _cmd_alerts(args) -> int:
 
 
 def _cmd_demo(args) -> int:
+    from facecap.synthetic import synthesize
     from facecap_core.baselines import mean_template
     from facecap_core.config import SynthConfig
     from facecap_core.evaluation import score_json
     from facecap_core.settings import settings
-    from facecap_core.synthetic import synthesize
     from facecap_core.template import Template
 
     ict_model = args.ict_model or settings().ict_model
@@ -283,8 +199,8 @@ def _cmd_demo(args) -> int:
     gt = capture_dir / "gt"
     scores = mean_template(Template.default(), gt / "mesh.ply", gt / "landmarks.json")
     rows = [(f"Mean template ({p})", [score_json(s)]) for p, s in scores.items()]
-    _prefect_env()
-    from flows.capture import reconstruct_capture
+    console.prefect_env()
+    from facecap.flows.capture import reconstruct_capture
 
     report = reconstruct_capture(str(capture_dir / "video.mp4"), str(out / "result"),
                                  config=args.config, scan=str(gt / "mesh.ply"),
@@ -323,7 +239,7 @@ def _usage_error(message: str, command: str) -> UsageError:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from tasks.graph import STEPS, UNTIL_ALIASES
+    from facecap.tasks.graph import STEPS, UNTIL_ALIASES
 
     until = [*STEPS, *UNTIL_ALIASES]
 
@@ -484,21 +400,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _as_user_sees_it(exc: FacecapError, args) -> str:
     """One line, naming the user's video where a stage named the store's copy of it."""
-    from flows.capture import as_user_sees_it
+    from facecap.flows.capture import as_user_sees_it
 
     return as_user_sees_it(str(exc), getattr(args, "video", None) or "the video")
 
 
 def main(argv: list[str] | None = None) -> int:
-    _prefect_defaults()
+    console.prefect_defaults()
     try:
         args = build_parser().parse_args(argv)
     except UsageError as exc:
         print(f"facecap: error: {exc}", file=sys.stderr)
         return 2
-    global _VERBOSE
-    _VERBOSE = args.verbose
-    from flows.service import LOCAL_COMMAND
+    console.VERBOSE = args.verbose
+    from facecap.flows.service import LOCAL_COMMAND
 
     local = LOCAL_COMMAND.set(True)  # one's own machine: any path, any store
     try:
@@ -516,7 +431,7 @@ def main(argv: list[str] | None = None) -> int:
               "the limit, or look for what held it up in the run's log", file=sys.stderr)
         return 2
     except _network_errors() as exc:  # the store went away mid-run, after the task's retries
-        from tasks.runner import default_store_url, store_unreachable
+        from facecap.tasks.runner import default_store_url, store_unreachable
 
         store = getattr(args, "store", None) or default_store_url()
         print(f"facecap: error: {store_unreachable(store, exc)}", file=sys.stderr)
@@ -535,7 +450,7 @@ def _time_limits() -> tuple[type[BaseException], ...]:
 
 
 def _network_errors() -> tuple[type[BaseException], ...]:
-    from tasks.runner import network_errors
+    from facecap.tasks.runner import network_errors
 
     return (ConnectionError, TimeoutError, *network_errors())
 
@@ -555,7 +470,6 @@ def _internal_error(exc: BaseException, argv: list[str] | None) -> str:
 
 def _why(failure: BaseException) -> str:
     """Why a file could not be written, in a few words."""
-    import os
 
     if isinstance(failure, OSError) and failure.errno:
         text = failure.strerror or os.strerror(failure.errno)
@@ -566,14 +480,10 @@ def _why(failure: BaseException) -> str:
 def _write_crash_log(exc: BaseException, argv: list[str] | None) -> Path:
     """The traceback of an unexpected exception, in ``$FACECAP_HOME/logs``; raises what
     kept it from being written (no partial log is left)."""
-    import contextlib
-    import os
-    import time
-    import traceback
 
+    from facecap.tasks.runner import facecap_home
     from facecap_core.errors import FacecapError
     from facecap_core.settings import default_home
-    from tasks.runner import facecap_home
 
     try:
         home = facecap_home()

@@ -10,16 +10,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facecap_core.camera import Intrinsics, look_at, pixel_rays, project, rotation_matrix
-from facecap_core.config import EarTrainingConfig
-from facecap_core.ear_training.contour import (
+from facecap.ear_training.contour import (
     SIDE_SIGN,
     SIDES,
     SurfacePoints,
 )
-from facecap_core.render import RaycastScene
-from facecap_core.synthetic.sensor import to_srgb8
-from facecap_core.synthetic.subjects import smoothstep
+from facecap.synthetic import HAIR_COLOURS, Renderer, Room, SolidNoise, ict_subject
+from facecap.synthetic.sensor import to_srgb8
+from facecap.synthetic.subjects import smoothstep
+from facecap_core.camera import Intrinsics, look_at, pixel_rays, project, rotation_matrix
+from facecap_core.config import EarTrainingConfig
+from facecap_core.render import RaycastScene, interpolate
+from facecap_core.template import region_masks
 
 
 @dataclass
@@ -88,9 +90,6 @@ class HairAroundEars:
     """
 
     def __init__(self, subject, contours: dict[str, np.ndarray], rng: np.random.Generator):
-        from facecap_core.synthetic import SolidNoise
-        from facecap_core.template import region_masks
-
         self.subject = subject
         self.base_albedo = subject.albedo
         self.contours = contours
@@ -102,7 +101,6 @@ class HairAroundEars:
 
     def draw(self, rng: np.random.Generator) -> None:
         """A new hairline per side and a new hair colour."""
-        from facecap_core.synthetic import HAIR_COLOURS
 
         P = self.subject.vertices
         wavy = 3.0 * self.noise(P, 6.0, 1)
@@ -126,8 +124,6 @@ class HairAroundEars:
         self.weight = np.zeros(len(self.subject.vertices))
 
     def __call__(self, tri: np.ndarray, bary: np.ndarray, points: np.ndarray) -> np.ndarray:
-        from facecap_core.render import interpolate
-
         rgb = self.base_albedo(tri, bary, points)
         w = interpolate(self.weight[:, None], self.subject.faces, tri, bary)[:, 0]
         if not np.any(w > 0):
@@ -142,8 +138,6 @@ class EarRenderer:
     """Renders ear views of one subject (with its 3D ear contours) in a room."""
 
     def __init__(self, subject, contours: dict[str, np.ndarray], room=None):
-        from facecap_core.synthetic import Renderer
-
         self.subject = subject
         self.contours = contours
         self.hair: HairAroundEars | None = None
@@ -247,7 +241,6 @@ class EarRenderer:
 def ict_ear_renderer(ict_model: str | Path, seed: int, transfer: dict[str, SurfacePoints],
                      sigma: float = 1.0, room=None) -> EarRenderer:
     """An :class:`EarRenderer` for the ICT identity ``seed`` (contours from ``transfer``)."""
-    from facecap_core.synthetic import ict_subject
 
     subject = ict_subject(ict_model, seed, sigma)
     contours = {side: sp.on(subject.vertices) for side, sp in transfer.items()}
@@ -281,7 +274,6 @@ def render_dataset(config: EarTrainingConfig, ict_model: str | Path,
     """The training views: ``identities`` x ``views_per_identity`` (left-ear orientation)."""
     from tqdm import tqdm
 
-    from facecap_core.synthetic import Room
 
     rooms = [Room.random(np.random.default_rng([config.seed, 7, k])) for k in range(config.rooms)]
     samples: list[EarSample] = []

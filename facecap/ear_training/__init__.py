@@ -25,12 +25,12 @@ No registry package ships an ear model, so facecap renders its own training set:
    ``dlib.train_shape_predictor`` (ensemble of regression trees) on the contour points, with
    the detector's own boxes as its input where the detector finds the ear.
 
-Run ``python -m facecap_core.ear_training --out DIR``; the folder gets
+Run ``python -m facecap.ear_training --out DIR``; the folder gets
 ``ear_detector.svm``, ``ear_predictor.dat``, ``ear_contour.json``, ``training.json`` and a
 few preview PNGs. Copy the first three into ``facecap_core/landmarks/models/`` to ship them.
 """
 
-from facecap_core.ear_training.contour import (
+from facecap.ear_training.contour import (
     CONTOUR_FILE,
     DETECTOR_FILE,
     MODEL_FILES,
@@ -40,7 +40,7 @@ from facecap_core.ear_training.contour import (
     load_contour_file,
     template_ear_contour,
 )
-from facecap_core.ear_training.render import (
+from facecap.ear_training.render import (
     EarRenderer,
     EarSample,
     draw_views,
@@ -50,7 +50,7 @@ from facecap_core.ear_training.render import (
     usable,
     visible_points,
 )
-from facecap_core.ear_training.train import draw_contour, main, score_detection, train
+from facecap.ear_training.train import draw_contour, main, score_detection, train
 
 __all__ = [
     "CONTOUR_FILE", "DETECTOR_FILE", "MODEL_FILES", "PREDICTOR_FILE", "SIDES", "EarRenderer",

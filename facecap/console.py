@@ -1,0 +1,91 @@
+"""How a ``facecap`` command that runs flows sets up its process: Prefect's defaults, its
+scratch folder, quiet consoles (unless ``--verbose``) and its own Prefect server."""
+
+from __future__ import annotations
+
+import logging
+import logging.config
+import os
+import sys
+
+from facecap.flows.local_server import start_local_server
+from facecap.tasks.scratch import process_scratch, remove_orphans
+
+# Prefect is imported inside the functions: it reads its settings when first imported, and
+# prefect_defaults() sets them first.
+
+def prefect_defaults() -> None:
+    """Defaults for running flows on the embedded server of a 2-core machine. Prefect reads
+    its settings when it is first imported, so :func:`main` sets them before anything else."""
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
+    # No PREFECT_LOGGING_LEVEL: the UI keeps every log line; the console is quieted by a
+    # logging configuration (see _quiet_console).
+
+
+VERBOSE = False
+"""``facecap --verbose``: third-party logs (COLMAP, Prefect) and facecap's own debug log
+on the console."""
+
+
+def prefect_env(console_level: str = "WARNING") -> None:
+    """What a command that runs flows sets up first: its scratch folder under FACECAP_HOME
+    (the folders of killed commands removed), quiet consoles (unless ``--verbose``) and its
+    own Prefect server unless PREFECT_API_URL names one."""
+    remove_orphans()
+    process_scratch()  # before COLMAP loads: its glog files go there too
+    _logging(console_level)
+    start_local_server(quiet=not VERBOSE)
+
+
+def _logging(console_level: str) -> None:
+    """Quiet consoles for a command that runs flows (unless ``--verbose``)."""
+    prefect_defaults()
+    if VERBOSE:
+        core = logging.getLogger("facecap_core")
+        if not core.handlers:
+            handler = logging.StreamHandler()
+            handler.setFormatter(logging.Formatter("%(asctime)s %(name)s: %(message)s",
+                                                   "%H:%M:%S"))
+            core.addHandler(handler)
+        core.setLevel(logging.DEBUG)
+        _quiet_console("DEBUG")
+        return
+    # COLMAP (pose stage) logs through glog straight to stderr; its failures reach the user
+    # as the pose stage's one-line message.
+    os.environ.setdefault("GLOG_minloglevel", "3")
+    if "pycolmap" in sys.modules:  # already loaded: glog read its environment then
+        sys.modules["pycolmap"].logging.minloglevel = int(os.environ["GLOG_minloglevel"])
+    _quiet_console(console_level)
+
+
+RUN_LOGGERS = ("prefect.flow_runs", "prefect.task_runs")
+"""Prefect's loggers of flow and task runs (what the run pages of the UI show)."""
+
+
+def console_logging(level: str, runs_on_console: bool = False) -> dict:
+    """The command line's logging configuration, applied over Prefect's own (``logging.yml``,
+    whose console handler is named ``console``) with :func:`logging.config.dictConfig`: the
+    runs' logs go to the API alone unless ``runs_on_console``, and the console shows
+    ``level`` and above of the other loggers."""
+    from prefect.logging.configuration import PROCESS_LOGGING_CONFIG
+
+    console = "console" in PROCESS_LOGGING_CONFIG.get("handlers", {})  # a logging.yml of
+    handlers = {"console": {"level": level}} if console else {}  # one's own may lack it
+    return {"version": 1, "incremental": True, "handlers": handlers,
+            "loggers": {name: {"propagate": runs_on_console} for name in RUN_LOGGERS}}
+
+
+def _quiet_console(level: str = "WARNING") -> None:
+    """A failed run reaches the user once, from :func:`main`: bad input as one line, a bug
+    as one line naming the log file with its traceback. So the runs' logs (the failed state,
+    the traceback) go to the API and the UI alone, not to the console, unless ``--verbose``
+    asks for them; and below ``level`` nothing reaches the console (the API logs still get
+    everything). Prefect is imported before the environment defaults are set, so this is
+    applied over its logging setup rather than through ``PREFECT_LOGGING_*`` settings."""
+    from prefect.logging.configuration import ensure_logging_setup
+
+    ensure_logging_setup()
+    logging.config.dictConfig(console_logging(level, runs_on_console=VERBOSE))
+
+

@@ -1,5 +1,0 @@
-import sys
-
-from facecap_core.ear_training.train import main
-
-sys.exit(main())
