@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 from facecap.synthetic import synthesize
+from facecap.synthetic.config import SynthConfig
 from facecap_core.baselines import mean_template
-from facecap_core.config import SynthConfig
 from facecap_core.evaluation import paper_table, score_json
 from facecap_core.template import Template
 

@@ -61,9 +61,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import facecap.ear_training as et  # noqa: E402
+from facecap.ear_training.config import EarTrainingConfig  # noqa: E402
 from facecap.synthetic import Room, load_gt_cameras, make_subject  # noqa: E402
+from facecap.synthetic.config import SynthConfig  # noqa: E402
 from facecap_core.camera import camera_center, project  # noqa: E402
-from facecap_core.config import EarTrainingConfig, SynthConfig, load_yaml  # noqa: E402
+from facecap_core.config import load_yaml  # noqa: E402
 from facecap_core.landmarks.ears import (  # noqa: E402
     EAR_VERTEX_IDS,
     detect_ears,

@@ -36,8 +36,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from facecap.synthetic import load_gt_cameras, synthesize  # noqa: E402
 from facecap.synthetic.cloud import mvs_like_cloud  # noqa: E402
+from facecap.synthetic.config import SynthConfig  # noqa: E402
 from facecap_core.camera import camera_center  # noqa: E402
-from facecap_core.config import SynthConfig  # noqa: E402
 from facecap_core.evaluation import PROTOCOLS, paper_table, score, score_json  # noqa: E402
 from facecap_core.fitting import FittingConfig, fit, keyframes_from_video, write_mesh  # noqa: E402
 from facecap_core.meshio import load_landmarks, load_mesh  # noqa: E402

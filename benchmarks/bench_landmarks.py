@@ -48,6 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from facecap.synthetic import load_gt_cameras, synthesize, write_gt_keyframe_cameras  # noqa: E402
+from facecap.synthetic.config import SynthConfig  # noqa: E402
 from facecap_core import coarse  # noqa: E402
 from facecap_core.camera import (  # noqa: E402
     CameraSet,
@@ -55,11 +56,12 @@ from facecap_core.camera import (  # noqa: E402
     read_cameras_json,
     rotation_matrix,
 )
-from facecap_core.config import CoarseConfig, LandmarkConfig, SynthConfig  # noqa: E402
+from facecap_core.coarse import CoarseConfig  # noqa: E402
 from facecap_core.evaluation import paper_table, score, score_json  # noqa: E402
 from facecap_core.geometry import umeyama  # noqa: E402
 from facecap_core.landmarks import stage  # noqa: E402
 from facecap_core.landmarks.convention import OFFSETS_FILE, convention_offsets  # noqa: E402
+from facecap_core.landmarks.stage import LandmarkConfig  # noqa: E402
 from facecap_core.meshio import load_landmarks, load_mesh  # noqa: E402
 from facecap_core.template import INNER_LANDMARKS, Template  # noqa: E402
 

@@ -34,8 +34,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from facecap.synthetic import load_gt_cameras, synthesize
+from facecap.synthetic.config import SynthConfig
 from facecap.synthetic.ground_truth import coarse_from_gt, even_keyframes, gt_depth, load_views
-from facecap_core.config import MVSConfig, SynthConfig
 from facecap_core.evaluation import distances, region_sphere
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.mvs.depth import compute_depth_map
@@ -44,6 +44,7 @@ from facecap_core.mvs.fusion import fuse, write_ply
 from facecap_core.mvs.prior import coarse_prior
 from facecap_core.mvs.sweep import sweep_depth as plane_sweep
 from facecap_core.mvs.views import choose_sources, sparse_from_mesh, visible_points
+from facecap_core.pipeline import MVSConfig
 
 BARS = {"depth_median_mm": 0.5, "coverage_pct": 90.0, "accuracy_median_mm": 0.5,
         "completion_pct": 95.0, "s_per_map": 10.0}

@@ -35,7 +35,7 @@ BAR_S, GOAL_S = 600, 300
 def capture_for(subject: str, captures: Path, ict_model: str | None, fps: int = 60,
                 seconds: float = 8) -> Path:
     from facecap.synthetic import synthesize
-    from facecap_core.config import SynthConfig
+    from facecap.synthetic.config import SynthConfig
 
     folder = captures / f"{subject.replace(':', '_')}_1280x720_{fps}fps_{seconds:g}s"
     if not (folder / "gt" / "render.json").is_file():
@@ -76,8 +76,8 @@ def _lm_dir(gt: Path, folder: Path) -> Path:
 def depth_speedup(store: str, report: dict, maps: int, scratch: Path) -> dict:
     """Seconds for ``maps`` depth maps one at a time and two at a time (same inputs)."""
     from facecap.tasks.store import open_store
-    from facecap_core.config import DepthMapConfig
     from facecap_core.mvs import depth
+    from facecap_core.mvs.depth import DepthMapConfig
     from facecap_core.mvs.views import read_views
 
     st = open_store(store)

@@ -34,7 +34,7 @@ CONFIG = {"mvs": {"views": {"num_sources": 6}, "depth": {"processing_width": 480
 
 def render(root: Path) -> None:
     from facecap.synthetic import synthesize
-    from facecap_core.config import SynthConfig
+    from facecap.synthetic.config import SynthConfig
 
     for subject, take, identity, seed in CAPTURES:
         video = root / subject / f"{take}.mp4"

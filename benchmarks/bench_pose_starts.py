@@ -32,13 +32,13 @@ from pathlib import Path
 import numpy as np
 
 from facecap.synthetic import load_gt_cameras, synthesize
+from facecap.synthetic.config import SynthConfig
 from facecap_core.assets import default_ict_model
-from facecap_core.config import KeyframeConfig, PoseConfig, SynthConfig
-from facecap_core.keyframes import select_keyframes
+from facecap_core.keyframes import KeyframeConfig, select_keyframes
 from facecap_core.pose.colmap_sfm import run_sfm
 from facecap_core.pose.evaluate import pose_errors
 from facecap_core.pose.geometric import refine_with_tracks, triangulate
-from facecap_core.pose.stage import photometric_refinement
+from facecap_core.pose.stage import PoseConfig, photometric_refinement
 from facecap_core.video import read_frames
 
 CAPTURES = {

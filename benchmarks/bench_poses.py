@@ -23,12 +23,11 @@ from pathlib import Path
 import numpy as np
 
 from facecap.synthetic import load_gt_cameras
-from facecap_core.config import KeyframeConfig, PoseConfig
-from facecap_core.keyframes import select_keyframes
+from facecap_core.keyframes import KeyframeConfig, select_keyframes
 from facecap_core.pose.colmap_sfm import run_sfm
 from facecap_core.pose.evaluate import pose_errors
 from facecap_core.pose.geometric import refine_with_tracks
-from facecap_core.pose.stage import photometric_refinement
+from facecap_core.pose.stage import PoseConfig, photometric_refinement
 from facecap_core.video import read_frames
 
 CAPTURES = [f"out/captures/{name}_1280x720_30fps_8s"

@@ -122,12 +122,12 @@ def split_half(name: str, out: Path, store: Path, config_file: Path | None = Non
     photos to solve alone (``photo_set_31``'s halves: 10 of 16 and 2 of 15 register), and
     the cameras are measured apart (against COLMAP); what differs between the halves is
     every image the surface is made from."""
-    from facecap_core.config import load_pipeline_config
     from facecap_core.evaluation import split_half_distance
     from facecap_core.fitting import stage as fitting_stage
     from facecap_core.meshio import load_mesh
     from facecap_core.mvs import depth, fusion, views
     from facecap_core.nonrigid.roughness import face_vertices
+    from facecap_core.pipeline import load_pipeline_config
     from facecap_core.template import Template
 
     full = out / name

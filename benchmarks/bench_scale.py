@@ -49,10 +49,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from facecap.synthetic import synthesize, write_gt_keyframe_cameras  # noqa: E402
+from facecap.synthetic.config import SynthConfig  # noqa: E402
 from facecap_core import coarse  # noqa: E402
 from facecap_core.assets import default_ict_model  # noqa: E402
 from facecap_core.camera import rotation_matrix  # noqa: E402
-from facecap_core.config import CoarseConfig, SynthConfig  # noqa: E402
+from facecap_core.coarse import CoarseConfig  # noqa: E402
 from facecap_core.landmarks import stage  # noqa: E402
 from facecap_core.meshio import load_landmarks  # noqa: E402
 from facecap_core.template import (  # noqa: E402

@@ -1,1 +1,2 @@
-"""Deployments of facecap's flows (served on demand and on a nightly schedule)."""
+"""Deployments of facecap's flows (served on demand and on a nightly schedule). Installed as
+``facecap.deploy``."""

@@ -22,6 +22,13 @@ from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 from uuid import UUID
 
+import httpx
+from prefect.automations import Automation, EventTrigger, SendNotification
+from prefect.blocks.notifications import CustomWebhookNotificationBlock
+from prefect.client.orchestration import get_client
+from prefect.exceptions import ObjectNotFound
+from prefect.settings import PREFECT_API_URL
+
 from facecap.flows.capture import reconstruct_capture
 from facecap.flows.dataset import reconstruct_dataset
 from facecap.flows.evaluate import evaluate_dataset
@@ -91,7 +98,6 @@ def webhook_block(url: str):
     """A webhook block that POSTs ``{"text": "<subject>\\n\\n<body>"}``, the shape Slack,
     Mattermost, Rocket.Chat and Google Chat take. The URL is kept among the block's secret
     values (a Slack URL is a credential), so the UI shows ``{{webhook_url}}`` in its place."""
-    from prefect.blocks.notifications import CustomWebhookNotificationBlock
 
     return CustomWebhookNotificationBlock(
         name=BLOCK_NAME, url="{{webhook_url}}", method="POST",
@@ -101,7 +107,6 @@ def webhook_block(url: str):
 def existing_block_id(client, slug_and_name: str) -> UUID:
     """The id of the notification block ``TYPE/NAME`` made in the UI (e.g.
     ``ms-teams-webhook/ops``)."""
-    from prefect.exceptions import ObjectNotFound
 
     slug, _, name = slug_and_name.partition("/")
     if not slug or not name:
@@ -118,8 +123,6 @@ def existing_block_id(client, slug_and_name: str) -> UUID:
 
 
 def regressed_automation(block_id: UUID) -> Automation:
-    from prefect.automations import Automation, EventTrigger, SendNotification
-
     return Automation(
         name=REGRESSED,
         description="The nightly evaluation found a capture whose accuracy or completion "
@@ -132,8 +135,6 @@ def regressed_automation(block_id: UUID) -> Automation:
 
 
 def run_failed_automation(block_id: UUID, flow_names: list[str]) -> Automation:
-    from prefect.automations import Automation, EventTrigger, SendNotification
-
     return Automation(
         name=RUN_FAILED,
         description="A run of facecap's flows ended Failed, Crashed or TimedOut (facecap "
@@ -165,7 +166,6 @@ def apply_automation(client, automation: Automation) -> str:
 
 def api_url() -> str:
     """The server the alerts go to: an embedded, temporary server would forget them."""
-    from prefect.settings import PREFECT_API_URL
 
     url = PREFECT_API_URL.value()
     if not url:
@@ -177,8 +177,6 @@ def api_url() -> str:
 def set_up_alerts(webhook: str | None = None, block: str | None = None) -> list[str]:
     """Create or update the block (``webhook``, else ``$FACECAP_ALERT_WEBHOOK``) or use the
     existing ``block``, then both automations; returns one line per thing done."""
-    import httpx
-    from prefect.client.orchestration import get_client
 
     if block is None:
         webhook = webhook or webhook_from_environment()

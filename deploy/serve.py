@@ -14,6 +14,7 @@ dataset run spreads its captures over the pool's workers.
 
 from __future__ import annotations
 
+from prefect import serve as prefect_serve
 from prefect.client.schemas.objects import ConcurrencyLimitConfig, ConcurrencyLimitStrategy
 from prefect.schedules import Cron
 
@@ -50,6 +51,5 @@ def serve(root: str, out: str, cron: str = NIGHTLY_CRON, timezone: str = "UTC",
           limit: int = 1) -> None:
     """Serve the deployments until interrupted (needs ``PREFECT_API_URL`` or starts the
     embedded server)."""
-    from prefect import serve as prefect_serve
 
     prefect_serve(*deployments(root, out, cron, timezone), limit=limit)

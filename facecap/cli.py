@@ -17,19 +17,23 @@ from pathlib import Path
 from facecap import console, tools
 from facecap_core.errors import FacecapError, InputError
 
+# Imported where used: each command imports what it runs, so that `facecap --help` and a bad
+# argument answer at once, without loading Prefect or the science.
+
 
 def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
     """The stage table, the accuracy table (after ``baseline_rows``) and, last, where the
     mesh, the report and the preview are."""
     from facecap.flows.page import run_summary
+    from facecap.tasks.graph import is_keyframe_row
     from facecap_core.evaluation import paper_table
 
     print(f"{report['subject']}/{report['capture']}: {run_summary(report)}")
     for name, info in report["stages"].items():
-        if not name.startswith("depth_"):
+        if not is_keyframe_row(name):
             state = "reused" if info["cached"] else "computed"
             print(f"  {name:<10} {state:<8} {info['seconds'] or 0:8.1f} s")
-    depth = [i for n, i in report["stages"].items() if n.startswith("depth_")]
+    depth = [i for n, i in report["stages"].items() if is_keyframe_row(n)]
     if depth:
         print(f"  {'depth':<10} {sum(not i['cached'] for i in depth)} of {len(depth)} maps "
               f"computed, {sum(i['seconds'] or 0 for i in depth):.1f} s in all")
@@ -67,15 +71,16 @@ def _check_store(args) -> None:
 def _cmd_reconstruct(args) -> int:
     from facecap.flows.capture import preflight, with_ipd
 
-    with_ipd(preflight(args.video, args.config, args.scan, args.scan_landmarks, args.out,
-                       args.store), args.ipd_mm)
+    # The config is read and validated here, once; the flow and its stages get the model.
+    config = with_ipd(preflight(args.video, args.config, args.scan, args.scan_landmarks,
+                                args.out, args.store), args.ipd_mm)
     _check_store(args)
     console.prefect_env()
     from facecap.flows.capture import reconstruct_capture
 
-    report = reconstruct_capture(args.video, args.out, config=args.config, scan=args.scan,
+    report = reconstruct_capture(args.video, args.out, config=config, scan=args.scan,
                                  scan_landmarks=args.scan_landmarks, until=args.until,
-                                 store=args.store, progress=True, ipd_mm=args.ipd_mm)
+                                 store=args.store, progress=True)
     _print_report(report, Path(args.out))
     return 0
 
@@ -179,8 +184,8 @@ def _cmd_alerts(args) -> int:
 
 def _cmd_demo(args) -> int:
     from facecap.synthetic import synthesize
+    from facecap.synthetic.config import SynthConfig
     from facecap_core.baselines import mean_template
-    from facecap_core.config import SynthConfig
     from facecap_core.evaluation import score_json
     from facecap_core.settings import settings
     from facecap_core.template import Template
@@ -239,6 +244,7 @@ def _usage_error(message: str, command: str) -> UsageError:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    # Long on purpose: a declaration, every command and option in the order --help shows them.
     from facecap.tasks.graph import STEPS, UNTIL_ALIASES
 
     until = [*STEPS, *UNTIL_ALIASES]

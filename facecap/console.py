@@ -11,6 +11,9 @@ import sys
 from facecap.flows.local_server import start_local_server
 from facecap.tasks.scratch import process_scratch, remove_orphans
 
+# Imported where used: Prefect reads its settings when first imported; prefect_defaults() sets
+# them first.
+
 # Prefect is imported inside the functions: it reads its settings when first imported, and
 # prefect_defaults() sets them first.
 

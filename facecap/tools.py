@@ -11,6 +11,8 @@ from pathlib import Path
 
 from facecap_core.errors import InputError
 
+# Imported where used: each command imports what it runs (see facecap/cli.py).
+
 
 def assets(args) -> int:
     from facecap_core import assets
@@ -24,7 +26,8 @@ def assets(args) -> int:
 
 
 def synth_config(args):
-    from facecap_core.config import SynthConfig, build, load_yaml
+    from facecap.synthetic.config import SynthConfig
+    from facecap_core.config import build, load_yaml
 
     overrides = {k: v for k, v in {
         "subject": args.subject, "subject_landmarks": args.subject_landmarks,

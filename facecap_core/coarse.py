@@ -38,18 +38,118 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import trimesh
+from pydantic import Field
 
 from facecap_core.camera import CAMERAS_JSON, read_cameras_json
-from facecap_core.config import CoarseConfig, FittingConfig
+from facecap_core.config import MAX_LEVELS, StrictModel
 from facecap_core.errors import InputError
 from facecap_core.geometry import robust_similarity
 from facecap_core.landmarks.ear_check import reliability
-from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_3D
-from facecap_core.nonrigid.nicp import fit
+from facecap_core.landmarks.stage import (
+    EAR_TEMPLATE,
+    EARS_3D,
+    LANDMARKS_3D,
+    load_ears3d,
+    load_landmarks3d,
+)
+from facecap_core.nonrigid.nicp import FittingConfig, fit
+from facecap_core.stage import Folders, Stage
 from facecap_core.template import INNER_LANDMARKS, Template
+
+
+class CoarseConfig(StrictModel):
+    """Metric scale and the coarse template fitted to the 3D landmarks
+    (``facecap_core/coarse.py``)."""
+
+    scale_method: Literal["template", "fixed"] = "template"
+    """How millimetres are obtained: ``template``: the scale that makes the 3D landmarks
+    (and ear points) match the template's landmarks at the template's physical size (a
+    population-mean prior); ``fixed``: ``fixed_scale`` (e.g. from a known distance)."""
+    fixed_scale: float = Field(1.0, gt=0)
+    """Millimetres per camera unit with ``scale_method: fixed``."""
+    landmark_size: float = Field(1.0858, gt=0.5, lt=2)
+    """Size of an average face's inner-landmark configuration relative to the template's
+    landmark vertices (robust similarity scale, template mm to mm): the mean over 200 random
+    ICT identities (``benchmarks/bench_landmarks.py --calibrate`` prints it)."""
+    scale_cauchy_mm: float = Field(10.0, gt=0)
+    """Cauchy scale of the robust similarity that measures the landmark configuration's size
+    (template mm; wide: every landmark counts, a stray one does not)."""
+    landmark_size_spread: float = Field(0.05, gt=0, lt=1)
+    """Relative spread (1σ) of that size over faces: the landmark cue's uncertainty (5.8 %
+    RMS measured over 30 held-out ICT identities, 0.7 % on the james scan; ``tests/
+    test_coarse.py``)."""
+    ipd_mm: float | None = Field(None, ge=40, le=90)
+    """The subject's interpupillary distance in mm as an optician measures it ("far PD"),
+    when known: the scale then comes mainly from the distance between the triangulated eye
+    centres (``--ipd-mm`` on the command line)."""
+    ipd_ratio: float = Field(0.9800, gt=0.5, lt=1.5)
+    """Pupil distance over the distance between the triangulated centres of the two eyes'
+    six landmarks: the mean over the captures of ICT identities 1000-1007 (the rendered
+    pupils against the landmark stage's output with exact cameras; ``benchmarks/
+    bench_scale.py --calibrate``). Used for ``ipd_mm`` when the pupils were not measured."""
+    ipd_spread: float = Field(0.02, gt=0, lt=1)
+    """Relative 1σ of the IPD cue against the eye landmarks: the spread of that ratio over
+    the calibration captures (1.1 % over 8, rounded up: a spread from 8 faces is itself
+    uncertain by a quarter)."""
+    pupil_ratio: float = Field(1.0055, gt=0.5, lt=1.5)
+    """Pupil distance over the distance between the pupils as the landmark stage triangulates
+    them: the mean over the captures of ICT identities 1000-1007 (``benchmarks/
+    bench_scale.py --calibrate``). With pupils, ``ipd_mm`` uses them instead of the eye
+    landmarks."""
+    pupil_ipd_spread: float = Field(0.006, gt=0, lt=1)
+    """Relative 1σ of the IPD cue from the triangulated pupils: the spread of ``pupil_ratio``
+    over the calibration captures (0.22 % over 8), widened to 0.6 %: a spread from 8 faces is
+    itself uncertain by a quarter, rendered pupils are sharper than real ones, and a subject
+    who fixates a near point while the camera moves converges the eyes (a far gaze, or eyes
+    that follow the camera, give the far PD)."""
+    iris_cue: bool = True
+    """Use the iris size as a scale cue when the landmark stage measured the irises: an
+    adult's horizontal visible iris diameter is ``iris_diameter_mm`` give or take 4 %, a
+    tighter prior than the face's size."""
+    iris_diameter_mm: float = Field(11.7, gt=8, lt=16)
+    """Mean horizontal visible iris diameter of adults (11.7 ± 0.5 mm, 1σ)."""
+    iris_ratio: float = Field(0.9838, gt=0.5, lt=1.5)
+    """True iris diameter over the landmark stage's measurement (MediaPipe's iris edges at
+    the pupils' depth): the mean over the captures of ICT identities 1000-1007, whose renders
+    paint each subject's own iris diameter (``benchmarks/bench_scale.py --calibrate``)."""
+    iris_spread: float = Field(0.065, gt=0, lt=1)
+    """Relative 1σ of the iris cue: the population's 4.3 % (0.5 / 11.7) and the measurement's
+    3.7 % (the spread of ``iris_ratio`` over the calibration captures, 640x360 renders with
+    irises ~12 px wide; 4.5 % before the face mesh gave the 68 points too), added in
+    quadrature (5.5 %) and rounded up to the earlier 6.5 %."""
+    ear_width_cue: bool = False
+    """Use the ear-to-ear width as a scale cue. Off: it is not calibrated (``ear_width_size``
+    is the template's own width) and real-skin ear points can be far off."""
+    ear_width_size: float = Field(1.0, gt=0.5, lt=2)
+    """Ear-to-ear width of an average head relative to the template's."""
+    ear_width_spread: float = Field(0.05, gt=0, lt=1)
+    """Relative spread of the ear-to-ear width over heads (weights the ear estimate)."""
+    ear_weight: float = Field(1.0, ge=0)
+    """Weight of one ear point against one face landmark in the similarity fit of the coarse
+    mesh (0 ignores ears)."""
+    cue_agreement_sigmas: float = Field(3.0, gt=0)
+    """A scale cue further than this many combined standard deviations from the others'
+    estimate is dropped (and reported), not averaged in."""
+    robust_iterations: int = Field(5, ge=0, le=50)
+    """Reweighting rounds of the robust (Cauchy) similarity fit."""
+    robust_scale_mm: float = Field(3.0, gt=0)
+    """Cauchy scale of the robust similarity fit, in template millimetres."""
+    deformation: Literal["rbf", "nicp", "none"] = "rbf"
+    """Landmark-driven deformation after the similarity: a smooth radial-basis displacement
+    field (``rbf``), the landmarks-only optimal-step NICP (``nicp``), or none."""
+    rbf_kernel_mm: float = Field(60.0, gt=0)
+    """Width of the Gaussian displacement kernel of ``rbf`` (large: stiff, global bends)."""
+    rbf_smoothing: float = Field(0.3, ge=0)
+    """Regularisation of ``rbf`` (0: the landmarks are met exactly; larger: stiffer)."""
+    nicp_stiffness: list[float] = Field(default_factory=lambda: [10.0, 5.0, 2.0], min_length=1,
+                                        max_length=MAX_LEVELS)
+    """Stiffness levels of ``nicp`` (high: the coarse mesh stays smooth); each level's
+    landmark weight equals its stiffness, as in the fitting stage's schedule."""
+
 
 COARSE_PLY = "coarse.ply"
 COARSE_JSON = "coarse.json"
@@ -255,7 +355,6 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     ``landmarks_dir``; writes ``coarse.ply``, ``cameras.json``, ``landmarks3d.json``,
     ``ears3d.json`` and ``coarse.json`` into ``out_dir``; returns the path of
     ``coarse.ply``."""
-    from facecap_core.landmarks.stage import EAR_TEMPLATE, load_ears3d, load_landmarks3d
 
     config = config or CoarseConfig()
     t_wall, t_cpu = time.perf_counter(), time.process_time()
@@ -366,3 +465,14 @@ def figures(folder: str | Path) -> dict:
         if coverage:
             fig["coverage"] = coverage
     return fig
+
+
+def run(inputs: Folders, out: Path, config: CoarseConfig, params: dict) -> None:
+    main(inputs["landmarks"], inputs["poses"] / CAMERAS_JSON, out, config=config)
+
+
+STAGE = Stage("coarse", step="coarse", version="5", inputs=("landmarks", "poses"),
+              section="coarse", run=run,
+              outputs=(CAMERAS_JSON, LANDMARKS_3D, EARS_3D, COARSE_PLY, COARSE_JSON),
+              exported=(CAMERAS_JSON, LANDMARKS_3D, EARS_3D, COARSE_PLY, COARSE_JSON),
+              figures=figures)

@@ -18,8 +18,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facecap_core.camera import read_cameras_json
+from facecap_core.camera import CAMERAS_JSON, read_cameras_json
 from facecap_core.errors import InputError
+from facecap_core.stage import Folders, Stage, capture_in
 from facecap_core.video import iter_frames
 
 FRAMES_JSON = "frames.json"
@@ -62,3 +63,11 @@ def load_frame(frames_dir: str | Path, index: int) -> np.ndarray:
     if image is None:
         raise InputError(f"keyframe image {path} is missing or unreadable")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def run(inputs: Folders, out: Path, config: None, params: dict) -> None:
+    main(capture_in(inputs["video"]), inputs["poses"] / CAMERAS_JSON, out)
+
+
+STAGE = Stage("frames", step="landmarks", version="1", inputs=("video", "poses"),
+              section=None, run=run, outputs=(FRAMES_JSON, "frame_{index:06d}.png"))

@@ -23,12 +23,51 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from pydantic import Field
+from tqdm import tqdm
 
-from facecap_core.config import KeyframeConfig
+from facecap_core.config import MAX_FRAMES, StrictModel
 from facecap_core.errors import InputError
 from facecap_core.face import face_box
 from facecap_core.photos import probe_photos
+from facecap_core.stage import Folders, Stage, capture_in
 from facecap_core.video import is_photo_folder, iter_frames, probe
+
+
+class KeyframeConfig(StrictModel):
+    """Lucas–Kanade tracking and keyframe selection (``facecap_core/keyframes.py``)."""
+
+    track_width: int = Field(640, ge=160, le=4096)
+    """Frames are tracked at this width (pixels); keyframe positions are full resolution."""
+    max_features: int = Field(800, ge=50, le=10000)
+    """Features kept per frame."""
+    min_features: int = Field(400, ge=20, le=10000)
+    """Re-seed new features when fewer than this many are tracked."""
+    feature_quality: float = Field(0.005, gt=0, lt=1)
+    """Shi–Tomasi quality level relative to the best corner."""
+    min_distance_px: int = Field(8, ge=1, le=100)
+    """Minimum spacing of features (tracking pixels)."""
+    lk_window: int = Field(21, ge=5, le=101)
+    """LK window size (tracking pixels)."""
+    lk_levels: int = Field(3, ge=0, le=8)
+    """LK pyramid levels above the base image."""
+    fb_max_px: float = Field(0.7, gt=0, le=10)
+    """Largest forward–backward error of a kept track (tracking pixels)."""
+    keyframe_angle_deg: float = Field(4.0, gt=0.2, le=45)
+    """A keyframe is due when the view has turned this much since the last one."""
+    angle_slack: float = Field(0.25, ge=0, lt=1)
+    """Frames past (1 - slack) of that angle compete on sharpness to be the keyframe."""
+    nominal_hfov_deg: float = Field(65.0, gt=20, lt=150)
+    """Horizontal field of view assumed while measuring angles (the true focal comes later)."""
+    sharpness_window: int = Field(6, ge=1, le=240)
+    """The sharpest of this many recent frames becomes the keyframe."""
+    min_shared_tracks: int = Field(30, ge=8, le=10000)
+    """A keyframe is forced when fewer tracks than this link back to the last one."""
+    min_frames: int = Field(15, ge=2, le=MAX_FRAMES)
+    """Videos with fewer frames are refused."""
+    min_keyframes: int = Field(5, ge=2, le=1000)
+    """Fewer keyframes than this means the camera did not move enough."""
+
 
 
 @dataclass
@@ -162,8 +201,8 @@ class HeadMotionProbe:
 def select_keyframes(video: str | Path, config: KeyframeConfig | None = None,
                      progress: bool = False) -> Keyframes:
     """Track through the whole video and pick keyframes (see the module docstring)."""
-    from tqdm import tqdm
-
+    # Long on purpose: one pass over the video: decoding, tracking and the selection share the
+    # tracker's state frame by frame.
     config = config or KeyframeConfig()
     info = probe(video)
     if info.frame_count and info.frame_count < config.min_frames:
@@ -255,7 +294,6 @@ def select_keyframes(video: str | Path, config: KeyframeConfig | None = None,
 def photo_keyframes(folder: str | Path, progress: bool = False) -> Keyframes:
     """Every photo of a photo folder is a keyframe (a photo set is already a selection of
     views); there are no tracks between photos, and their order is not a sweep's."""
-    from tqdm import tqdm
 
 
     info = probe_photos(folder)
@@ -329,3 +367,11 @@ def main(video: str | Path, out_dir: str | Path, config: KeyframeConfig | None =
         keyframes = select_keyframes(video, config, progress)
     return save_keyframes(keyframes, out_dir, seconds=round(time.perf_counter() - start, 2),
                           cpu_seconds=round(time.process_time() - cpu, 2))
+
+
+def run(inputs: Folders, out: Path, config: KeyframeConfig, params: dict) -> None:
+    main(capture_in(inputs["video"]), out, config)
+
+
+STAGE = Stage("keyframes", step="keyframes", version="2", inputs=("video",),
+              section="keyframes", run=run, outputs=(KEYFRAMES_JSON, TRACKS_NPZ))

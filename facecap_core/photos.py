@@ -15,9 +15,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, ImageOps, UnidentifiedImageError
 
 from facecap_core.errors import InputError
 from facecap_core.settings import settings
+
+# Imported where used: pillow-heif is optional: without it HEIC photos are refused with a message.
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".heic", ".heif")
 """File types read as photos (case-insensitive); HEIC/HEIF through ``pillow-heif``."""
@@ -56,7 +59,6 @@ def _pillow():
     an exception above 179 that names no file. Both are off, for the process: Pillow reads
     no other image in facecap. Its other warnings (a malformed EXIF block or MPO index) are
     about photos that are read anyway, and would be extra lines on the console."""
-    from PIL import Image
 
     Image.MAX_IMAGE_PIXELS = None
     # Added on every call (a duplicate filter is replaced, not added): a test harness or a
@@ -80,7 +82,6 @@ def list_photos(folder: str | Path) -> list[Path]:
 def _open(path: Path, decode: bool = True):
     """The photo upright (``decode``), or opened lazily: its header and EXIF only. A photo
     larger than ``FACECAP_MAX_SIDE_PX`` is refused before its pixels are read."""
-    from PIL import ImageOps, UnidentifiedImageError
 
     Image, formats = _pillow()
     try:

@@ -14,6 +14,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import av
 import cv2
 import numpy as np
 
@@ -43,8 +44,6 @@ class Frame:
 
 
 def _open(path: Path):
-    import av
-
     if not path.is_file():
         raise InputError(f"video not found: {path}")
     try:
@@ -76,7 +75,6 @@ def is_photo_folder(path: str | Path) -> bool:
 
 def _decoding_errors() -> tuple[type[BaseException], ...]:
     """What PyAV raises when FFmpeg cannot decode the stream (the file's fault, not ours)."""
-    import av
 
     return (av.error.FFmpegError, EOFError)
 

@@ -1,1 +1,2 @@
-"""Prefect flows of facecap and the ``facecap`` command line that starts them."""
+"""Prefect flows of facecap: a capture, a dataset, the nightly evaluation; their pages and
+the links to them from the UI. Installed as ``facecap.flows``."""

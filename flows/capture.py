@@ -29,21 +29,29 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+import prefect.artifacts
 from prefect import flow, get_run_logger
+from prefect.runtime import flow_run
 from prefect.task_runners import ThreadPoolTaskRunner
+from pydantic import BaseModel
+from tqdm import tqdm
 
-from facecap.flows.page import run_summary, store_page
+from facecap.flows.page import GLB_NAME, build_page, mesh_glb, run_summary, store_page
 from facecap.flows.service import guard
 from facecap.flows.ui import mesh_preview, publish_capture
 from facecap.tasks.graph import (
     BY_NAME,
     EXPORTED,
     OUTPUT_NAMES,
+    PHOTOS,
     STAGES,
     STEPS,
     UNTIL_ALIASES,
+    VIDEO,
     Stage,
     capture_input_name,
+    is_keyframe_row,
     producer,
     stages_until,
 )
@@ -53,9 +61,12 @@ from facecap.tasks.scratch import process_scratch
 from facecap.tasks.stages import call_ingest, call_stage, stage_result
 from facecap.tasks.store import open_store
 from facecap_core import assets
-from facecap_core.config import CoarseConfig, PipelineConfig, build, load_pipeline_config
+from facecap_core.coarse import CoarseConfig
+from facecap_core.config import build
 from facecap_core.errors import InputError
+from facecap_core.evaluation.stage import ACCURACY_NPY
 from facecap_core.photos import list_photos
+from facecap_core.pipeline import PipelineConfig, load_pipeline_config
 from facecap_core.settings import settings, time_limit
 from facecap_core.video import probe, stored_frame_count
 
@@ -80,8 +91,6 @@ def capture_name(video: str | Path) -> tuple[str, str]:
 
 
 def _run_name() -> str:
-    from prefect.runtime import flow_run
-
     subject, capture = capture_name(flow_run.parameters.get("video", "capture"))
     return f"{subject}/{capture}"
 
@@ -108,7 +117,8 @@ def _inputs(stage: Stage, keys: dict[str, str]) -> dict[str, str] | None:
     for name in stage.inputs + stage.optional:
         source = producer(name)
         fanned = source in BY_NAME and BY_NAME[source].per_keyframe
-        items = {k: v for k, v in keys.items() if fanned and k.startswith(f"{source}_")}
+        items = {k: v for k, v in keys.items() if fanned and is_keyframe_row(k)
+                 and BY_NAME[source].is_row(k)}
         if source in keys:
             inputs[name] = keys[source]
         elif items:  # a per-keyframe stage: every keyframe's artifact
@@ -133,33 +143,29 @@ class _RunProgress:
     the last step."""
 
     def __init__(self, label: str, stages: list[str]):
-        from prefect.artifacts import create_progress_artifact
-
         self.label, self.stages, self.done = label, len(stages), 0
         self.weights = [WORK_SECONDS.get(name, 1.0) for name in stages]
         self.total = sum(self.weights) or 1.0
-        self.id = create_progress_artifact(0.0, description=f"{label}: started")
+        self.id = prefect.artifacts.create_progress_artifact(0.0, description=f"{label}: started")
 
     def update(self, what: str, fraction: float = 0.0) -> None:
         """``what`` happened; ``fraction`` of the stage in progress is done."""
-        from prefect.artifacts import update_progress_artifact
-
         current = self.weights[self.done] if self.done < self.stages else 0.0
         work = sum(self.weights[: self.done]) + fraction * current
         percent = float(min(100, round(100.0 * work / self.total)))
-        update_progress_artifact(self.id, percent, description=f"{self.label}: {what}")
+        prefect.artifacts.update_progress_artifact(self.id, percent, description=f"{self.label}: {what}")
 
     def stage_done(self, name: str, outcome: str = "done") -> None:
         self.done += 1
         self.update(f"{name} {outcome} ({self.done} of {self.stages} stages)")
 
 
-def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: dict, label: str,
+def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: BaseModel | None,
+             label: str,
              workers: int, progress: bool, run_progress: _RunProgress,
              deadline: float | None = None) -> dict[str, tuple[str, bool]]:
     """One task per keyframe, at most ``workers`` at once; the run's progress artifact (and
     with ``progress`` a console bar) advanced after each."""
-    from tqdm import tqdm
 
     indices = stage.per_keyframe(_StoredFolders(store, inputs))
     bar = tqdm(total=len(indices), desc=f"{stage.name} maps", unit="map",
@@ -199,7 +205,7 @@ def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str
         if inputs is None:
             run_progress.stage_done(stage.name, "skipped")
             continue
-        config = stage.config_data(cfg)
+        config = stage.settings(cfg)
         if stage.per_keyframe:
             items = _fan_out(stage, store, inputs, config, label, cfg.mvs.workers, progress,
                              run_progress, deadline)
@@ -228,7 +234,6 @@ def _export(store: str, keys: dict[str, str], writer: ResultWriter, scratch: Pat
             if (folder / name).is_file():
                 writer.add(name, source=folder / name)
                 staged[name] = folder / name
-    from facecap.flows.page import GLB_NAME, mesh_glb
 
     made = {"preview.png": mesh_preview(staged, scratch / "preview.png")}
     if "mesh.ply" in staged:
@@ -244,10 +249,7 @@ def _export(store: str, keys: dict[str, str], writer: ResultWriter, scratch: Pat
 def _page(store: str, keys: dict[str, str], report: dict, results: dict[str, Path]) -> bytes:
     """``index.html`` of the run (:mod:`flows.page`), the heat map on the mesh from the
     evaluation's metric protocol."""
-    import numpy as np
 
-    from facecap.flows.page import GLB_NAME, build_page
-    from facecap_core.evaluation.stage import ACCURACY_NPY
 
     st, accuracy = open_store(store), None
     if "evaluation" in keys:
@@ -462,7 +464,6 @@ def as_user_sees_it(message: str, video: str | Path) -> str:
     stored video file, or the stored photo folder, whose photos keep their names
     (``.../input-<key>/photos/IMG_2.jpg`` is ``<the user's folder>/IMG_2.jpg``)."""
 
-    from facecap.tasks.graph import PHOTOS, VIDEO
 
     # Not a stored scan whose name begins like them (photos.ply).
     stored = re.compile(rf"\S*/input-[0-9a-f]{{32}}/(?:{re.escape(VIDEO)}|{re.escape(PHOTOS)})"

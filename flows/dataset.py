@@ -16,7 +16,14 @@ from pathlib import Path
 
 import httpx
 from prefect import flow, get_run_logger
+from prefect.artifacts import create_table_artifact
+from prefect.client.orchestration import get_client
+from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+from prefect.context import FlowRunContext
+from prefect.deployments import run_deployment
+from prefect.exceptions import ObjectNotFound
 from prefect.flow_engine import FlowRunTimeoutError
+from prefect.runtime import flow_run
 
 from facecap.flows.capture import (
     ConfigParameter,
@@ -30,10 +37,10 @@ from facecap.flows.service import guard
 from facecap.flows.ui import publish_dataset_page
 from facecap.tasks.outputs import check_output_place, write_results
 from facecap.tasks.stages import capture_time_limit_message
-from facecap_core.config import PipelineConfig
 from facecap_core.dataset import SUMMARY_NAMES, CaptureEntry, mesh_consistency, scan_dataset
 from facecap_core.errors import FacecapError, InputError
 from facecap_core.meshio import load_mesh
+from facecap_core.pipeline import PipelineConfig
 
 CAPTURE_DEPLOYMENT = "reconstruct-capture/reconstruct-capture"
 """The deployment a dataset run on a work pool submits each capture to (deploy/prefect.yaml)."""
@@ -42,8 +49,6 @@ POLL_SECONDS = 5.0
 
 
 def _run_name() -> str:
-    from prefect.runtime import flow_run
-
     return f"dataset {Path(flow_run.parameters.get('root', 'dataset')).name}"
 
 
@@ -90,7 +95,6 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
         until: The last stage to run for every capture (e.g. poses, to check a dataset's
             cameras first).
     """
-    from prefect.artifacts import create_table_artifact
 
     logger = get_run_logger()
     named_store = store  # the capture runs get it as named: each worker checks it again
@@ -159,13 +163,11 @@ def _in_process(entries: list[CaptureEntry], out_root: Path, config: ConfigParam
 def _work_pool() -> str | None:
     """The work pool this run's deployment runs on; None outside a deployment, or for one
     served by a process of its own (``facecap serve``), whose captures run in-process."""
-    from prefect.context import FlowRunContext
 
     context = FlowRunContext.get()
     run = context.flow_run if context else None
     if run is None or run.deployment_id is None:
         return None
-    from prefect.client.orchestration import get_client
 
     with get_client(sync_client=True) as client:
         return client.read_deployment(run.deployment_id).work_pool_name
@@ -177,10 +179,6 @@ def _through_deployment(entries: list[CaptureEntry], out_root: Path, config: Con
     workers take them as the deployment's and the pool's concurrency limits allow. Waits
     for every one; returns ``{subject/capture: why it failed}`` and the most that ran at
     once."""
-    from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
-    from prefect.deployments import run_deployment
-    from prefect.exceptions import ObjectNotFound
 
     if isinstance(config, PipelineConfig):
         config = config.model_dump(mode="json", exclude_unset=True)

@@ -17,18 +17,19 @@ from collections.abc import Callable
 from pathlib import Path
 from urllib.parse import quote
 
+import cv2
 import numpy as np
 
-from facecap.flows.page import PAGE_HEAD
+from facecap.flows.page import PAGE_HEAD, PAGE_NAME, keep_page, stored_link
 from facecap.tasks.lifecycle import report_keys
 from facecap.tasks.outputs import write_results
+from facecap_core.dataset import SUMMARY_NAMES
 
 THUMB_WIDTH = 160
 
 
 def _thumbnail(preview: Path) -> str:
     """The capture's preview, its front view cut out and shrunk, as a data URI ('' without)."""
-    import cv2
 
     if not preview.is_file():  # a failed capture has none (and OpenCV would warn)
         return ""
@@ -147,7 +148,6 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
 
 def _dataset_contents(out: Path) -> tuple[list[tuple[str, str]], dict[str, str]]:
     """The captures with results in ``out`` and those ``dataset.json`` records as failed."""
-    from facecap_core.dataset import SUMMARY_NAMES
 
     captures = sorted((subject.name, capture.name) for subject in out.iterdir()
                       if subject.is_dir() and not subject.is_symlink()
@@ -175,7 +175,6 @@ def store_dataset_page(out: Path, store) -> str:
     """Keep a copy of the dataset page in the store whose links open each capture's page
     from there (:func:`flows.page.stored_link`, a day), for the link from the Prefect UI;
     returns its key. Made from the captures' stored pages: ``forget`` removes it with them."""
-    from facecap.flows.page import PAGE_NAME, keep_page, stored_link
 
     inputs: dict[str, str] = {}
 

@@ -14,6 +14,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from prefect import flow, get_run_logger
+from prefect.artifacts import create_markdown_artifact, create_table_artifact
+from prefect.events import emit_event
+from prefect.runtime import flow_run
 
 from facecap.flows.dataset_page import rewrite_dataset_page
 from facecap.flows.service import guard
@@ -29,8 +32,6 @@ from facecap_core.settings import time_limit
 
 
 def _run_name() -> str:
-    from prefect.runtime import flow_run
-
     return f"evaluate {Path(flow_run.parameters.get('root', 'dataset')).name}"
 
 
@@ -97,8 +98,6 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
             tolerance_rel) since the last evaluation is a regression.
         tolerance_rel: The relative growth a regression needs as well (0.05 = 5 %).
     """
-    from prefect.artifacts import create_markdown_artifact, create_table_artifact
-    from prefect.events import emit_event
 
     logger = get_run_logger()
     store = guard(out, store, dataset=root)  # a served run: only what it may touch

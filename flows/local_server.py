@@ -21,6 +21,9 @@ from pathlib import Path
 from facecap.tasks.scratch import start_ticks
 from facecap_core.assets import facecap_home
 
+# Imported where used: Prefect reads its settings when first imported; the command line sets them
+# first (facecap/console.py).
+
 LOG_NAME = "server.log"
 MAX_LOG_BYTES = 4 * 2**20
 """The server log starts again from empty past this size."""

@@ -19,13 +19,19 @@ import logging
 from importlib import resources
 from pathlib import Path
 
+import cv2
 import numpy as np
+import trimesh
 
+from facecap.tasks.graph import is_keyframe_row
 from facecap.tasks.runner import lease, network_errors
 from facecap.tasks.store import artifact_key
+from facecap.tasks.store.keys import KEY_PATTERN
 from facecap_core.coarse import ears_summary, scale_summary
 from facecap_core.errors import FacecapError
 from facecap_core.frames import frame_name
+
+# Imported where used: open3d (a second to import) only where a page shows a cloud.
 
 _log = logging.getLogger(__name__)
 
@@ -68,7 +74,6 @@ def store_page(store, report: dict, page: bytes) -> str:
 
 def mesh_glb(mesh_ply: Path) -> bytes:
     """The mesh as binary glTF with its vertex colours (Blender, three.js, Windows 3D Viewer)."""
-    import trimesh
 
     mesh = trimesh.load(mesh_ply, process=False, force="mesh")
     return mesh.export(file_type="glb")
@@ -80,7 +85,6 @@ def _b64(array: np.ndarray) -> str:
 
 def turbo(values: np.ndarray, max_value: float) -> np.ndarray:
     """RGB (uint8) of ``values`` on OpenCV's TURBO map over 0..``max_value``; nan in grey."""
-    import cv2
 
     v = np.asarray(values, float)
     level = np.clip(np.nan_to_num(v / max_value, nan=0.0), 0.0, 1.0)
@@ -98,7 +102,6 @@ def _colour_bar() -> str:
 def _keyframe_image(frames: Path | None, index: int) -> str | None:
     """A keyframe's image, shrunk to :data:`KEYFRAME_SIDE` on its long side, as a JPEG data
     URI (None where the frames stage's folder does not hold it)."""
-    import cv2
 
 
     if frames is None or not (frames / frame_name(index)).is_file():  # OpenCV would warn
@@ -197,7 +200,7 @@ def run_summary(report: dict) -> str:
 def _stage_rows(report: dict) -> str:
     rows, depth = [], []
     for name, info in report.get("stages", {}).items():
-        if name.startswith("depth_"):
+        if is_keyframe_row(name):
             depth.append(info)
             continue
         state = "reused" if info.get("cached") else "computed"
@@ -220,8 +223,6 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
     data: dict = {"mesh_glb": base64.b64encode(glb).decode("ascii") if glb else None}
     centre = None
     if glb:
-        import trimesh
-
         centre = np.asarray(trimesh.load(results["mesh.ply"], process=False,
                                          force="mesh").bounding_box.centroid)
     if accuracy_mm is not None:
@@ -337,7 +338,6 @@ def stored_link(store, key: str | None, name: str) -> str | None:
     in a browser for :data:`RESULTS_LINK_SECONDS`: S3's presigned URL, or for a folder store
     the page server's (``FACECAP_PAGES_URL``); None where the store can make none or does not
     hold the artifact."""
-    from facecap.tasks.store.keys import KEY_PATTERN
 
     if not isinstance(key, str) or not KEY_PATTERN.fullmatch(key):
         return None

@@ -32,6 +32,8 @@ from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 
+from prefect.context import FlowRunContext
+
 from facecap.tasks.runner import default_store_url
 from facecap.tasks.store import open_store
 from facecap.tasks.store.base import redact
@@ -48,8 +50,6 @@ OUTPUT_ROOT_ENV = "FACECAP_OUTPUT_ROOT"
 
 
 def _from_deployment() -> bool:
-    from prefect.context import FlowRunContext
-
     context = FlowRunContext.get()
     return bool(context and context.flow_run and context.flow_run.deployment_id)
 

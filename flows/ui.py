@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import hashlib
 import html
 import logging
 import re
@@ -15,9 +16,23 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from prefect.artifacts import (
+    create_link_artifact,
+    create_markdown_artifact,
+    create_table_artifact,
+)
+from prefect.client.orchestration import get_client
+from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+from prefect.events import emit_event
 
 from facecap.flows.dataset_page import store_dataset_page
-from facecap.flows.page import RESULTS_LINK_SECONDS, figure_rows, run_summary, stored_link
+from facecap.flows.page import (
+    PAGE_NAME,
+    RESULTS_LINK_SECONDS,
+    figure_rows,
+    run_summary,
+    stored_link,
+)
 from facecap.tasks.lifecycle import report_keys
 from facecap.tasks.store import open_store
 from facecap_core.evaluation import mesh_render
@@ -31,7 +46,6 @@ def _slug(text: str) -> str:
     # Artifact keys: lowercase ASCII letters, digits and dashes only, which many names share
     # ("ann/lee-1" and "ann-lee/1", "Bob" and "bob", "Zoë" and "Zoe"): a hash of the exact
     # name keeps every capture's pages apart (and facecap forget from deleting another's).
-    import hashlib
 
     plain = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode()
     out = "".join(c if c.isalnum() else "-" for c in plain.lower())
@@ -111,7 +125,6 @@ def page_link(store, key: str | None, folder: Path) -> tuple[str, str]:
     """``(link, where)`` to a page: a link that opens stored page ``key`` from the Prefect UI
     (:func:`stored_link`), else the ``file://`` address of ``index.html`` in ``folder``,
     which a browser opens only when typed in."""
-    from facecap.flows.page import PAGE_NAME
 
     link = stored_link(store, key, PAGE_NAME)
     if link:
@@ -147,8 +160,6 @@ def forget_artifacts(labels: list[str]) -> int:
     """Delete every version of the UI artifacts of these captures (``subject/capture``) from
     the Prefect server the runs reported to; returns how many went."""
 
-    from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
 
     keys = [k for label in labels for k in artifact_keys(label)]
     legacy = {k: label for label in labels for k in _legacy_keys(label)}
@@ -181,12 +192,6 @@ def publish_capture(report: dict, out: Path, label: str, results: dict[str, Path
     """The run's UI artifacts (stage table, results page with its previews, link) and its
     completion event; the previews are read from ``results`` (name -> this run's file), never
     from the output folder, which may hold anything."""
-    from prefect.artifacts import (
-        create_link_artifact,
-        create_markdown_artifact,
-        create_table_artifact,
-    )
-    from prefect.events import emit_event
 
     key = _slug(label)
     stages_key, capture_key, results_key = artifact_keys(label)
@@ -219,7 +224,6 @@ def publish_dataset_page(out: Path, store: str) -> None:
     """Link the Prefect UI to the dataset page of ``out`` (just rewritten): a copy kept in
     the store whose links open the captures' pages (:func:`flows.dataset_page.
     store_dataset_page`), for :data:`RESULTS_LINK_SECONDS`; else the page on disk."""
-    from prefect.artifacts import create_link_artifact
 
 
     st = open_store(store)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import threading
 
+from prefect.context import FlowRunContext, TaskRunContext
 from prefect.logging.handlers import APILogHandler
 
 CORE_LOGGER = "facecap_core"
@@ -30,7 +31,6 @@ _ATTACH = threading.Lock()  # tasks in several threads may attach at once
 def in_run() -> bool:
     """Whether this code runs inside a flow or task run (a task's thread included: the task
     runner copies the context into it)."""
-    from prefect.context import FlowRunContext, TaskRunContext
 
     task = TaskRunContext.get()
     flow = FlowRunContext.get()

@@ -25,7 +25,9 @@ from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
 
-from facecap.tasks.graph import INPUT_VERSION, Stage
+from pydantic import BaseModel
+
+from facecap.tasks.graph import INPUT_VERSION, Stage, config_data, stage_key
 from facecap.tasks.scratch import process_scratch
 from facecap.tasks.store import (
     ArtifactStore,
@@ -39,6 +41,9 @@ from facecap_core.assets import facecap_home
 from facecap_core.errors import FacecapError, InputError
 from facecap_core.photos import list_photos
 from facecap_core.settings import settings
+
+# Imported where used: botocore only with an S3 store; Prefect's task engine only once a stage
+# runs (the command line's checks answer without it).
 
 
 def default_store_url() -> str:
@@ -193,16 +198,16 @@ def _scratch() -> Path:
     return folder
 
 
-def run_stage(store_url: str, stage: Stage, inputs: dict[str, str], config: dict | None,
+def run_stage(store_url: str, stage: Stage, inputs: dict[str, str], config: BaseModel | None,
               params: dict | None = None) -> tuple[str, bool]:
-    """Make the stage's artifact unless it is stored; returns ``(key, computed)``."""
+    """Make the stage's artifact unless it is stored; returns ``(key, computed)``.
+    ``config`` is the stage's settings, validated where the run's config was read."""
     store = open_store(store_url)
-    key = stage.key(inputs, config, params)
+    key = stage_key(stage, inputs, config, params)
     for held in [*inputs.values(), key]:
         lease(store, held)
     if store.exists(key):
         return key, False
-    model = stage.config_model(config)  # a bad config fails before any lock or download
     with key_lock(store, key):
         if store.exists(key):  # another run made it while we waited
             return key, False
@@ -211,7 +216,7 @@ def run_stage(store_url: str, stage: Stage, inputs: dict[str, str], config: dict
         try:
             wall, cpu = time.perf_counter(), time.process_time()
             try:
-                stage.compute(folders, work, model, params or {})
+                stage.run(folders, work, config, params or {})
             except OSError as exc:
                 if exc.errno not in SCRATCH_FULL:
                     raise
@@ -230,7 +235,7 @@ def run_stage(store_url: str, stage: Stage, inputs: dict[str, str], config: dict
             if not files:
                 raise FacecapError(f"stage {stage.name} wrote no files")
             inject_fault(stage.name, work)
-            store.put(key, files, stage=stage.name, inputs=inputs, config=config,
+            store.put(key, files, stage=stage.name, inputs=inputs, config=config_data(config),
                       version=stage.full_version(), meta={**meta, **(params or {})})
         finally:
             shutil.rmtree(work, ignore_errors=True)

@@ -2,8 +2,9 @@
 from the store, compute, store the outputs.
 
 Every task has the signature ``(store, inputs, config, params, label) -> (key, computed)``:
-``inputs`` maps input names to artifact keys, ``config`` is the stage's config section as
-JSON data and ``params`` its per-keyframe parameters. The store is the cache: a task whose
+``inputs`` maps input names to artifact keys, ``config`` is the stage's settings (its
+section of the run's PipelineConfig, validated once where the config was read, or None)
+and ``params`` its per-keyframe parameters. The store is the cache: a task whose
 artifact is stored returns at once with ``computed`` false, and the run report takes that
 flag from the tasks themselves. What facecap_core logs at INFO and above while a task runs
 is in the task run's log (:mod:`tasks.logs`).
@@ -19,7 +20,10 @@ from pathlib import Path
 from prefect import get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 from prefect.futures import PrefectFuture
+from prefect.runtime import task_run
 from prefect.states import Completed, State
+from prefect.task_engine import TaskRunTimeoutError
+from pydantic import BaseModel
 
 from facecap.tasks.graph import BY_NAME, STAGES
 from facecap.tasks.logs import send_core_logs_to_runs
@@ -34,8 +38,6 @@ send_core_logs_to_runs()  # every process that runs a stage: facecap_core's log 
 
 def _run_name(template: str):
     def name() -> str:
-        from prefect.runtime import task_run
-
         params = task_run.parameters
         index = (params.get("params") or {}).get("index")
         label = params.get("label") or ""
@@ -58,7 +60,8 @@ def _headline(stage, store: str, key: str) -> str:
 def _stage_task(name: str):
     stage = BY_NAME[name]
 
-    def body(store: str, inputs: dict[str, str], config: dict, params: dict | None = None,
+    def body(store: str, inputs: dict[str, str], config: BaseModel | None,
+             params: dict | None = None,
              label: str = "") -> tuple[str, bool]:
         send_core_logs_to_runs()  # again, should a logging setup since the import have undone it
         key, computed = run_stage(store, stage, inputs, config, params)
@@ -94,7 +97,7 @@ def ingest_task(store: str, path: str, name: str, label: str = "") -> str:
     return ingest(store, path, name)
 
 
-def call_stage(name: str, store: str, inputs: dict[str, str], config: dict | None,
+def call_stage(name: str, store: str, inputs: dict[str, str], config: BaseModel | None,
                label: str = "", params: dict | None = None, submit: bool = False,
                deadline: float | None = None, started: float | None = None
                ) -> tuple[str, bool] | PrefectFuture:
@@ -116,9 +119,9 @@ def call_stage(name: str, store: str, inputs: dict[str, str], config: dict | Non
     runner = runner.with_options(retry_condition_fn=lambda task, run, state: (
         time.monotonic() < end and retry_condition(task, run, state)))
     if submit:
-        return runner.submit(store, inputs, config or {}, params, label)
+        return runner.submit(store, inputs, config, params, label)
     runner = runner.with_options(timeout_seconds=end - now)
-    return stage_result(name, lambda: runner(store, inputs, config or {}, params, label), label,
+    return stage_result(name, lambda: runner(store, inputs, config, params, label), label,
                         now, deadline)
 
 
@@ -135,7 +138,6 @@ def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: 
     stopped at either limit raises a one-line FacecapError naming that limit; the task's
     own errors pass through."""
 
-    from prefect.task_engine import TaskRunTimeoutError
 
     end = _end(started, deadline)
     where = label or "the capture"

@@ -10,7 +10,7 @@ import pytest
 
 from facecap_core import coarse
 from facecap_core.camera import read_cameras_json, rotation_matrix
-from facecap_core.config import CoarseConfig
+from facecap_core.coarse import CoarseConfig
 from facecap_core.errors import InputError
 from facecap_core.evaluation import distances
 from facecap_core.meshio import load_landmarks, load_mesh

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from facecap.tasks.store import open_store
-from facecap_core.config import PipelineConfig
+from facecap_core.pipeline import PipelineConfig
 from tests.test_faults import (  # noqa: F401 - prefect_api is a fixture
     committed,
     computed_in,

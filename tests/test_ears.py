@@ -65,7 +65,7 @@ def test_finds_a_held_out_ear_in_profile(held_out_renderer, side):
 
 
 def test_rendered_set_is_reused_only_for_the_same_rendering_settings():
-    from facecap_core.config import EarTrainingConfig
+    from facecap.ear_training.config import EarTrainingConfig
 
     base = EarTrainingConfig()
     assert et.render_key(base) == et.render_key(EarTrainingConfig(detector_c=5.0, threads=1))
@@ -103,7 +103,7 @@ def test_james_hand_labelled_contour_is_reproducible_and_on_his_scan():
     import trimesh
 
     from facecap.synthetic import make_subject
-    from facecap_core.config import SynthConfig
+    from facecap.synthetic.config import SynthConfig
 
     root = Path(__file__).resolve().parents[1]
     doc = json.loads((root / "benchmarks/data/james_ear_contour.json").read_text())

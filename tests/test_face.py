@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from facecap.synthetic import load_gt_cameras, synthesize
+from facecap.synthetic.config import SynthConfig
 from facecap_core import face
 from facecap_core.camera import project
-from facecap_core.config import SynthConfig
 from facecap_core.errors import FacecapError
 from facecap_core.meshio import load_landmarks
 from facecap_core.template import INNER_LANDMARKS

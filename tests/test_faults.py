@@ -36,6 +36,7 @@ WORKER = """
 import dataclasses, json, sys
 import facecap.tasks.stages as stages
 from facecap.tasks.store import input_key, open_store
+from facecap.tasks.graph import stage_key
 from facecap.tasks.runner import ingest, run_stage
 
 mode, store, args, log_path = sys.argv[1], sys.argv[2], json.loads(sys.argv[3]), sys.argv[4]
@@ -45,13 +46,13 @@ def log(key):
         f.write(key + "\\n")
 
 def logged_run_stage(store_url, stage, inputs, config, params=None):
-    key = stage.key(inputs, config, params)
+    key = stage_key(stage, inputs, config, params)
 
-    def compute_and_log(folders, out, cfg, prm):
+    def run_and_log(folders, out, cfg, prm):
         log(key)
-        return stage.compute(folders, out, cfg, prm)
+        return stage.run(folders, out, cfg, prm)
 
-    logged = dataclasses.replace(stage, compute=compute_and_log)
+    logged = dataclasses.replace(stage, run=run_and_log)
     return run_stage(store_url, logged, inputs, config, params)
 
 def logged_ingest(store_url, path, name):
@@ -84,13 +85,16 @@ def make_middle_flow():
     from prefect import flow
 
     from facecap.tasks.stages import call_stage
+    from facecap_core.coarse import CoarseConfig
+    from facecap_core.landmarks.stage import LandmarkConfig
 
     @flow(name="middle")
     def middle(store: str, seeded: dict) -> dict:
         keys = {"video": seeded["video"], "poses": seeded["poses"]}
-        keys["landmarks"], _ = call_stage("landmarks", store, keys, {}, "t")
+        keys["landmarks"], _ = call_stage("landmarks", store, keys, LandmarkConfig(), "t")
         keys["coarse"], _ = call_stage("coarse", store, {"landmarks": keys["landmarks"],
-                                                         "poses": keys["poses"]}, {}, "t")
+                                                         "poses": keys["poses"]},
+                                       CoarseConfig(), "t")
         return keys
 
     return middle
@@ -110,7 +114,7 @@ def prefect_api(tmp_path_factory) -> str:
 def shared_capture(tmp_path_factory, ict_model) -> Path:
     """The capture of tests/test_flows.py, rendered once per test session."""
     from facecap.synthetic import synthesize
-    from facecap_core.config import SynthConfig
+    from facecap.synthetic.config import SynthConfig
     from tests.test_flows import FRAMES, HEIGHT, WIDTH
 
     folder = tmp_path_factory.getbasetemp() / "robustness-capture" / "subject a"
@@ -382,7 +386,7 @@ def test_a_corrupt_artifact_is_refused_and_recomputed_once_deleted(finished, cap
 
     inputs = {"fusion": fusion, "coarse": finished["keys"]["coarse"],
               "frames": finished["keys"]["frames"]}
-    config = {**small_config().fitting.model_dump(mode="json"), "iterations_per_level": 1}
+    config = small_config().fitting.model_copy(update={"iterations_per_level": 1})
     with pytest.raises(CorruptArtifactError) as caught:
         run_stage(finished["store"], BY_NAME["fitting"], inputs, config)
     message = str(caught.value)

@@ -336,15 +336,6 @@ def test_config_rejects_bad_schedule():
         FittingConfig(stiffness=[10.0, 1.0], landmark_weight=[1.0])
 
 
-def test_texture_sampling_of_no_pixel_is_empty():
-    """A keyframe that colours no vertex (all seen better elsewhere) samples nothing."""
-    from facecap_core.texture import _bilinear
-
-    image = np.zeros((4, 4, 3), np.uint8)
-    assert _bilinear(image, np.zeros((0, 2))).shape == (0, 3)
-    assert _bilinear(image + 7, np.array([[1.5, 2.0]])).tolist() == [[7.0, 7.0, 7.0]]
-
-
 def test_ear_points_off_the_cloud_are_not_fitted():
     """Ear points on the reconstructed surface are fitted; a side 15 mm out beside the head
     (ears 20 % too far apart) is left out and reported; where the cloud has nothing near an

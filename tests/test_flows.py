@@ -17,9 +17,10 @@ import pytest
 # Every test here runs the tail of the pipeline on a real Prefect server.
 pytestmark = pytest.mark.slow
 
+from facecap.synthetic.config import SynthConfig
 from facecap.tasks.store import open_store
-from facecap_core.config import PipelineConfig, SynthConfig
 from facecap_core.meshio import load_landmarks, load_mesh, save_landmarks
+from facecap_core.pipeline import PipelineConfig
 
 WIDTH, HEIGHT, FRAMES = 320, 180, 18
 KEYFRAMES = list(range(5, 13))

@@ -16,8 +16,8 @@ import pytest
 from pydantic import BaseModel, ValidationError
 
 from facecap.flows.capture import _inputs
-from facecap.tasks.graph import BY_NAME, STAGES, STEPS, producer, section_model, stages_until
-from facecap_core.config import PipelineConfig
+from facecap.tasks.graph import BY_NAME, STAGES, STEPS, producer, stage_key, stages_until
+from facecap_core.pipeline import PipelineConfig, section_model
 
 AFTER_COARSE = {"views", "depth", "fusion", "fitting", "evaluation"}
 RECOMPUTED = {
@@ -44,13 +44,13 @@ def plan(cfg: PipelineConfig) -> dict[str, str]:
     for stage in STAGES:
         inputs = _inputs(stage, keys)
         assert inputs is not None, stage.name
-        config = stage.config_data(cfg)
+        config = stage.settings(cfg)
         if stage.per_keyframe:
             for i in KEYFRAMES:
                 row = stage.row_name({"index": i})
-                rows[row] = keys[row] = stage.key(inputs, config, {"index": i})
+                rows[row] = keys[row] = stage_key(stage, inputs, config, {"index": i})
         else:
-            rows[stage.name] = keys[stage.name] = stage.key(inputs, config)
+            rows[stage.name] = keys[stage.name] = stage_key(stage, inputs, config)
     return rows
 
 
@@ -173,16 +173,31 @@ def test_dependencies_point_one_way():
     assert metrics.circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
+def test_a_long_function_says_why_at_its_top():
+    """No function over 80 lines without its reason (``# Long on purpose: ...``) at its top."""
+    long_functions = _code_metrics().analyse()["long_functions"]
+    assert long_functions  # the kernels are long, and say why
+    assert [name for name, _, said in long_functions if not said] == []
+
+
+def test_an_import_inside_a_function_says_why():
+    """An import inside a function is for an optional or heavy dependency, or a setting read
+    at import: its module says so (``# Imported where used: ...``), or a comment beside it."""
+    inner = _code_metrics().analyse()["inner_imports"]
+    assert inner  # the command line's, at least
+    assert [where for where, said in inner if not said] == []
+
+
 def test_a_recalibrated_landmark_table_is_a_new_landmark_stage(tmp_path, monkeypatch):
     """The landmark stage's version names its calibrated tables: a store never hands out
     landmarks made with another vertex table or convention offsets."""
-    import facecap.tasks.graph as graph
+    from facecap_core.landmarks import stage
 
-    before = graph._landmark_models()
+    before = stage.STAGE.full_version()
     for name in ("MESH_TO_68_FILE", "OFFSETS_FILE"):
         table = tmp_path / f"{name}.json"
-        table.write_bytes(getattr(graph, name).read_bytes() + b" ")
+        table.write_bytes(getattr(stage, name).read_bytes() + b" ")
         with monkeypatch.context() as m:
-            m.setattr(graph, name, table)
-            assert graph._landmark_models() != before
-    assert graph._landmark_models() == before
+            m.setattr(stage, name, table)
+            assert stage.STAGE.full_version() != before
+    assert stage.STAGE.full_version() == before

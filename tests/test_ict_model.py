@@ -8,8 +8,8 @@ import re
 import numpy as np
 
 from facecap.synthetic import make_subject
+from facecap.synthetic.config import SynthConfig
 from facecap_core.assets import packaged_ict_model
-from facecap_core.config import SynthConfig
 from facecap_core.template import (
     ICT_SKIN_VERTEX_END,
     Template,

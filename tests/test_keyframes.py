@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 
 from facecap.synthetic import load_gt_cameras, synthesize
+from facecap.synthetic.config import SynthConfig
 from facecap_core.camera import camera_center
-from facecap_core.config import KeyframeConfig, SynthConfig
 from facecap_core.errors import InputError
-from facecap_core.keyframes import load_keyframes, main, select_keyframes
+from facecap_core.keyframes import KeyframeConfig, load_keyframes, main, select_keyframes
 from tests.media import write_video
 
 

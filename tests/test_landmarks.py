@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from facecap.synthetic import load_gt_cameras, synthesize, write_gt_keyframe_cameras
+from facecap.synthetic.config import SynthConfig
 from facecap_core.camera import (
     CameraSet,
     Intrinsics,
@@ -19,11 +20,11 @@ from facecap_core.camera import (
     project,
     rotation_matrix,
 )
-from facecap_core.config import LandmarkConfig, SynthConfig
 from facecap_core.errors import InputError
 from facecap_core.geometry import umeyama
 from facecap_core.landmarks import stage
 from facecap_core.landmarks.stage import (
+    LandmarkConfig,
     load_ears3d,
     load_landmarks3d,
     triangulate_ears,

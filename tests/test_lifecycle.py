@@ -12,7 +12,7 @@ import pytest
 
 from facecap.cli import main
 from facecap.flows.page import store_page
-from facecap.tasks.graph import BY_NAME
+from facecap.tasks.graph import stage_key
 from facecap.tasks.lifecycle import derived, forget, prune, prune_unreferenced
 from facecap.tasks.runner import ingest
 from facecap.tasks.store import open_store
@@ -26,7 +26,7 @@ def chain(store_url: str, video: Path) -> dict[str, str]:
     for stage, made_from in (("keyframes", {"video": keys["video"]}),
                              ("poses", {"video": keys["video"], "keyframes": None})):
         made_from = {k: v or keys["keyframes"] for k, v in made_from.items()}
-        keys[stage] = BY_NAME[stage].key(made_from, {})
+        keys[stage] = stage_key(stage, made_from, {})
         store.put(keys[stage], {"out.json": stage.encode()}, stage=stage, inputs=made_from,
                   config={}, version="1")
     return keys

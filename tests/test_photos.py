@@ -176,11 +176,11 @@ def test_shuffled_photos_get_every_camera_in_sweep_order(tmp_path, ict_model):
     """Photos of a sweep saved under shuffled names: exhaustive matching registers all, the
     views come out in sweep order, and the cameras are as good as the video's."""
     from facecap.synthetic import load_gt_cameras, synthesize
-    from facecap_core.config import PoseConfig, SynthConfig
+    from facecap.synthetic.config import SynthConfig
     from facecap_core.keyframes import load_keyframes
     from facecap_core.keyframes import main as keyframes_main
     from facecap_core.pose.evaluate import pose_errors
-    from facecap_core.pose.stage import estimate_poses
+    from facecap_core.pose.stage import PoseConfig, estimate_poses
 
     capture = synthesize(SynthConfig(subject="ict:4", ict_model=ict_model, width=640,
                                      height=360, duration_s=3.0, seed=4),

@@ -192,7 +192,7 @@ def test_the_run_form_documents_every_setting(pool, live_server):
     from prefect.client.orchestration import get_client
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
-    from facecap_core.config import PipelineConfig
+    from facecap_core.pipeline import PipelineConfig
 
     with temporary_settings({PREFECT_API_URL: live_server}):
         with get_client(sync_client=True) as client:

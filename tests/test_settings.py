@@ -230,11 +230,20 @@ def test_a_key_given_twice_is_named_by_its_path():
 
 
 def _fields():
-    from facecap_core import config
+    """Every field of every settings model: the pipeline's (each stage declares its own),
+    the synthetic capture's and the ear training's."""
+    import facecap.ear_training.config  # noqa: F401
+    import facecap.synthetic.config  # noqa: F401
+    import facecap_core.pipeline  # noqa: F401 - imports every stage's settings model
+    from facecap_core.config import StrictModel
 
-    models = [m for m in vars(config).values() if isinstance(m, type)
-              and issubclass(m, config.StrictModel) and m is not config.StrictModel]
-    return [(model, name, field) for model in models for name, field in model.model_fields.items()]
+    models, todo = [], list(StrictModel.__subclasses__())
+    while todo:
+        models.append(todo.pop())
+        todo += models[-1].__subclasses__()
+    assert len(models) >= 13
+    return [(model, name, field) for model in sorted(models, key=lambda m: m.__name__)
+            for name, field in model.model_fields.items()]
 
 
 @pytest.mark.parametrize("model, name, field", _fields(),
@@ -260,7 +269,8 @@ def test_numbers_of_flow_parameters_and_json_are_taken_as_before():
     lists and strings that pydantic turns into tuples and paths."""
     import json
 
-    from facecap_core.config import PipelineConfig, SynthConfig, load_pipeline_config
+    from facecap.synthetic.config import SynthConfig
+    from facecap_core.pipeline import PipelineConfig, load_pipeline_config
 
     values = {"mvs": {"depth": {"iterations": 4}}, "coarse": {"ipd_mm": 63, "iris_cue": False},
               "fitting": {"stiffness": [50, 10, 2], "landmark_weight": [5, 1, 1]}}

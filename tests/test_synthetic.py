@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from facecap.synthetic import load_gt_cameras, synthesize
+from facecap.synthetic.config import SynthConfig
 from facecap_core.camera import camera_center, project
-from facecap_core.config import SynthConfig
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.render import RaycastScene

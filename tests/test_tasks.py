@@ -17,9 +17,9 @@ from facecap.tasks.store import CorruptArtifactError, StoreWriteError, open_stor
 from facecap_core.errors import FacecapError, InputError
 
 
-def _stage(compute, name: str = "fusion"):
+def _stage(run, name: str = "fusion"):
     """A stage row with another body and no config section (its params reach the body)."""
-    return replace(BY_NAME[name], compute=compute, section=None)
+    return replace(BY_NAME[name], run=run, section=None)
 
 
 def test_key_depends_on_inputs_config_and_version(monkeypatch):
@@ -29,7 +29,7 @@ def test_key_depends_on_inputs_config_and_version(monkeypatch):
     assert base != stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 2})
     assert base != stage_key("fusion", {"frames": "input-" + "0" * 32}, {"a": 1}, {"index": 3})
     bumped = replace(BY_NAME["fusion"], version=BY_NAME["fusion"].version + ".1")
-    assert base != bumped.key({"frames": "input-" + "0" * 32}, {"a": 1})
+    assert base != stage_key(bumped, {"frames": "input-" + "0" * 32}, {"a": 1})
 
 
 def test_landmark_key_depends_on_the_ear_model(tmp_path, monkeypatch):

@@ -34,6 +34,8 @@ LAYERS = (
     ("facecap_core.texture", 6),  # the fitting stage's vertex colours
     ("facecap_core.evaluation", 7),
     ("facecap_core.baselines", 8),
+    # The pipeline: the stages' rows in order and their settings assembled.
+    ("facecap_core.pipeline", 9),
     # Above the science: the tasks over the store, the flows, their deployments.
     ("tasks", 10),
     ("flows", 11),
@@ -58,6 +60,11 @@ import of one of them would load a second copy of the module, or fail once insta
 
 LONG_FILE = 450
 LONG_FUNCTION = 80
+INNER_REASON = "# Imported where used:"
+"""How a module states why it imports inside functions (an optional or heavy dependency, a
+setting read at import), at the top level; or a comment on the import's line or the one above."""
+LONG_REASON = "# Long on purpose:"
+"""How a function over :data:`LONG_FUNCTION` lines states its reason, at its top."""
 
 
 def module_name(path: Path) -> str:
@@ -118,15 +125,25 @@ def analyse() -> dict:
         lines = text.count("\n")
         if lines > LONG_FILE:
             long_files.append((str(rel), lines))
+        lines_of = text.split("\n")
+        module_reason = any(line.startswith(INNER_REASON) for line in lines_of)
         functions = [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
         for f in functions:
             length = f.end_lineno - f.lineno + 1
             if length > LONG_FUNCTION:
-                long_functions.append((f"{rel}:{f.lineno} {f.name}", length))
+                top = text.split("\n")[f.lineno:f.body[0].end_lineno + 2]
+                said = any(line.strip().startswith(LONG_REASON) for line in top)
+                long_functions.append((f"{rel}:{f.lineno} {f.name}", length, said))
             for node in ast.walk(f):
                 if isinstance(node, (ast.Import, ast.ImportFrom)):
-                    inner_imports.append(f"{rel}:{node.lineno}")
+                    said = module_reason or any("#" in lines_of[i] for i in (
+                        node.lineno - 1, node.lineno - 2))
+                    inner_imports.append((f"{rel}:{node.lineno}", said))
+        typing_only = {id(n) for block in ast.walk(tree) if _is_type_checking(block)
+                       for n in ast.walk(block)}
         for node in ast.walk(tree):
+            if id(node) in typing_only:
+                continue
             if isinstance(node, ast.Import):
                 third_party[name].update(a.name.split(".")[0] for a in node.names)
             elif isinstance(node, ast.ImportFrom) and not node.level:
@@ -137,6 +154,13 @@ def analyse() -> dict:
     return {"layers": layer_violations(graph, third_party), "circles": circles(graph),
             "inner_imports": sorted(set(inner_imports)),
             "long_files": long_files, "long_functions": long_functions}
+
+
+def _is_type_checking(node: ast.AST) -> bool:
+    """``if TYPE_CHECKING:``: imports for annotations only, never run."""
+    return isinstance(node, ast.If) and (
+        getattr(node.test, "id", None) == "TYPE_CHECKING"
+        or getattr(node.test, "attr", None) == "TYPE_CHECKING")
 
 
 def layer(module: str) -> int:
@@ -199,20 +223,24 @@ def main() -> None:
     figures = analyse()
     print(f"imports against the layers: {len(figures['layers'])}")
     print(f"import circles:            {len(figures['circles'])}")
-    print(f"imports inside functions:  {len(figures['inner_imports'])}")
+    unsaid = sum(not said for _, said in figures["inner_imports"])
+    print(f"imports inside functions:  {len(figures['inner_imports'])} ({unsaid} without a "
+          "stated reason)")
     print(f"files over {LONG_FILE} lines:     {len(figures['long_files'])}")
-    print(f"functions over {LONG_FUNCTION} lines:  {len(figures['long_functions'])}")
+    unsaid = sum(not said for *_, said in figures["long_functions"])
+    print(f"functions over {LONG_FUNCTION} lines:  {len(figures['long_functions'])} "
+          f"({unsaid} without a reason at their top)")
     if args.list:
         for v in figures["layers"]:
             print("against the layers:", v)
         for c in figures["circles"]:
             print("circle:", " ↔ ".join(c))
-        for f in figures["inner_imports"]:
-            print("inner import:", f)
+        for f, said in figures["inner_imports"]:
+            print("inner import:", f, "(reason stated)" if said else "")
         for f, n in figures["long_files"]:
             print(f"long file: {f} ({n})")
-        for f, n in figures["long_functions"]:
-            print(f"long function: {f} ({n})")
+        for f, n, said in figures["long_functions"]:
+            print(f"long function: {f} ({n}{', reason stated' if said else ''})")
 
 
 if __name__ == "__main__":

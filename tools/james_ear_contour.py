@@ -49,9 +49,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from facecap.synthetic import Renderer, Room, make_subject  # noqa: E402
+from facecap.synthetic.config import SynthConfig  # noqa: E402
 from facecap.synthetic.sensor import to_srgb8  # noqa: E402
 from facecap_core.camera import Intrinsics, camera_center, look_at, pixel_rays  # noqa: E402
-from facecap_core.config import SynthConfig  # noqa: E402
 from facecap_core.render import RaycastScene  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -7,13 +7,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
+from facecap.ear_training.config import EarTrainingConfig
 from facecap.synthetic import ict_subject
 from facecap.synthetic.cloud import mvs_like_cloud
-from facecap_core.config import EarTrainingConfig, FittingConfig
 from facecap_core.errors import InputError
 from facecap_core.fitting import fit
 from facecap_core.landmarks.ears import CONTOUR_FILE, DETECTOR_FILE, PREDICTOR_FILE
+from facecap_core.nonrigid.nicp import FittingConfig
 from facecap_core.template import Template, head_frame
 
 SIDES = ("left", "right")
@@ -93,7 +95,6 @@ class SurfacePoints:
 def snap_to_surface(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
                     ) -> tuple[SurfacePoints, np.ndarray]:
     """Nearest surface points of a mesh to ``points`` and their distances."""
-    import trimesh
 
     mesh = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces, np.int64),
                            process=False)

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
+from facecap.ear_training.config import EarTrainingConfig
 from facecap.ear_training.contour import (
     SIDE_SIGN,
     SIDES,
@@ -19,7 +21,6 @@ from facecap.synthetic import HAIR_COLOURS, Renderer, Room, SolidNoise, ict_subj
 from facecap.synthetic.sensor import to_srgb8
 from facecap.synthetic.subjects import smoothstep
 from facecap_core.camera import Intrinsics, look_at, pixel_rays, project, rotation_matrix
-from facecap_core.config import EarTrainingConfig
 from facecap_core.render import RaycastScene, interpolate
 from facecap_core.template import region_masks
 
@@ -272,7 +273,6 @@ def render_dataset(config: EarTrainingConfig, ict_model: str | Path,
                    transfer: dict[str, SurfacePoints], progress: bool = True
                    ) -> list[EarSample]:
     """The training views: ``identities`` x ``views_per_identity`` (left-ear orientation)."""
-    from tqdm import tqdm
 
 
     rooms = [Room.random(np.random.default_rng([config.seed, 7, k])) for k in range(config.rooms)]

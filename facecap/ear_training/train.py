@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facecap.ear_training.config import EarTrainingConfig
 from facecap.ear_training.contour import (
     CONTOUR_FILE,
     DETECTOR_FILE,
@@ -30,9 +31,11 @@ from facecap.ear_training.render import (
     render_key,
     save_dataset,
 )
-from facecap_core.config import EarTrainingConfig, load_yaml
+from facecap_core.config import load_yaml
 from facecap_core.errors import FacecapError, InputError
 from facecap_core.settings import settings
+
+# Imported where used: dlib (the trainer) only where a model is trained.
 
 
 def iou(a, b) -> float:

@@ -10,9 +10,12 @@ from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
 
+import av
 import numpy as np
 import trimesh
+from tqdm import tqdm
 
+from facecap.synthetic.config import SynthConfig
 from facecap.synthetic.scene import CameraPath, HeadSway, Room, SmoothNoise
 from facecap.synthetic.sensor import (
     Readout,
@@ -30,7 +33,7 @@ from facecap_core.camera import (
     Intrinsics,
     project,
 )
-from facecap_core.config import SynthConfig, dump_yaml
+from facecap_core.config import dump_yaml
 from facecap_core.errors import InputError
 from facecap_core.meshio import save_landmarks
 from facecap_core.render import (
@@ -56,7 +59,6 @@ CODECS = {"h264": "libx264", "hevc": "libx265"}
 
 def _encode(frames_path: Path, width: int, height: int, fps: float, crf: int,
             codec: str = "h264", rotation_deg: int = 0):
-    import av
 
     container = av.open(str(frames_path), mode="w", format="mp4")
     rate = Fraction(fps).limit_denominator(1001)
@@ -183,8 +185,6 @@ def prepare(config: SynthConfig) -> Shot:
 
 def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True) -> Capture:
     """Render a capture of ``config`` into ``out_dir`` (see the module docstring)."""
-    import av
-    from tqdm import tqdm
 
     start = time.perf_counter()
     out = Path(out_dir)

@@ -10,11 +10,11 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
+from facecap.synthetic.config import SynthConfig
 from facecap_core.camera import (
     look_at,
     rotation_matrix,
 )
-from facecap_core.config import SynthConfig
 
 
 def _wall_texture(rng: np.random.Generator, size: int = 1024, plain: bool = False) -> np.ndarray:

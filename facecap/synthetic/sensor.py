@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import trimesh
 
+from facecap.synthetic.config import SynthConfig
 from facecap.synthetic.scene import Room
 from facecap.synthetic.subjects import Subject
 from facecap_core.camera import (
@@ -17,7 +18,6 @@ from facecap_core.camera import (
     distort,
     pixel_rays,
 )
-from facecap_core.config import SynthConfig
 from facecap_core.render import (
     NO_HIT,
     Hits,

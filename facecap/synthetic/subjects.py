@@ -11,11 +11,11 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from facecap.synthetic.config import SynthConfig
 from facecap_core.assets import default_ict_model, james_files
 from facecap_core.camera import (
     rotation_matrix,
 )
-from facecap_core.config import SynthConfig
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.render import (

@@ -142,6 +142,8 @@ def _transform(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
 def align_to_surface(mesh_vertices: np.ndarray, scan: Surface, scan_landmarks: np.ndarray,
            mesh_landmarks: np.ndarray | None, with_scale: bool,
            config: EvaluationConfig) -> Alignment:
+    # Long on purpose: the alignment protocol step by step (landmarks, then ICP in the region), as
+    # docs/evaluation.md lists it.
     mv = np.asarray(mesh_vertices, float)
     centre, radius = region_sphere(scan_landmarks, config.radius_factor)
     radius_icp = radius * config.icp_margin

@@ -9,10 +9,12 @@ from pathlib import Path
 import numpy as np
 
 from facecap_core.errors import InputError
-from facecap_core.evaluation.alignment import EvaluationConfig
+from facecap_core.evaluation.alignment import PROTOCOLS, EvaluationConfig
 from facecap_core.evaluation.figures import error_heatmap
 from facecap_core.evaluation.scoring import evaluate, score_json
-from facecap_core.meshio import load_mesh
+from facecap_core.fitting.run import MESH_LANDMARKS, MESH_PLY
+from facecap_core.meshio import load_mesh, save_landmarks
+from facecap_core.stage import Folders, Stage
 from facecap_core.template import Template
 
 EVALUATION_JSON = "evaluation.json"
@@ -36,7 +38,6 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
     """Score the fitting stage's ``mesh.ply`` against a scan; writes ``evaluation.json``
     (:func:`score_json` per protocol), ``heatmap_<protocol>.png`` and
     ``accuracy_<protocol>.npy`` (per vertex); returns the JSON."""
-    from facecap_core.fitting.run import MESH_LANDMARKS, MESH_PLY
 
     mesh_path = Path(mesh_dir) / MESH_PLY
     scan_path = find_file(scan_dir, (".ply", ".obj", ".stl", ".off"), "scan mesh")
@@ -48,7 +49,6 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
     mesh_lm = Path(mesh_dir) / MESH_LANDMARKS
     if not mesh_lm.is_file():
         # A mesh in template topology carries its landmarks: the template's landmark vertices.
-        from facecap_core.meshio import save_landmarks
 
         template = Template.default()
         if len(mesh.vertices) == len(template.vertices):
@@ -70,3 +70,15 @@ def figures(folder: str | Path) -> dict:
     """The scores of an evaluation artifact, per protocol."""
     path = Path(folder) / EVALUATION_JSON
     return {"evaluation": json.loads(path.read_text())} if path.is_file() else {}
+
+
+def run(inputs: Folders, out: Path, config: None, params: dict) -> None:
+    main(inputs["mesh"], inputs["scan"], out, scan_landmarks=inputs.get("scan_landmarks"))
+
+
+HEATMAPS = tuple(f"heatmap_{p}.png" for p in PROTOCOLS)
+
+STAGE = Stage("evaluation", step="evaluation", version="3", inputs=("mesh", "scan"),
+              section=None, run=run, outputs=(EVALUATION_JSON, *HEATMAPS),
+              exported=(EVALUATION_JSON, *HEATMAPS), optional=("scan_landmarks",),
+              figures=figures)

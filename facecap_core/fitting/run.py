@@ -17,9 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from facecap_core.errors import InputError
 from facecap_core.fitting.sanity import MeshSanity, check_mesh, relax_folds
+from facecap_core.landmarks.ears import EAR_VERTEX_IDS
 from facecap_core.meshio import load_landmarks, save_landmarks
 from facecap_core.nonrigid.constraints import Keyframe
 from facecap_core.nonrigid.nicp import FitResult, FittingConfig, fit
@@ -27,6 +29,8 @@ from facecap_core.nonrigid.roughness import face_edges, roughness
 from facecap_core.template import Template
 from facecap_core.texture import vertex_colours
 from facecap_core.video import read_frames
+
+# Imported where used: open3d (a second to import) only where a cloud or mesh is read or written.
 
 MESH_PLY = "mesh.ply"
 MESH_OBJ = "mesh.obj"
@@ -123,9 +127,7 @@ def ears_off_the_cloud(ear_points, cloud: np.ndarray) -> tuple[tuple | None, dic
     """``ear_points`` (ids, points[, weights]) without the sides (by
     :data:`~facecap_core.landmarks.ears.EAR_VERTEX_IDS`) that lie off the fused ``cloud``, and
     per side judged: the median distance (mm), the cloud points near it, ``used``."""
-    from scipy.spatial import cKDTree
 
-    from facecap_core.landmarks.ears import EAR_VERTEX_IDS
 
     if ear_points is None or not len(ear_points[0]) or len(cloud) < EAR_CLOUD_COVER:
         return ear_points, {}

@@ -16,9 +16,13 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from facecap_core.geometry import umeyama
 from facecap_core.nonrigid.solver import edges_of
+
+# Imported where used: open3d (a second to import) only for the self-intersection test.
 
 MAX_EDGE_STRETCH = 3.0
 """An edge beyond this many times its (similarity-scaled) template length counts as
@@ -153,7 +157,6 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.nd
 
 def _adjacency(faces: np.ndarray, n: int):
     """Row-normalised vertex adjacency (sparse): A @ x averages x over each one-ring."""
-    import scipy.sparse as sp
 
     e = edges_of(faces)
     A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
@@ -179,8 +182,6 @@ def relax_folds(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.n
     held), over a neighbourhood that widens by a ring each round the triangle stays bad; a
     sliver still folded after that is moved with its template triangle. Elsewhere the fit
     is untouched. Returns the vertices and what was done."""
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
 
     V = np.asarray(vertices, float).copy()
     T = np.asarray(template_vertices, float)

@@ -11,16 +11,19 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from facecap_core.camera import CAMERAS_JSON, read_cameras_json
-from facecap_core.config import FittingConfig
 from facecap_core.errors import InputError
-from facecap_core.fitting.run import FIT_JSON, fit_and_write
+from facecap_core.fitting.run import FIT_JSON, MESH_LANDMARKS, MESH_OBJ, MESH_PLY, fit_and_write
 from facecap_core.frames import load_frame
 from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_3D
 from facecap_core.meshio import load_landmarks
+from facecap_core.mvs.fusion import CLOUD
 from facecap_core.nonrigid.constraints import Keyframe
+from facecap_core.nonrigid.nicp import FittingConfig
+from facecap_core.stage import Folders, Stage
 from facecap_core.template import Template
 
 
@@ -53,8 +56,6 @@ def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str |
         for i, R, t in zip(cams.frame_indices, cams.R, cams.t):
             image = load_frame(frames_dir, i)
             if frame_width and image.shape[1] > frame_width:
-                import cv2
-
                 h = int(round(image.shape[0] * frame_width / image.shape[1]))
                 image = cv2.resize(image, (frame_width, h), interpolation=cv2.INTER_AREA)
             keyframes.append(Keyframe(image, cams.intrinsics, R, t))
@@ -80,3 +81,13 @@ def figures(folder: str | Path) -> dict:
     if fit.get("cloud_noise"):
         fig["cloud_noise"] = fit["cloud_noise"]
     return fig
+
+
+def run(inputs: Folders, out: Path, config: FittingConfig, params: dict) -> None:
+    main(inputs["fusion"] / CLOUD, inputs["coarse"], inputs["frames"], out, config)
+
+
+STAGE = Stage("fitting", step="fitting", version="6", inputs=("fusion", "coarse", "frames"),
+              section="fitting", run=run,
+              outputs=(MESH_PLY, MESH_OBJ, MESH_LANDMARKS, FIT_JSON),
+              exported=(MESH_PLY, MESH_OBJ, FIT_JSON), figures=figures)

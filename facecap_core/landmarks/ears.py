@@ -26,6 +26,8 @@ import numpy as np
 from facecap_core.errors import FacecapError, InputError
 from facecap_core.settings import settings
 
+# Imported where used: dlib only where the ear models run (a run without them never loads it).
+
 MODELS_DIR = Path(__file__).resolve().parent / "models"
 DETECTOR_FILE = "ear_detector.svm"
 PREDICTOR_FILE = "ear_predictor.dat"

@@ -36,29 +36,114 @@ cameras' intrinsics (video frames of another size are mapped to it).
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import json
 import logging
 import time
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import numpy as np
+from pydantic import Field, model_validator
 
-from facecap_core.camera import CameraSet, Intrinsics, camera_center, read_cameras_json
-from facecap_core.config import LandmarkConfig
+from facecap_core.camera import (
+    CAMERAS_JSON,
+    CameraSet,
+    Intrinsics,
+    camera_center,
+    read_cameras_json,
+)
+from facecap_core.config import StrictModel
 from facecap_core.errors import InputError
-from facecap_core.face import DETECTOR, Detection, detect
+from facecap_core.face import DETECTOR, MESH_TO_68_FILE, Detection, detect
 from facecap_core.landmarks import iris
 from facecap_core.landmarks.convention import (
+    OFFSETS_FILE,
     correct,
     eye_distance,
     load_offsets,
     robust_head_frame,
 )
 from facecap_core.landmarks.ear_check import check_ears
+from facecap_core.landmarks.ears import model_digest
 from facecap_core.landmarks.triangulate import Triangulation, box_size, triangulate
+from facecap_core.pose.stage import MIN_YAW_SPAN_DEG
+from facecap_core.stage import Folders, Stage, capture_in
 from facecap_core.template import INNER_LANDMARKS
 from facecap_core.video import iter_frames
+
+
+class LandmarkConfig(StrictModel):
+    """68-point landmarks per keyframe, their gate, and 3D triangulation
+    (``facecap_core/landmarks/stage.py``; Agrawal et al. 2020, "Landmark constraints")."""
+
+    min_detector_score: float = Field(0.5, ge=0.1, le=1)
+    """Weakest face detection kept (MediaPipe's face detector score, 0.1-1: 0.8-0.9 on faces
+    turned up to 50°; ``facecap_core/face.py``)."""
+    gate_max_yaw_deg: float = Field(40.0, gt=0, le=90)
+    """Gate: largest yaw of the camera around the head (from the first triangulation): the
+    detector's points grow less certain beyond it."""
+    gate_max_reprojection: float = Field(0.02, gt=0, le=1)
+    """Gate: largest median reprojection error of a keyframe's inner points against the
+    landmarks triangulated from all views, as a fraction of its face box size (the square
+    root of the box area; ~0.005 for a good detection)."""
+    convention_correction: bool = True
+    """Move the triangulated points from the detector's image convention to 3D landmarks on
+    the face (calibrated per-landmark offsets, ``facecap_core/landmarks/convention.py``)."""
+    max_point_spread: float = Field(0.03, gt=0)
+    """A 3D landmark is dropped (null) when its standard deviation along its least certain
+    direction, for the median reprojection error, exceeds this fraction of the eye-centre
+    distance (~2 mm): its inlier views are too alike."""
+    min_views: int = Field(3, ge=2, le=100)
+    """Fewest gated keyframes wanted; with fewer the gate widens to the best-agreeing
+    detections (recorded in landmarks2d.json)."""
+    outlier_threshold: float = Field(0.02, gt=0, le=1)
+    """A view's observation of a point is an outlier above this reprojection error, as a
+    fraction of that view's face box size."""
+    huber: float = Field(0.01, gt=0, le=1)
+    """Huber threshold of the robust refinement, same unit as ``outlier_threshold``."""
+    min_parallax_deg: float = Field(2.0, ge=0, le=45)
+    """Two views start a point's hypothesis only when their rays meet at this angle or more."""
+    ear_min_yaw_deg: float = Field(45.0, ge=0, le=180)
+    """Ears are searched in keyframes at least this far from frontal (profile side) ..."""
+    ear_max_yaw_deg: float = Field(100.0, ge=0, le=180)
+    """... and at most this far."""
+    min_yaw_span_deg: float = Field(MIN_YAW_SPAN_DEG, ge=0, le=360)
+    """Fewest degrees of yaw around the head that the registered keyframes must span (the
+    face's sides are seen from ±20° on; with less, depth from the frontal views alone is too
+    ill-conditioned for a metric face). A full capture spans about 180°."""
+    irises: bool = True
+    """Measure the irises (pupil centres, horizontal iris diameter) in the frontal keyframes
+    from the face mesh's iris points (``facecap_core/landmarks/iris.py``): the coarse stage's
+    IPD and iris-size scale cues."""
+    iris_max_yaw_deg: float = Field(15.0, gt=0, le=60)
+    """Irises are measured in gated keyframes at most this far from frontal: beyond, the iris
+    is foreshortened and MediaPipe's diameter less certain (on the calibration renders, 15°
+    gave a 4.7 % spread of the measured diameter and 0.2 % of the pupil distance; 35°: 4.8 %
+    and 0.5 %)."""
+    min_eye_opening: float = Field(0.2, ge=0, le=1)
+    """An eye is measured only when its lids are this far apart, as a fraction of its
+    corner-to-corner width (the eye aspect ratio of blink detection, from the face mesh's lid
+    points): the lids of a half-closed eye cut the iris. Measured: 0.26-0.30 on rendered open
+    eyes (ICT identity 11, calibration renders), 0.06-0.17 on the closed eyes of
+    ``photo_set_31``."""
+    ear_min_views: int = Field(3, ge=2, le=100)
+    """Fewest keyframes with an ear detection for that ear's points to be triangulated."""
+    ear_outlier_threshold: float = Field(0.1, gt=0, le=1)
+    """An ear point's observation is an outlier above this reprojection error, as a fraction
+    of the ear box diagonal (the ear predictor's error is ~0.05 of it)."""
+    ear_huber: float = Field(0.03, gt=0, le=1)
+    """Huber threshold of the ears' robust refinement, same unit."""
+
+    @model_validator(mode="after")
+    def _check_ranges(self):
+        if self.ear_min_yaw_deg > self.ear_max_yaw_deg:
+            raise ValueError("ear_min_yaw_deg exceeds ear_max_yaw_deg")
+        if self.huber > self.outlier_threshold:
+            raise ValueError("huber must not exceed outlier_threshold")
+        return self
+
 
 LANDMARKS_2D = "landmarks2d.json"
 LANDMARKS_3D = "landmarks3d.json"
@@ -250,6 +335,81 @@ def yaw_coverage(records: list[dict]) -> dict:
             "yaw_by_frame": [[r["frame_index"], r["yaw_deg"]] for r in records]}
 
 
+def _keyframe_records(dets, detected, first, head_R, head_o, cams) -> list[dict]:
+    """Each keyframe's record: its view of the head (yaw, pitch), and where a face was
+    detected its score, box, points and how far they are from the first triangulation."""
+    inner = INNER_LANDMARKS
+    records = []
+    for k, det in enumerate(dets):
+        yaw, pitch = camera_yaw_pitch_deg(head_R, head_o, cams.R[k], cams.t[k])
+        rec = {"frame_index": cams.frame_indices[k], "detected": det is not None,
+               "yaw_deg": round(yaw, 2), "pitch_deg": round(pitch, 2), "ears": []}
+        if det is not None:
+            v = detected.index(k)
+            err = first.errors[v, inner]
+            med = float(np.nanmedian(err)) if np.isfinite(err).any() else float("inf")
+            rec.update(score=round(det.score, 4),
+                       box=[round(b, 2) for b in det.box],
+                       points=np.round(det.points, 3).tolist(),
+                       reprojection_px=round(med, 3),
+                       reprojection_rel=round(med / box_size(det.box), 5))
+        records.append(rec)
+    return records
+
+
+def _coverage(records: list[dict], config: LandmarkConfig) -> dict:
+    """How far round the head the views go; too little is bad input."""
+    coverage = yaw_coverage(records)
+    if coverage["yaw_span_deg"] < config.min_yaw_span_deg:
+        raise InputError(
+            f"the {len(records)} registered views cover yaw {coverage['yaw_min_deg']:+.0f}° to "
+            f"{coverage['yaw_max_deg']:+.0f}° around the head ({coverage['yaw_span_deg']:.0f}°"
+            f"); a face needs at least {config.min_yaw_span_deg:.0f}° and a full capture about "
+            "180°: record again, moving the camera from one ear round the face to the other")
+    return coverage
+
+
+def _landmarks3d_doc(cams, landmarks, correction, triangulated, gated, uncertain, spread,
+                     final, head_R, head_o, iris_doc, detected: int, keyframes: int,
+                     coverage) -> dict:
+    """``landmarks3d.json``'s content (without its timings)."""
+    errs = final.errors[final.inliers]
+    doc3d = {"convention": "ibug68", "units": cams.units,
+             "landmarks": [None if not np.all(np.isfinite(p)) else [round(float(x), 6)
+                                                                     for x in p]
+                           for p in landmarks],
+             "convention_correction": correction,
+             "triangulated": [None if not np.all(np.isfinite(p)) else [round(float(x), 6)
+                                                                        for x in p]
+                              for p in triangulated],
+             "views": [cams.frame_indices[k] for k in gated],
+             "dropped_uncertain": uncertain.tolist(),
+             "spread_rel": [None] * 17 + [round(float(x), 5) if np.isfinite(x) else None
+                                          for x in spread],
+             "inlier_views": [int(v) for v in np.r_[np.zeros(17, int), final.views]],
+             "reprojection_px": {"median": float(np.median(errs)) if errs.size else None,
+                                 "rms": float(np.sqrt(np.mean(errs ** 2))) if errs.size
+                                 else None},
+             "head_frame": {"R": head_R.tolist(), "origin": head_o.tolist()},
+             "irises": iris_doc,
+             "detected": detected, "keyframes": keyframes, "coverage": coverage}
+    return doc3d
+
+
+def _ears3d(video, cams, records, landmarks, ears, config: LandmarkConfig) -> dict:
+    """``ears3d.json``'s content: the ear points triangulated and checked against the face
+    (none without the ear model ``ears``)."""
+    if ears is None:
+        return {"template": EAR_TEMPLATE, "units": cams.units, "vertex_ids": [],
+                "points": [], "sides": [], "views": {}}
+    found = _detect_ears(video, cams, records, ears, config)
+    ears_doc = check_ears(triangulate_ears(found, cams, ears.EAR_VERTEX_IDS, config), landmarks)
+    for side, c in ears_doc["checks"].items():
+        log.info("%s ear: %s", side, f"{c['points']} points used" if c["used"]
+                 else f"dropped, {c['reason']}")
+    return ears_doc
+
+
 def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
          config: LandmarkConfig | None = None) -> Path:
     """Detect 68 landmarks on every keyframe of ``cameras_json``, score and gate them,
@@ -278,29 +438,8 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
                          "in 3D: the cameras do not fit the video, or the face moved")
     head_R, head_o = robust_head_frame(first.points)
     inner = INNER_LANDMARKS
-    records = []
-    for k, det in enumerate(dets):
-        yaw, pitch = camera_yaw_pitch_deg(head_R, head_o, cams.R[k], cams.t[k])
-        rec = {"frame_index": cams.frame_indices[k], "detected": det is not None,
-               "yaw_deg": round(yaw, 2), "pitch_deg": round(pitch, 2), "ears": []}
-        if det is not None:
-            v = detected.index(k)
-            err = first.errors[v, inner]
-            med = float(np.nanmedian(err)) if np.isfinite(err).any() else float("inf")
-            rec.update(score=round(det.score, 4),
-                       box=[round(b, 2) for b in det.box],
-                       points=np.round(det.points, 3).tolist(),
-                       reprojection_px=round(med, 3),
-                       reprojection_rel=round(med / box_size(det.box), 5))
-        records.append(rec)
-
-    coverage = yaw_coverage(records)
-    if coverage["yaw_span_deg"] < config.min_yaw_span_deg:
-        raise InputError(
-            f"the {n} registered views cover yaw {coverage['yaw_min_deg']:+.0f}° to "
-            f"{coverage['yaw_max_deg']:+.0f}° around the head ({coverage['yaw_span_deg']:.0f}°"
-            f"); a face needs at least {config.min_yaw_span_deg:.0f}° and a full capture about "
-            "180°: record again, moving the camera from one ear round the face to the other")
+    records = _keyframe_records(dets, detected, first, head_R, head_o, cams)
+    coverage = _coverage(records, config)
     gated, widened = _gate(records, config)
     for k, rec in enumerate(records):
         rec["gated"] = k in gated
@@ -331,48 +470,23 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
         if det is not None and det.irises is not None:
             records[k]["irises"] = {side: f.as_dict() for side, f in det.irises.items()}
 
-    ears_doc = {"template": EAR_TEMPLATE, "units": cams.units, "vertex_ids": [],
-                "points": [], "sides": [], "views": {}}
     ears = _ear_module()
-    if ears is not None:
-        found = _detect_ears(video, cams, records, ears, config)
-        ears_doc = check_ears(triangulate_ears(found, cams, ears.EAR_VERTEX_IDS, config),
-                              landmarks)
-        for side, c in ears_doc["checks"].items():
-            log.info("%s ear: %s", side, f"{c['points']} points used" if c["used"]
-                     else f"dropped, {c['reason']}")
+    ears_doc = _ears3d(video, cams, records, landmarks, ears, config)
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    errs = final.errors[final.inliers]
     doc2d = {"image_size": [cams.intrinsics.width, cams.intrinsics.height],
              "detector": DETECTOR,
              "ear_model": ears is not None, "gate_widened": widened,
              "config": config.model_dump(mode="json"), "keyframes": records}
     _write_json(out / LANDMARKS_2D, doc2d)
     _write_json(out / EARS_3D, ears_doc)
-    doc3d = {"convention": "ibug68", "units": cams.units,
-             "landmarks": [None if not np.all(np.isfinite(p)) else [round(float(x), 6)
-                                                                     for x in p]
-                           for p in landmarks],
-             "convention_correction": correction,
-             "triangulated": [None if not np.all(np.isfinite(p)) else [round(float(x), 6)
-                                                                        for x in p]
-                              for p in triangulated],
-             "views": [cams.frame_indices[k] for k in gated],
-             "dropped_uncertain": uncertain.tolist(),
-             "spread_rel": [None] * 17 + [round(float(x), 5) if np.isfinite(x) else None
-                                          for x in spread],
-             "inlier_views": [int(v) for v in np.r_[np.zeros(17, int), final.views]],
-             "reprojection_px": {"median": float(np.median(errs)) if errs.size else None,
-                                 "rms": float(np.sqrt(np.mean(errs ** 2))) if errs.size
-                                 else None},
-             "head_frame": {"R": head_R.tolist(), "origin": head_o.tolist()},
-             "irises": iris_doc,
-             "detected": len(detected), "keyframes": n, "coverage": coverage,
-             "seconds": {"wall": round(time.perf_counter() - t_wall, 3),
-                         "cpu": round(time.process_time() - t_cpu, 3),
-                         "cpu_detection": round(t_detect, 3)}}
+    doc3d = _landmarks3d_doc(cams, landmarks, correction, triangulated, gated, uncertain,
+                             spread, final, head_R, head_o, iris_doc, len(detected), n,
+                             coverage)
+    doc3d["seconds"] = {"wall": round(time.perf_counter() - t_wall, 3),
+                        "cpu": round(time.process_time() - t_cpu, 3),
+                        "cpu_detection": round(t_detect, 3)}
     return _write_json(out / LANDMARKS_3D, doc3d)
 
 
@@ -416,3 +530,26 @@ def load_ears3d(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
     if len(ids) != len(pts):
         raise InputError(f"{path}: {len(ids)} vertex ids for {len(pts)} points")
     return ids, pts, doc
+
+
+def run(inputs: Folders, out: Path, config: LandmarkConfig, params: dict) -> None:
+    main(capture_in(inputs["video"]), inputs["poses"] / CAMERAS_JSON, out, config)
+
+
+def models_digest() -> str:
+    """The models and tables the stage runs, as part of its version: the ear model
+    (retrained, or replaced through $FACECAP_EAR_MODELS), the face mesh's (mediapipe is
+    installed apart from the other dependencies, so its version is not fixed by the
+    package's), and the calibrated tables that turn mesh vertices into 3D landmarks (a
+    recalibration changes every landmark)."""
+    try:
+        mesh = f"mediapipe-{version('mediapipe')}"
+    except PackageNotFoundError:
+        mesh = "no-mediapipe"
+    tables = hashlib.sha256(MESH_TO_68_FILE.read_bytes() + OFFSETS_FILE.read_bytes())
+    return f"ears-{model_digest()}-{mesh}-tables-{tables.hexdigest()[:12]}"
+
+
+STAGE = Stage("landmarks", step="landmarks", version="7", inputs=("video", "poses"),
+              section="landmarks", run=run, outputs=(LANDMARKS_2D, LANDMARKS_3D, EARS_3D),
+              version_suffix=models_digest)

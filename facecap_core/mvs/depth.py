@@ -9,11 +9,14 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
-from facecap_core.camera import Intrinsics
-from facecap_core.config import DepthMapConfig
+from facecap_core.camera import CAMERAS_JSON, Intrinsics
+from facecap_core.coarse import COARSE_PLY
+from facecap_core.config import StrictModel
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_mesh
 from facecap_core.mvs.filtering import filter_with_prior
@@ -21,7 +24,62 @@ from facecap_core.mvs.images import MVSView, load_view, metric_cameras
 from facecap_core.mvs.patchmatch import DepthMap, patchmatch_depth
 from facecap_core.mvs.prior import coarse_prior
 from facecap_core.mvs.sweep import sweep_depth
-from facecap_core.mvs.views import read_views
+from facecap_core.mvs.views import VIEWS, read_views
+from facecap_core.stage import Folders, Stage
+
+
+class DepthMapConfig(StrictModel):
+    """One keyframe's depth map: the search range from the coarse mesh, PatchMatch, and the
+    per-map filter (``mvs.depth``)."""
+
+    processing_width: int = Field(640, ge=64, le=4096)
+    """Width (px) the keyframes are resized to before undistortion and matching."""
+    depth_margin_mm: float = Field(8.0, gt=0, le=100)
+    """Half-width of the depth search range around the coarse mesh."""
+    head_dilation_px: int = Field(6, ge=0, le=100)
+    """Pixels the coarse mesh's silhouette is grown by to form the computed region."""
+    method: Literal["patchmatch", "sweep"] = "patchmatch"
+    """How the depths are searched: ``patchmatch`` (the paper's: slanted planes, sparse
+    bilateral window, ``patchmatch.py``) or ``sweep`` (fronto-parallel planes every
+    ``sweep_step_mm`` around the coarse depth, dense box window, ``sweep.py``): a fifth of
+    the depth stage's time, as accurate or more on rendered faces, less consistent on real
+    photos and on the real head scan (docs/mvs.md, "Which depth search"). Both use the
+    window radius, the best-views aggregation and the filter below; the PatchMatch fields
+    only PatchMatch."""
+    sweep_step_mm: float = Field(0.5, gt=0, le=10)
+    """Spacing of the sweep's planes (a parabola through the best one and its neighbours
+    gives the depth between them)."""
+    init_from_coarse: bool = True
+    """Also test the coarse mesh's plane at initialisation (the paper initialises with it)."""
+
+    iterations: int = Field(5, ge=1, le=32)
+    """Red–black PatchMatch iterations (each updates both colours once)."""
+    neighbours: str = Field("fast", pattern="^(fast|full)$")
+    """Gipuma's propagation pattern: 8 ('fast': ±1, ±5 on both axes) or 20 ('full')."""
+    refine_trials: int = Field(3, ge=0, le=10)
+    """Random refinements per pixel and iteration (depth, normal, both perturbed)."""
+    normal_perturbation_deg: float = Field(30.0, gt=0, le=90)
+    """Largest normal perturbation; the depth and normal steps halve every iteration."""
+    window_radius: int = Field(5, ge=1, le=15)
+    """Half-size (px) of the matching window."""
+    window_step: int = Field(2, ge=1, le=5)
+    """Sample every ``window_step``-th pixel of the window (sparse window)."""
+    presmooth_sigma: float = Field(0.8, ge=0, le=5)
+    """Gaussian blur (px) of the grey images before matching (noise vs. sparse sampling)."""
+    sigma_color: float = Field(0.2, gt=0)
+    """Bilateral weight's intensity spread (intensities in [0, 1])."""
+    sigma_spatial: float | None = Field(None, gt=0)
+    """Bilateral weight's spatial spread in px; default: the window radius."""
+    num_best_views: int = Field(8, ge=1, le=64)
+    """A hypothesis' cost is the mean of its best this-many per-view costs (occlusion)."""
+    seed: int = Field(0, ge=0, le=2**32 - 1)
+    """Seed of the random hypotheses (results are reproducible per keyframe)."""
+
+    max_cost: float = Field(0.5, gt=0, le=2)
+    """Depths whose aggregated cost (1 - NCC) exceeds this are rejected."""
+    coarse_max_distance_mm: float = Field(6.0, gt=0)
+    """Depths farther than this from the coarse mesh (along the ray) are rejected."""
+
 
 log = logging.getLogger(__name__)
 
@@ -98,3 +156,19 @@ def main(index: int, frames_dir: str | Path, cameras_json: str | Path,
              "%.1f s", int(index), meta["valid_pixels"], 100.0 * filtered.valid.mean(),
              len(srcs), filtered.seconds)
     return path
+
+
+def run(inputs: Folders, out: Path, config: DepthMapConfig, params: dict) -> None:
+    main(params["index"], inputs["frames"], inputs["coarse"] / CAMERAS_JSON,
+         inputs["views"] / VIEWS, inputs["coarse"] / COARSE_PLY, out, config)
+
+
+def reference_keyframes(inputs: Folders) -> list[int]:
+    """The keyframes that get a depth map: those the view selection chose."""
+    return sorted(read_views(inputs["views"] / VIEWS))
+
+
+STAGE = Stage("depth", step="mvs", version="1", inputs=("frames", "coarse", "views"),
+              section="mvs.depth", run=run,
+              outputs=("depth_{index:05d}.npz", "depth_{index:05d}.json"),
+              per_keyframe=reference_keyframes)

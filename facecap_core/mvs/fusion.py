@@ -20,13 +20,34 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydantic import Field
 
-from facecap_core.config import FusionConfig
+from facecap_core.camera import CAMERAS_JSON
+from facecap_core.config import StrictModel
 from facecap_core.errors import InputError
+from facecap_core.mvs import depth
 from facecap_core.mvs.depth import load_depth_map
 from facecap_core.mvs.filtering import _partners, agreement, backproject, geometric_filter
 from facecap_core.mvs.images import load_view, metric_cameras
 from facecap_core.mvs.patchmatch import DepthMap
+from facecap_core.stage import Folders, Stage
+
+# Imported where used: open3d (a second to import) only where the cloud is written.
+
+
+class FusionConfig(StrictModel):
+    """The consistency filter across depth maps and their fusion into one cloud
+    (``mvs.fusion``)."""
+
+    max_depth_mm: float = Field(1.0, gt=0)
+    """A source agrees when its depth differs by at most this from the reprojection."""
+    max_reprojection_px: float = Field(1.0, gt=0)
+    """... and the round trip through its depth lands within this many pixels."""
+    max_normal_deg: float = Field(30.0, gt=0, le=180)
+    """... and its normal is within this angle."""
+    min_consistent_views: int = Field(2, ge=1, le=64)
+    """Source views that must agree with a reference pixel to make a point."""
+
 
 log = logging.getLogger(__name__)
 
@@ -155,3 +176,13 @@ def main(depth_npzs: list[str | Path], frames_dir: str | Path, cameras_json: str
     log.info("fused %d points from %d depth maps in %.1f s", len(cloud.points), len(maps),
              seconds)
     return ply
+
+
+def run(inputs: Folders, out: Path, config: FusionConfig, params: dict) -> None:
+    maps = sorted(p for name, folder in inputs.items() if depth.STAGE.is_row(name)
+                  for p in folder.glob("depth_*.npz"))
+    main(maps, inputs["frames"], inputs["coarse"] / CAMERAS_JSON, out, config)
+
+
+STAGE = Stage("fusion", step="mvs", version="2", inputs=("frames", "coarse", "depth"),
+              section="mvs.fusion", run=run, outputs=(CLOUD, FUSION), exported=(CLOUD,))

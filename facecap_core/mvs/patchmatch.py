@@ -222,6 +222,8 @@ def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
                 srcs, A, b, fx, fy, cx, cy, dxs, dys, wn, wa, nbest, iterations,
                 nbr, refine_trials, normal_sigma, seed, depth, normal, cost):
     """Initialise and iterate PatchMatch in place on ``depth``, ``normal``, ``cost``."""
+    # Long on purpose: a numba kernel: the initialisation, propagation and refinement sweeps share
+    # the per-pixel state in place.
     np.random.seed(seed)
     best = np.empty(nbest)
     h, w = idx.shape

@@ -14,13 +14,37 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from pydantic import Field
 
-from facecap_core.camera import camera_center, project
-from facecap_core.config import ViewSelectionConfig
+from facecap_core.camera import CAMERAS_JSON, camera_center, project
+from facecap_core.coarse import COARSE_PLY
+from facecap_core.config import StrictModel
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_mesh
 from facecap_core.mvs.images import MVSView, metric_cameras
+from facecap_core.pose.stage import SPARSE
 from facecap_core.render import RaycastScene
+from facecap_core.stage import Folders, Stage
+
+
+class ViewSelectionConfig(StrictModel):
+    """Which keyframes get a depth map and which keyframes each one is matched against
+    (``mvs.views``; the paper's view-selection score)."""
+
+    num_sources: int = Field(12, ge=1, le=64)
+    """Source views per reference view, the best by the view-selection score."""
+    max_reference_views: int = Field(40, ge=2, le=4096)
+    """MVS uses at most this many keyframes, evenly spaced along the sweep: one depth map
+    each, sources among them. Neighbouring keyframes of a dense sweep see nearly the same
+    surface: beyond about 40 maps the cloud gains little, and the stage, the pipeline's
+    slowest, grows linearly."""
+    theta0_deg: float = Field(10.0, gt=0, lt=90)
+    """Preferred baseline angle theta0 of the view-selection score."""
+    sigma1: float = Field(5.0, gt=0)
+    """Spread (degrees) of the score below theta0."""
+    sigma2: float = Field(10.0, gt=0)
+    """Spread (degrees) of the score above theta0."""
+
 
 log = logging.getLogger(__name__)
 
@@ -174,3 +198,12 @@ def reference_views(count: int, limit: int) -> list[int]:
 def read_views(views_json: str | Path) -> dict[int, list[int]]:
     doc = json.loads(Path(views_json).read_text())
     return {int(k): [int(j) for j in v] for k, v in doc["sources"].items()}
+
+
+def run(inputs: Folders, out: Path, config: ViewSelectionConfig, params: dict) -> None:
+    main(inputs["frames"], inputs["coarse"] / CAMERAS_JSON, inputs["coarse"] / COARSE_PLY, out,
+         config, inputs["poses"] / SPARSE)
+
+
+STAGE = Stage("views", step="mvs", version="1", inputs=("frames", "coarse", "poses"),
+              section="mvs.views", run=run, outputs=(VIEWS,))

@@ -13,10 +13,12 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
+from pydantic import Field, model_validator
 
-from facecap_core.config import FittingConfig
+from facecap_core.config import MAX_LEVELS, StrictModel
 from facecap_core.errors import InputError
 from facecap_core.geometry import umeyama
 from facecap_core.nonrigid.constraints import (
@@ -33,6 +35,112 @@ from facecap_core.nonrigid.roughness import face_vertices
 from facecap_core.nonrigid.solver import NicpSystem
 from facecap_core.render import RaycastScene, vertex_normals
 from facecap_core.template import INNER_LANDMARKS, Template
+
+
+class FittingConfig(StrictModel):
+    """Non-rigid template fitting: optimal-step NICP (Amberg et al. 2007) to a fused point
+    cloud, 3D landmarks, ear points and keyframe silhouettes (Agrawal et al. 2020, "Mesh
+    fitting"). Distances in mm, weights relative to one cloud target."""
+
+    stiffness: list[float] = Field([50.0, 20.0, 10.0, 5.0, 2.0], max_length=MAX_LEVELS)
+    """Stiffness alpha per level, from global (large) to local (small) deformation; the
+    template is centred and scaled to unit RMS radius, so the values do not depend on units.
+    The schedule ends at 2: a last level at 1 follows the MVS noise into millimetre ridges
+    on clean renders as on real skin (calibration renders, docs/fitting.md)."""
+    landmark_weight: list[float] = Field([50.0, 20.0, 10.0, 5.0, 2.0],
+                                         max_length=MAX_LEVELS)
+    """Weight of each landmark target per level (same length as ``stiffness``); falls with
+    the stiffness so that landmarks place the mesh first and the cloud refines it."""
+    iterations_per_level: int = Field(3, ge=1, le=100)
+    """Most optimal steps per stiffness level (fewer when the mesh stops moving)."""
+    convergence_mm: float = Field(0.02, ge=0)
+    """A level ends early when no vertex moved more than this in its last step."""
+    gamma: float = Field(1.0, gt=0)
+    """Weight of the translation part against the linear part in the stiffness term."""
+    reuse_factorization: bool = True
+    """Keep the per-vertex weights fixed within a level, so the matrix is factored once per
+    level; vertices that lose their cloud target during the level hold their position."""
+    solver: Literal["auto", "cholmod", "scipy"] = "auto"
+    """Sparse solver: CHOLMOD via cvxopt (supernodal Cholesky), scipy's SuperLU, or auto."""
+    initial_similarity: bool = True
+    """Start from a similarity (Umeyama) fit of the template's inner landmarks to the given
+    landmarks."""
+
+    use_cloud: bool = True
+    """Use the point-cloud constraint (False: the landmarks-only ablation)."""
+    use_edges: bool = True
+    """Use keyframe silhouette/edge constraints when keyframes are given."""
+    use_ear_landmarks: bool = True
+    """Use ear points (vertex id, 3D target) when given."""
+
+    data_weight: float = Field(1.0, gt=0)
+    """Weight of one point-cloud target."""
+    search_radius_mm: tuple[float, float] = (8.0, 3.0)
+    """How far along the vertex normal cloud points are accepted, at the first and last
+    level (geometric in between): wide while the template is far, tight at the end."""
+    normal_distance_mm: float = Field(1.5, gt=0)
+    """Largest distance of an accepted cloud point from the vertex-normal line."""
+    min_points: int = Field(3, ge=1, le=1000)
+    """Fewest accepted points for a cloud target; vertices with fewer fall back to stiffness."""
+    normal_agreement_deg: float = Field(60.0, gt=0, le=180)
+    """When the cloud has normals, accept only points whose normal is within this angle of
+    the vertex normal (180: no check)."""
+    cloud_noise_mm: float | None = Field(0.12, gt=0, le=10)
+    """The smoothness follows the cloud's measured noise: when the fused points that give the
+    face its targets are less certain than this (their median standard error, from the
+    spread of the views that agree on each point), every cloud target weighs
+    ``(cloud_noise_mm / noise)²`` of ``data_weight``: the cloud then counts less against the
+    stiffness (and against the landmarks, ear points and silhouettes), so the stiffness, not
+    the noise, shapes the surface. 0.12 mm is the noise of the clean calibration render (ICT
+    identity 11, 640x360: 0.117 mm); held-out clean renders measured 0.094 (ict:12) and
+    0.102 mm (the demo) and keep the full weight. None: always ``data_weight``."""
+    recompute_every: int = Field(1, ge=1, le=100)
+    """Recompute the cloud targets every this many steps (the paper: every few)."""
+
+    ear_weight: float = Field(1.0, ge=0)
+    """Ear point weight relative to the level's landmark weight."""
+
+    edge_weight: float = Field(1.0, ge=0)
+    """Weight of one silhouette target (per keyframe that sees the vertex on its contour)."""
+    edge_recompute_every: int = Field(2, ge=1, le=100)
+    """Recompute silhouette vertices and their edge targets every this many steps."""
+    edge_first_level: int = Field(1, ge=0, le=MAX_LEVELS)
+    """First level (0-based) that uses edges: before it the mesh is too far for a few-pixel
+    match."""
+    edge_max_px: float = Field(3.0, gt=0)
+    """Largest image distance from a projected contour vertex to its edge pixel."""
+    edge_min_cos: float = Field(0.7, ge=0, le=1)
+    """The edge pixel must lie along the projected vertex normal: |cos| of the angle at least
+    this."""
+    edge_blur_sigma: float = Field(1.0, ge=0)
+    """Gaussian blur (px) before Canny."""
+    canny_thresholds: tuple[int, int] = (30, 90)
+    """Canny hysteresis thresholds on the grey image."""
+    edge_boundary_rings: int = Field(4, ge=0, le=100)
+    """Template vertices this many edges or fewer from the template's open border never give
+    silhouettes (the border is not a real contour)."""
+
+    relax_folds: bool = True
+    """Where the fitted mesh folds over, spikes or cuts through itself (a noisy cloud, a wrong
+    ear point), replace its deformation there by a membrane until it is sound
+    (``facecap_core/fitting/sanity.py``); the figures before and after go to ``fit.json``."""
+    texture: bool = True
+    """Colour the fitted mesh from the keyframes (per-vertex colour) when keyframes are given."""
+    texture_min_cos: float = Field(0.25, ge=0, le=1)
+    """A view colours a vertex only when the vertex faces it at least this much (cos)."""
+
+    @model_validator(mode="after")
+    def _check_schedule(self):
+        if len(self.stiffness) == 0 or len(self.stiffness) != len(self.landmark_weight):
+            raise ValueError("stiffness and landmark_weight need the same, non-zero length")
+        if any(a <= 0 for a in self.stiffness) or any(b < 0 for b in self.landmark_weight):
+            raise ValueError("stiffness must be > 0 and landmark_weight >= 0")
+        if self.search_radius_mm[1] <= self.normal_distance_mm / 2 or \
+                self.search_radius_mm[0] < self.search_radius_mm[1]:
+            raise ValueError("search_radius_mm: (start, end) with start >= end > "
+                             "normal_distance_mm / 2")
+        return self
+
 
 log = logging.getLogger(__name__)
 
@@ -135,6 +243,8 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
     used as given
     (in the subject's frame) unless ``config.initial_similarity``.
     """
+    # Long on purpose: the schedule's state (targets, their weights, the edge terms, the noise
+    # weight) carries from step to step; split, each part would take and return most of it.
     config = config or FittingConfig()
     check_inputs(template, cloud, landmarks, ear_points, cloud_normals, config)
     if config.use_cloud and cloud_errors is not None and \

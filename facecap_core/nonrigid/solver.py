@@ -25,6 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+# Imported where used: cvxopt (CHOLMOD) is optional: without it the solves fall back to scipy.
 
 __all__ = ["NicpSystem", "edges_of", "have_cholmod"]
 
@@ -142,8 +145,6 @@ class NicpSystem:
             cholmod.numeric(A, self._symbolic)
             self._factor = ("cholmod", self._symbolic)
         else:
-            from scipy.sparse.linalg import splu
-
             A = self.matrix(alpha, weights)
             lu = splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
             self._factor = ("splu", lu)

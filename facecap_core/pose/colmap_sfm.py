@@ -21,6 +21,8 @@ import numpy as np
 from facecap_core.camera import Intrinsics
 from facecap_core.errors import FacecapError
 
+# Imported where used: pycolmap (COLMAP, with its logging set up first) only where SfM runs.
+
 
 @dataclass
 class Poses:
@@ -73,6 +75,8 @@ def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tup
     centre); sequential matching pairs each keyframe with the next ``overlap``. Images not
     ``ordered`` along a sweep (photos) are matched exhaustively. ``focal_px`` (full
     resolution), when known, is the initial focal length instead of COLMAP's guess."""
+    # Long on purpose: COLMAP's steps in order (database, extraction, matching, mapping, the
+    # model's checks), each a few calls.
 
     import pycolmap
 

@@ -22,6 +22,8 @@ from facecap_core.native_logs import native_stderr_to_log
 from facecap_core.pose.colmap_sfm import Poses
 from facecap_core.pose.io import write_colmap_text
 
+# Imported where used: pycolmap only where the geometric refinement runs.
+
 log = logging.getLogger(__name__)
 
 

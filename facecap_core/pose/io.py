@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from facecap_core.pose.colmap_sfm import Poses
 
@@ -31,7 +32,6 @@ def write_cameras_json(poses: Poses, path: str | Path, **meta) -> Path:
 
 def _quaternion(R: np.ndarray) -> np.ndarray:
     """(w, x, y, z) of a rotation matrix, w >= 0."""
-    from scipy.spatial.transform import Rotation
 
     x, y, z, w = Rotation.from_matrix(R).as_quat()
     q = np.array([w, x, y, z])

@@ -2,7 +2,12 @@
 
 One module on purpose: the residuals, their derivatives, the numba accumulation and the
 Schur-complement solve share one parameter layout and one set of kernels; split, they would
-need an interface as wide as the algorithm.
+need an interface as wide as the algorithm. Inside it: the numba kernels (photometric
+residuals, track residuals, the epipolar depth search), a :class:`_Problem` (what the solve
+is over: points, targets, tracks, priors, timing), a :class:`_Level` of the image pyramid
+(its images, the normal equations at a :class:`_State`, the models' choice, the
+Levenberg-Marquardt iterations) and :func:`photometric_bundle_adjustment`, which runs the
+levels coarse to fine.
 
 The method of DSO (Engel et al.), run as a batch over all keyframes:
 
@@ -43,11 +48,104 @@ from dataclasses import dataclass
 import cv2
 import numba as nb
 import numpy as np
+from pydantic import Field
 
 from facecap_core.camera import Intrinsics, project, rotation_matrix
-from facecap_core.config import PBAConfig
+from facecap_core.config import StrictModel
 from facecap_core.errors import FacecapError
 from facecap_core.video import processing_size
+
+
+class PBAConfig(StrictModel):
+    """Photometric bundle adjustment (``facecap_core/pose/pba.py``)."""
+
+    cell: int = Field(12, ge=4, le=64)
+    """One point per cell×cell block of each keyframe (its strongest gradient)."""
+    min_gradient: float = Field(8.0, ge=0)
+    """Weakest gradient (grey levels per pixel) a point may have."""
+    search_level: int = Field(1, ge=0, le=5)
+    """Pyramid level of the initial depth search along the epipolar lines."""
+    search_samples: int = Field(96, ge=8, le=1024)
+    """Inverse-depth samples of that search (log-spaced over the sparse points' range)."""
+    min_search_quality: float = Field(1.5, ge=1)
+    """A point is kept when its second-best match costs this many times its best."""
+    neighbours: int = Field(6, ge=1, le=15)
+    """Each point is compared in this many keyframes before and after its host."""
+    pyramid_levels: int = Field(2, ge=1, le=6)
+    """Coarse-to-fine levels (each half the size of the previous)."""
+    iterations: int = Field(8, ge=1, le=200)
+    """Levenberg–Marquardt iterations per pyramid level."""
+    depth_only_iterations: int = Field(2, ge=0, le=200)
+    """The first iterations of each level move only the inverse depths."""
+    huber: float = Field(1.5, gt=0)
+    """Huber threshold of the photometric residual, in units of the residuals' robust
+    standard deviation (1.4826 x their median magnitude at the level's starting cameras)."""
+    gradient_weight: float = Field(50.0, gt=0)
+    """DSO's gradient weight c²/(c² + |∇I|²): strong edges count less (sub-pixel noise)."""
+    max_residual: float = Field(3.0, gt=0)
+    """A point's pattern in one target is an outlier (occluded, a highlight) when its root
+    mean square residual exceeds this many robust standard deviations; it then costs a
+    constant."""
+    initial_lambda: float = Field(1e-3, gt=0)
+    """Initial Levenberg–Marquardt damping."""
+    refine_intrinsics: bool = True
+    """Refine focal length, principal point and k1, k2 with the poses, when the tracked points
+    are in the solve (``track_weight``): photometric residuals over neighbouring keyframes
+    alone leave the principal point free against a tilt of every camera."""
+    principal_point_prior_pct: float = Field(1.0, ge=0)
+    """With the intrinsics refined, the principal point is held near the image centre with
+    this standard deviation (% of the image's width for x, of its height for y; the spread
+    of facecap's sensor model), weighed against the tracks by their noise: the data move it
+    as far as they pin it (a tilt of every camera and a shift of the principal point
+    reproject almost alike). 0: free."""
+    scale_prior: float = Field(1e8, gt=0)
+    """Weight of the prior that fixes the length of the first baseline (the scale gauge)."""
+    points_from_sparse: bool = True
+    """Use the initial reconstruction's points (at their depths) instead of an epipolar
+    search for strong-gradient pixels."""
+    centre_prior_pct: float = Field(0.0, ge=0)
+    """Camera centres are held near the start's with this standard deviation (% of the mean
+    camera distance from their centroid; 0: free, the gauge is then the first keyframe and
+    the first baseline's length)."""
+    intrinsics_level: int = Field(0, ge=0, le=5)
+    """Intrinsics are held fixed at pyramid levels coarser than this one (coarse levels bias
+    the focal length)."""
+    motion_blur: bool = True
+    """Model each keyframe's motion blur: the streak the camera's motion (a constant velocity
+    through the neighbouring keyframes) draws over the exposure. Each residual compares the
+    host and the target each blurred by the other's streak. Videos only (photos have no
+    times)."""
+    exposure_fraction: float | None = Field(None, ge=0, le=1)
+    """Exposure as a fraction of the frame interval; None: the one of
+    ``exposure_candidates`` whose blur model fits the starting cameras best."""
+    exposure_candidates: tuple[float, ...] = Field((0.0, 0.25, 0.5, 0.75), min_length=1)
+    """Exposures (fractions of the frame interval) tried when ``exposure_fraction`` is None."""
+    track_weight: float = Field(30.0, ge=0)
+    """The tracked points' reprojection errors join the photometric residuals in one solve:
+    one pixel of reprojection error costs as much as this many grey levels of photometric
+    residual (0: photometric only)."""
+    track_huber_px: float = Field(1.0, gt=0)
+    """Huber threshold of the reprojection errors (pixels)."""
+    rolling_shutter: bool = False
+    """Model a rolling shutter: each image row exposed at its own time, the camera moving at
+    a constant velocity (through the neighbouring keyframes) over the readout; with the
+    readout chosen from the tracks, their adjustment under it is PBA's start. Videos only.
+    Off by default: SfM and the geometric solution model no rolling shutter, and from their
+    start it did not help on the benchmark's rolling-shutter capture (docs/poses.md)."""
+    readout_s: float | None = Field(None, ge=0, le=0.1)
+    """Readout time from the first row to the last (seconds; 0: global shutter); None: the
+    one of ``readout_candidates`` whose model fits the keyframes best."""
+    readout_candidates: tuple[float, ...] = Field((0.0, 0.01, 0.02, 0.03, 0.04), min_length=1)
+    """Readouts (seconds) tried when ``readout_s`` is None (phones: about 10-35 ms)."""
+    blur_samples: int = Field(9, ge=1, le=64)
+    """Most samples along one streak (one per pixel of its length)."""
+    max_width: int | None = Field(1920, ge=160, le=8192)
+    """Keyframes wider than this (pixels) are adjusted at this width (area filter, aspect kept;
+    the intrinsics scaled to it and the result's scaled back; poses are metric and do not
+    change with it). PBA holds every keyframe with its pyramid and gradients, about 14 bytes
+    a pixel: at 3840×2160 that is 116 MB a keyframe, 5 GB for 45 keyframes; at 1920×1080,
+    29 MB. None: full resolution. 720p and 1080p captures are not affected."""
+
 
 PATTERN = np.array([(0, -2), (-1, -1), (1, -1), (-2, 0), (0, 0), (2, 0), (-1, 1), (0, 2)],
                    np.float64)  # DSO's 8-pixel pattern (dx, dy)
@@ -200,6 +298,9 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
     constant velocity) for that long. A host pixel's ray is cast from its row's camera; the
     point is found in the target's row that sees it (two fixed-point steps).
     """
+    # Long on purpose: a numba kernel: one pass over points, targets and pattern pixels that keeps
+    # each residual's Jacobian in registers and scatters it once; its pixel model is the inlined
+    # helpers above.
     f, cx, cy, k1, k2 = intr[0], intr[1], intr[2], intr[3], intr[4]
     max_local = Hcp_store.shape[1]
     cost = 0.0
@@ -515,6 +616,7 @@ def _accumulate_tracks(X, obs_start, obs_frame, obs_xy, R, t, intr, weight, hube
     (stored after the observations) for the back-substitution. With a rolling shutter
     (``readout`` > 0) each observation is of the camera moved for its row's time offset.
     """
+    # Long on purpose: a numba kernel, one pass over the observations as in _accumulate.
     f, cx, cy, k1, k2 = intr[0], intr[1], intr[2], intr[3], intr[4]
     n_obs_total = obs_frame.shape[0]
     cost = 0.0
@@ -984,6 +1086,347 @@ def _points_by_search(greys, pyr, R, t, intr, sparse_points, config: PBAConfig, 
     return host[keep], uv0[keep], rho[keep]
 
 
+@dataclass
+class _State:
+    """The unknowns of the solve, and what the models fitted to them chose."""
+
+    R: list[np.ndarray]
+    t: list[np.ndarray]
+    affine: np.ndarray  # (K, 2) brightness a, b per keyframe
+    intr: np.ndarray  # f, cx, cy, k1, k2 at the processing resolution
+    rho: np.ndarray  # the photometric points' inverse depths in their hosts
+    X: np.ndarray  # the tracked points
+    exposure_s: float
+    readout_s: float
+    centres0: np.ndarray  # where the centre prior holds the camera centres
+    w_centre: float = 0.0  # the centre prior's weight at the current level
+
+
+class _Problem:
+    """What the solve is over, fixed while the cameras move: the keyframes' pyramids, the
+    photometric points and the keyframes each is compared in (the parameter layout: the
+    intrinsics, then pose and brightness per keyframe after the first), the tracked points'
+    observations, the priors (principal point, camera centres, scale) and the video's timing
+    (motion blur, rolling shutter)."""
+
+    def __init__(self, images, intrinsics: Intrinsics, R, t, sparse_points, config: PBAConfig,
+                 progress, sparse_hosts, centre_prior, times, frame_interval_s, tracks):
+        self.config, self.progress, self.log = config, progress, []
+        greys = [_processing_grey(im, config.max_width) for im in images]
+        self.K = K = len(greys)
+        self.shape = greys[0].shape
+        self.full = intrinsics
+        self.intrinsics = _at_size(intrinsics, greys[0].shape[1], greys[0].shape[0])
+        self.pyr = [_pyramid(g, config.pyramid_levels) for g in greys]
+        R = [np.asarray(r, float) for r in R]
+        t = [np.asarray(x, float) for x in t]
+        self.baseline_ref = np.linalg.norm(R[1].T @ t[1] - R[0].T @ t[0])
+        centres0 = np.array([-r.T @ x for r, x in zip(R, t)])
+        spread = np.linalg.norm(centres0 - centres0.mean(0), axis=1).mean()
+        # One standard deviation of a centre costs as much as one residual at the Huber
+        # threshold.
+        self.w_centre_unit = (1 / (config.centre_prior_pct / 100 * spread) ** 2
+                              if centre_prior and config.centre_prior_pct > 0 else 0.0)
+        self._principal_point_prior(tracks, R, t)
+        intr = np.array([self.intrinsics.fx, self.intrinsics.cx, self.intrinsics.cy,
+                         self.intrinsics.k1, self.intrinsics.k2])
+        if config.points_from_sparse and sparse_hosts is not None:
+            self.host, self.uv0, rho = _points_from_sparse(sparse_points, sparse_hosts, R, t,
+                                                           self.intrinsics, self.shape)
+            self.log.append(f"{len(self.host)} points from the initial reconstruction")
+        else:
+            self.host, self.uv0, rho = _points_by_search(greys, self.pyr, R, t, intr,
+                                                         sparse_points, config, self.log)
+        if len(self.host) == 0:
+            raise FacecapError("photometric bundle adjustment found no usable points: the "
+                               "keyframes have no texture")
+        tgt = [[k for k in range(max(0, h - config.neighbours),
+                                 min(K, h + config.neighbours + 1)) if k != h]
+               for h in self.host]
+        self.target_start = np.concatenate([[0], np.cumsum([len(x) for x in tgt])]
+                                           ).astype(np.int64)
+        self.targets = np.fromiter((k for x in tgt for k in x), np.int64)
+        self.n_cam = N_INTR + N_FRAME * (K - 1)
+        self.max_local = N_INTR + N_FRAME * (2 * config.neighbours + 1)
+        self.video = times is not None and bool(frame_interval_s)
+        self.blur = config.motion_blur and self.video
+        self.shutter = config.rolling_shutter and self.video
+        self.key_times = np.asarray(times if times is not None else np.zeros(K), float)
+        self.frame_interval_s = frame_interval_s
+        X = self._tracks(tracks)
+        # Without the tracks the intrinsics stay put: the photometric residuals over
+        # neighbouring keyframes leave the principal point free against a tilt of every
+        # camera.
+        self.free_intrinsics = config.refine_intrinsics and len(X) > 0
+        self.start = _State(
+            R, t, np.zeros((K, 2)), intr, rho, X,
+            exposure_s=((config.exposure_fraction or 0.0) * (frame_interval_s or 0.0)
+                        if self.blur else 0.0),
+            readout_s=(config.readout_s or 0.0) if self.shutter else 0.0, centres0=centres0)
+
+    def _principal_point_prior(self, tracks, R, t) -> None:
+        """The principal point's prior: a deviation of one standard deviation (processing
+        pixels) costs as much as one tracked observation off by the tracks' noise, so that
+        it weighs as a prior should against the data whatever their noise (exact tracks:
+        nothing)."""
+        config, intrinsics = self.config, self.intrinsics
+        self.pp0 = np.array([(intrinsics.width - 1) / 2, (intrinsics.height - 1) / 2])
+        pp_sigma = config.principal_point_prior_pct / 100 * np.array([intrinsics.width,
+                                                                      intrinsics.height])
+        self.w_pp = np.zeros(2)
+        if config.principal_point_prior_pct > 0 and tracks is not None and len(tracks[0]):
+            noise = _track_noise_px(tracks, R, t, intrinsics, self.full)
+            self.w_pp = config.track_weight ** 2 * noise ** 2 / pp_sigma ** 2
+            self.log.append(f"principal point prior: ±{config.principal_point_prior_pct:g} % "
+                            f"of the image, the tracks' noise {noise:.2f} px")
+
+    def _tracks(self, tracks) -> np.ndarray:
+        """The tracked points (the geometric solution's, with their observations) in the
+        same solve: long tracks pin what the photometric residuals over neighbouring
+        keyframes leave loose (the principal point against a tilt of every camera, the chain
+        of centres). Sets their observations; returns the points."""
+        if tracks is None or self.config.track_weight <= 0:
+            self.obs_start = np.zeros(1, np.int64)
+            self.obs_frame = np.zeros(0, np.int64)
+            self.obs_xy = np.zeros((0, 2))
+            self.track_w = 0.0
+            return np.zeros((0, 3))
+        X = np.asarray(tracks[0], float).copy()
+        obs = np.asarray(tracks[1], float)
+        obs = obs[np.argsort(obs[:, 0], kind="stable")]
+        pid = obs[:, 0].astype(np.int64)
+        self.obs_start = np.searchsorted(pid, np.arange(len(X) + 1)).astype(np.int64)
+        self.obs_frame = obs[:, 1].astype(np.int64)
+        scale_px = np.array([self.intrinsics.width / self.full.width,
+                             self.intrinsics.height / self.full.height])
+        self.obs_xy = (obs[:, 2:4] + 0.5) * scale_px - 0.5
+        self.track_w = self.config.track_weight ** 2
+        return X
+
+    def velocity(self, R, t) -> np.ndarray:
+        return camera_motion(R, t, self.key_times, 1.0) if self.video else np.zeros((self.K, 6))
+
+    def prior_cost(self, st: _State, R, t, intr) -> float:
+        cost = float(np.sum(self.w_pp * (intr[1:3] - self.pp0) ** 2))
+        if st.w_centre == 0:
+            return cost
+        c = np.array([-r.T @ x for r, x in zip(R, t)])
+        return cost + st.w_centre * float(np.sum((c - st.centres0) ** 2))
+
+    def say(self, line: str) -> None:
+        self.log.append(line)
+        if self.progress:
+            print(line)
+
+
+class _Level:
+    """One level of the image pyramid: its images, gradients and the points' pattern
+    weights; the residuals and normal equations at a state, the robust scale, the models'
+    choice (exposure, readout) and the Levenberg-Marquardt iterations."""
+
+    def __init__(self, problem: _Problem, level: int):
+        p = self.p = problem
+        self.level, self.s = level, 2.0 ** level
+        self.frozen_velocity = None
+        self.huber = self.max_residual = 1e9
+        self.imgs, self.gxs, self.gys = nb.typed.List(), nb.typed.List(), nb.typed.List()
+        for k in range(p.K):
+            img = p.pyr[k][level]
+            gx, gy = _gradients(img)
+            self.imgs.append(img)
+            self.gxs.append(gx)
+            self.gys.append(gy)
+        self.uv = p.uv0 / self.s
+        self.host_weights = np.empty((len(p.host), 8))
+        c2 = p.config.gradient_weight ** 2
+        for k in range(p.K):
+            sel = p.host == k
+            for q, d in enumerate(PATTERN):
+                # DSO's weight from the host's gradient: fixed while the poses move, so the
+                # cost cannot fall by sliding residuals onto strong edges.
+                g2 = (_sample(self.gxs[k], self.uv[sel] + d) ** 2
+                      + _sample(self.gys[k], self.uv[sel] + d) ** 2)
+                self.host_weights[sel, q] = c2 / (c2 + g2)
+
+    def evaluate(self, st: _State, R, t, affine, intr, rho, X, with_cameras: bool,
+                 with_tracks: bool = True, residuals=None) -> _Normal:
+        """The cost and normal equations at cameras ``R, t, affine, intr`` and points
+        ``rho, X`` (the exposure and readout of ``st``)."""
+        p = self.p
+        R_rel, t_rel = _relative(R, t)
+        e = _Normal(p.n_cam, len(p.host), p.max_local, len(X), len(p.obs_frame))
+        intr_l = _level_intrinsics(intr, self.s)
+        vel = self.frozen_velocity if self.frozen_velocity is not None else p.velocity(R, t)
+        rows = self.imgs[0].shape[0]
+        _accumulate_in_chunks(p.host, self.uv, rho, p.target_start, p.targets, self.imgs,
+                              self.gxs, self.gys, self.host_weights,
+                              vel * (st.exposure_s / 2), p.config.blur_samples, vel,
+                              st.readout_s, rows, R_rel, t_rel, affine, intr_l, self.huber,
+                              self.max_residual, with_cameras,
+                              e.H, e.b, e.Hpp, e.bpp, e.Hcp, e.idx, e.stats,
+                              residuals if residuals is not None else np.zeros(0))
+        if with_tracks and len(X):
+            _accumulate_tracks(X, p.obs_start, p.obs_frame, p.obs_xy / self.s, np.asarray(R),
+                               np.asarray(t), intr_l, p.track_w * self.s * self.s,
+                               p.config.track_huber_px / self.s, vel, st.readout_s, rows,
+                               with_cameras, e.H, e.b, e.Hpp3, e.bpp3, e.Hpc, e.stats)
+        e.cost, e.count = float(e.stats[0]), int(e.stats[1])
+        return e
+
+    def at(self, st: _State, with_cameras: bool = False, **kwargs) -> _Normal:
+        """:meth:`evaluate` at the state."""
+        return self.evaluate(st, st.R, st.t, st.affine, st.intr, st.rho, st.X, with_cameras,
+                             **kwargs)
+
+    def robust_scale(self, st: _State) -> float:
+        """1.4826 x the median residual magnitude at the current cameras (grey levels): the
+        residuals' standard deviation, whatever the outliers."""
+        buf = np.empty(8 * len(self.p.targets))
+        e = self.at(st, with_tracks=False, residuals=buf)
+        n = int(e.stats[2])
+        # At least the noise of 8-bit quantisation (1/sqrt(12) grey levels): exact renders
+        # would otherwise make every residual an outlier.
+        return max(1.4826 * float(np.median(buf[:n])) if n else 1.0, 12 ** -0.5)
+
+    def set_robust_loss(self, st: _State) -> float:
+        """The robust loss in units of the residuals' own spread (noise, codec, blur differ
+        from capture to capture): Huber, and the outlier bound of a pattern in one target.
+        Returns the spread."""
+        sigma = self.robust_scale(st)
+        self.huber = self.p.config.huber * sigma
+        self.max_residual = self.p.config.max_residual * sigma
+        return sigma
+
+    def choose(self, st: _State, candidates, field: str, scale: float | None, name: str,
+               unit: str) -> float:
+        """Sets ``st.<field>`` to the candidate (times ``scale``) whose model makes the
+        residuals smallest."""
+        costs = []
+        for value in candidates:
+            setattr(st, field, value if scale is None else value * scale)
+            e = self.at(st, with_tracks=False)
+            costs.append(e.cost / max(e.count, 1))
+        best = candidates[int(np.argmin(costs))]
+        setattr(st, field, best if scale is None else best * scale)
+        self.p.say(f"{name} " + ", ".join(f"{v:g}: rms {np.sqrt(c):.3f}"
+                                          for v, c in zip(candidates, costs))
+                   + f"; chose {best:g} {unit} at level {self.level}")
+        return best
+
+    def readout_from_tracks(self, st: _State) -> None:
+        """The readout from the tracks, each candidate after its own adjustment of the
+        cameras: the start absorbed the shutter's distortion into its cameras (a tilt, a
+        principal point), so at the start every readout but 0 looks worse. The chosen
+        readout's adjustment is the start: SfM and the geometric solution model no rolling
+        shutter. The track cost's unit is one observation (track_w in the joint solve)."""
+        p, config = self.p, self.p.config
+        pp_prior = (p.pp0, p.w_pp / max(config.track_weight ** 2, 1e-12))
+        adjusted = [_adjust_to_tracks(
+            st.R, st.t, st.intr, st.X, p.obs_start, p.obs_frame, p.obs_xy, p.shape[0],
+            p.velocity, value, config.track_huber_px, 15, p.free_intrinsics, pp_prior)
+            for value in config.readout_candidates]
+        costs = [a[0] for a in adjusted]
+        st.readout_s = config.readout_candidates[int(np.argmin(costs))]
+        if st.readout_s > 0:
+            st.R, st.t, st.intr, st.X = _adjust_to_tracks(
+                *adjusted[int(np.argmin(costs))][1:], p.obs_start, p.obs_frame, p.obs_xy,
+                p.shape[0], p.velocity, st.readout_s, config.track_huber_px, 35,
+                p.free_intrinsics, pp_prior)[1:]
+            st.centres0 = np.array([-r.T @ x for r, x in zip(st.R, st.t)])
+        p.say("readout " + ", ".join(f"{v:g}: cost {c:.4g}"
+                                     for v, c in zip(config.readout_candidates, costs))
+              + f"; chose {st.readout_s:g} s from the tracks")
+
+    def prepare(self, st: _State) -> None:
+        """The level's robust loss; the exposure and the readout where they are not given.
+        They are rarely known for a video: the candidates whose model makes the residuals
+        smallest (an over- or under-estimate leaves the two sides of every residual
+        differently blurred, or their rows at the wrong times). Again at each level:
+        misaligned cameras favour a longer exposure (blurring both sides hides
+        misalignment), the finer level starts from better ones."""
+        p, config = self.p, self.p.config
+        sigma = self.set_robust_loss(st)
+        choose_readout = p.shutter and config.readout_s is None
+        choose_exposure = p.blur and config.exposure_fraction is None
+        if choose_readout and self.level == config.pyramid_levels - 1:
+            if len(st.X):
+                self.readout_from_tracks(st)
+            else:
+                self.choose(st, config.readout_candidates, "readout_s", None, "readout", "s")
+        if choose_exposure:
+            self.choose(st, config.exposure_candidates, "exposure_s", p.frame_interval_s,
+                        "exposure", "of a frame")
+        if choose_readout or choose_exposure:
+            sigma = self.set_robust_loss(st)
+        p.log.append(f"level {self.level}: residual scale {sigma:.2f} grey levels")
+        if p.w_centre_unit:
+            st.w_centre = self.huber ** 2 * p.w_centre_unit
+
+    def normal_step(self, st: _State, e: _Normal, lam: float):
+        """The Levenberg-Marquardt step of the cameras, intrinsics and points from the
+        normal equations ``e`` with the gauge and the priors; returns the moved
+        ``(R, t, affine, intr, rho step, X)``."""
+        p, config, s = self.p, self.p.config, self.s
+        H, b = e.H, e.b
+        _hold_baseline(H, b, st.R, st.t, p.baseline_ref, config.scale_prior)
+        if st.w_centre > 0:
+            # Centre c = -R^T t moves by -R^T v under the increment (v, w).
+            for k in range(1, p.K):
+                sl = slice(N_INTR + N_FRAME * (k - 1), N_INTR + N_FRAME * (k - 1) + 3)
+                c = -st.R[k].T @ st.t[k]
+                H[sl, sl] += st.w_centre * np.eye(3)
+                b[sl] += -st.w_centre * st.R[k] @ (c - st.centres0[k])
+        if not p.free_intrinsics or self.level > config.intrinsics_level:
+            H[:N_INTR, :N_INTR] += 1e12 * np.eye(N_INTR)
+        else:
+            # The prior in the level's pixels (cx_l = cx / s): cost w s² (cx_l - c0 / s)².
+            H[1:3, 1:3] += np.diag(p.w_pp * s * s)
+            b[1:3] += p.w_pp * s * (st.intr[1:3] - p.pp0)
+        dc = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), b)
+        dcl = np.where(e.idx >= 0, dc[np.maximum(e.idx, 0)], 0.0)
+        drho = -(e.bpp + np.sum(e.Hcp * dcl, 1)) / (e.Hpp * (1 + lam) + 1e-12)
+        R2, t2, aff2 = _update_frames(st.R, st.t, st.affine, dc[N_INTR:])
+        intr2 = _full_intrinsics(_level_intrinsics(st.intr, s) + dc[:N_INTR], s)
+        X2 = st.X + _track_steps(e, dc, p.obs_start, p.obs_frame, lam)
+        return R2, t2, aff2, intr2, drho, X2
+
+    def iterate(self, st: _State) -> float | None:
+        """The level's Levenberg-Marquardt iterations (inverse depths alone for the first
+        ``depth_only_iterations``, then jointly with the cameras); returns the rms of the
+        first residuals (None without iterations)."""
+        p, config = self.p, self.p.config
+        lam, rms_first = config.initial_lambda, None
+        for it in range(config.iterations):
+            # The camera velocities (blur, rolling shutter) are those of the iteration's
+            # start for its step and the step's test: the Jacobians hold them fixed.
+            self.frozen_velocity = p.velocity(st.R, st.t)
+            cams = it >= config.depth_only_iterations
+            e = self.at(st, cams)
+            cost, count = e.cost, e.count
+            cost_prior = p.prior_cost(st, st.R, st.t, st.intr)
+            if rms_first is None:
+                rms_first = np.sqrt(cost / max(count, 1))
+            if cams:
+                R2, t2, aff2, intr2, drho, X2 = self.normal_step(st, e, lam)
+            else:
+                drho = -e.bpp / (e.Hpp * (1 + lam) + 1e-12)
+                R2, t2, aff2, intr2, X2 = st.R, st.t, st.affine, st.intr, st.X
+            rho2 = np.clip(st.rho + drho, st.rho * 0.5, st.rho * 2.0)
+            e2 = self.evaluate(st, R2, t2, aff2, intr2, rho2, X2, False)
+            accept = e2.cost + p.prior_cost(st, R2, t2, intr2) <= cost + cost_prior
+            if accept:
+                st.R, st.t, st.affine, st.intr, st.rho, st.X = R2, t2, aff2, intr2, rho2, X2
+                lam = max(lam / 4, 1e-7)
+            else:
+                lam *= 4
+            p.say(f"level {self.level} it {it:2d} {'joint' if cams else 'depth'}: rms "
+                  f"{np.sqrt(cost / max(count, 1)):.3f} -> "
+                  f"{np.sqrt(e2.cost / max(e2.count, 1)):.3f}, {e2.count} residuals, "
+                  f"{'accepted' if accept else 'rejected'}, f {st.intr[0]:.2f}, "
+                  f"lambda {lam:.1e}, |drho|/rho {np.median(np.abs(drho) / st.rho):.1e}")
+        return rms_first
+
+
 def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsics,
                                   R: list[np.ndarray], t: list[np.ndarray],
                                   sparse_points: np.ndarray, config: PBAConfig | None = None,
@@ -1016,276 +1459,25 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
     """
     config = config or PBAConfig()
     start = time.perf_counter()
-    greys = [_processing_grey(im, config.max_width) for im in images]
-    K = len(greys)
-    full = intrinsics
-    intrinsics = _at_size(full, greys[0].shape[1], greys[0].shape[0])
-    levels = config.pyramid_levels
-    pyr = [_pyramid(g, levels) for g in greys]
-    R = [np.asarray(r, float) for r in R]
-    t = [np.asarray(x, float) for x in t]
-    affine = np.zeros((K, 2))
-    intr = np.array([intrinsics.fx, intrinsics.cx, intrinsics.cy, intrinsics.k1, intrinsics.k2])
-    baseline_ref = np.linalg.norm(R[1].T @ t[1] - R[0].T @ t[0])
-    log: list[str] = []
-    centres0 = np.array([-r.T @ x for r, x in zip(R, t)])
-    spread = np.linalg.norm(centres0 - centres0.mean(0), axis=1).mean()
-    # One standard deviation of a centre costs as much as one residual at the Huber threshold.
-    w_centre_unit = (1 / (config.centre_prior_pct / 100 * spread) ** 2
-                     if centre_prior and config.centre_prior_pct > 0 else 0.0)
-    w_centre = 0.0
-
-    # The principal point's prior: a deviation of one standard deviation (processing pixels)
-    # costs as much as one tracked observation off by the tracks' noise, so that it weighs
-    # as a prior should against the data whatever their noise (exact tracks: nothing).
-    pp0 = np.array([(intrinsics.width - 1) / 2, (intrinsics.height - 1) / 2])
-    pp_sigma = config.principal_point_prior_pct / 100 * np.array([intrinsics.width,
-                                                                  intrinsics.height])
-    w_pp = np.zeros(2)
-    if config.principal_point_prior_pct > 0 and tracks is not None and len(tracks[0]):
-        noise = _track_noise_px(tracks, R, t, intrinsics, full)
-        w_pp = config.track_weight ** 2 * noise ** 2 / pp_sigma ** 2
-        log.append(f"principal point prior: ±{config.principal_point_prior_pct:g} % of the "
-                   f"image, the tracks' noise {noise:.2f} px")
-
-    def prior_cost(R_, t_, intr_):
-        cost = float(np.sum(w_pp * (intr_[1:3] - pp0) ** 2))
-        if w_centre == 0:
-            return cost
-        c = np.array([-r.T @ x for r, x in zip(R_, t_)])
-        return cost + w_centre * float(np.sum((c - centres0) ** 2))
-
-    if config.points_from_sparse and sparse_hosts is not None:
-        host, uv0, rho = _points_from_sparse(sparse_points, sparse_hosts, R, t, intrinsics,
-                                             greys[0].shape)
-        log.append(f"{len(host)} points from the initial reconstruction")
-    else:
-        host, uv0, rho = _points_by_search(greys, pyr, R, t, intr, sparse_points, config, log)
-    if len(host) == 0:
-        raise FacecapError("photometric bundle adjustment found no usable points: the "
-                           "keyframes have no texture")
-    tgt = [[k for k in range(max(0, h - config.neighbours), min(K, h + config.neighbours + 1))
-            if k != h] for h in host]
-    target_start = np.concatenate([[0], np.cumsum([len(x) for x in tgt])]).astype(np.int64)
-    targets = np.fromiter((k for x in tgt for k in x), np.int64)
-    n_cam = N_INTR + N_FRAME * (K - 1)
-    max_local = N_INTR + N_FRAME * (2 * config.neighbours + 1)
-    video = times is not None and bool(frame_interval_s)
-    blur = config.motion_blur and video
-    shutter = config.rolling_shutter and video
-    key_times = np.asarray(times if times is not None else np.zeros(K), float)
-    exposure_s = (config.exposure_fraction or 0.0) * (frame_interval_s or 0.0) if blur else 0.0
-    readout_s = (config.readout_s or 0.0) if shutter else 0.0
-
-    def velocity(R_, t_):
-        return camera_motion(R_, t_, key_times, 1.0) if video else np.zeros((K, 6))
-
-    # The tracked points (the geometric solution's, with their observations) in the same
-    # solve: long tracks pin what the photometric residuals over neighbouring keyframes
-    # leave loose (the principal point against a tilt of every camera, the chain of
-    # centres).
-    if tracks is not None and config.track_weight > 0:
-        X = np.asarray(tracks[0], float).copy()
-        obs = np.asarray(tracks[1], float)
-        obs = obs[np.argsort(obs[:, 0], kind="stable")]
-        pid = obs[:, 0].astype(np.int64)
-        obs_start = np.searchsorted(pid, np.arange(len(X) + 1)).astype(np.int64)
-        obs_frame = obs[:, 1].astype(np.int64)
-        scale_px = np.array([intrinsics.width / full.width, intrinsics.height / full.height])
-        obs_xy = (obs[:, 2:4] + 0.5) * scale_px - 0.5
-        track_w = config.track_weight ** 2
-    else:
-        X = np.zeros((0, 3))
-        obs_start = np.zeros(1, np.int64)
-        obs_frame = np.zeros(0, np.int64)
-        obs_xy = np.zeros((0, 2))
-        track_w = 0.0
-    # Without the tracks the intrinsics stay put: the photometric residuals over neighbouring
-    # keyframes leave the principal point free against a tilt of every camera.
-    free_intrinsics = config.refine_intrinsics and len(X) > 0
+    problem = _Problem(images, intrinsics, R, t, sparse_points, config, progress,
+                       sparse_hosts, centre_prior, times, frame_interval_s, tracks)
+    st = problem.start
     rms_first = None
-    frozen_velocity = None
-    for level in reversed(range(levels)):
-        s = 2.0 ** level
-        frozen_velocity = None
-        imgs, gxs, gys = nb.typed.List(), nb.typed.List(), nb.typed.List()
-        for k in range(K):
-            img = pyr[k][level]
-            gx, gy = _gradients(img)
-            imgs.append(img)
-            gxs.append(gx)
-            gys.append(gy)
-        uv_l = uv0 / s
-        host_weights = np.empty((len(host), 8))
-        c2 = config.gradient_weight ** 2
-        for k in range(K):
-            sel = host == k
-            for q, d in enumerate(PATTERN):
-                # DSO's weight from the host's gradient: fixed while the poses move, so the
-                # cost cannot fall by sliding residuals onto strong edges.
-                g2 = _sample(gxs[k], uv_l[sel] + d) ** 2 + _sample(gys[k], uv_l[sel] + d) ** 2
-                host_weights[sel, q] = c2 / (c2 + g2)
-
-        def evaluate(R_, t_, aff_, intr_, rho_, X_, with_cameras, with_tracks=True,
-                     residuals=None):  # noqa: B023 (the level's images, scale and velocity)
-            R_rel, t_rel = _relative(R_, t_)
-            e = _Normal(n_cam, len(host), max_local, len(X_), len(obs_frame))
-            intr_l = _level_intrinsics(intr_, s)
-            vel = frozen_velocity if frozen_velocity is not None else velocity(R_, t_)
-            _accumulate_in_chunks(host, uv_l, rho_, target_start, targets, imgs, gxs, gys,
-                                  host_weights, vel * (exposure_s / 2), config.blur_samples,
-                                  vel, readout_s, imgs[0].shape[0], R_rel, t_rel, aff_, intr_l,
-                                  huber, max_residual, with_cameras,
-                                  e.H, e.b, e.Hpp, e.bpp, e.Hcp, e.idx, e.stats,
-                                  residuals if residuals is not None else np.zeros(0))
-            if with_tracks and len(X_):
-                _accumulate_tracks(X_, obs_start, obs_frame, obs_xy / s, np.asarray(R_),
-                                   np.asarray(t_), intr_l, track_w * s * s,
-                                   config.track_huber_px / s, vel, readout_s, imgs[0].shape[0],
-                                   with_cameras, e.H, e.b, e.Hpp3, e.bpp3, e.Hpc, e.stats)
-            e.cost, e.count = float(e.stats[0]), int(e.stats[1])
-            return e
-
-        def robust_scale():
-            """1.4826 x the median residual magnitude at the current cameras (grey levels):
-            the residuals' standard deviation, whatever the outliers."""
-            buf = np.empty(8 * len(targets))
-            e = evaluate(R, t, affine, intr, rho, X, False, with_tracks=False, residuals=buf)
-            n = int(e.stats[2])
-            # At least the noise of 8-bit quantisation (1/sqrt(12) grey levels): exact
-            # renders would otherwise make every residual an outlier.
-            return max(1.4826 * float(np.median(buf[:n])) if n else 1.0, 12 ** -0.5)
-
-        # The robust loss in units of the residuals' own spread (noise, codec, blur differ
-        # from capture to capture): Huber, and the outlier bound of a pattern in one target.
-        huber, max_residual = 1e9, 1e9
-        sigma = robust_scale()
-        huber, max_residual = config.huber * sigma, config.max_residual * sigma
-        # The exposure and the readout are rarely known for a video: the candidates whose
-        # model makes the residuals smallest (an over- or under-estimate leaves the two sides
-        # of every residual differently blurred, or their rows at the wrong times). Again at
-        # each level: misaligned cameras favour a longer exposure (blurring both sides hides
-        # misalignment), the finer level starts from better ones.
-        def choose(candidates, apply, name, unit):
-            costs = []
-            for value in candidates:
-                apply(value)
-                e = evaluate(R, t, affine, intr, rho, X, False, with_tracks=False)
-                costs.append(e.cost / max(e.count, 1))
-            best = candidates[int(np.argmin(costs))]
-            apply(best)
-            log.append(f"{name} " + ", ".join(f"{v:g}: rms {np.sqrt(c):.3f}"
-                                             for v, c in zip(candidates, costs))
-                       + f"; chose {best:g} {unit} at level {level}")
-            if progress:
-                print(log[-1])
-            return best
-
-        def set_readout(value):
-            nonlocal readout_s
-            readout_s = value
-
-        def set_exposure(value):
-            nonlocal exposure_s
-            exposure_s = value * frame_interval_s
-
-        if shutter and config.readout_s is None and level == levels - 1:
-            if len(X):
-                # From the tracks, each candidate after its own adjustment of the cameras:
-                # the start absorbed the shutter's distortion into its cameras (a tilt, a
-                # principal point), so at the start every readout but 0 looks worse.
-                # The chosen readout's adjustment is the start: SfM and the geometric solution
-                # model no rolling shutter.
-                # The track cost's unit is one observation (track_w in the joint solve).
-                pp_prior = (pp0, w_pp / max(config.track_weight ** 2, 1e-12))
-                adjusted = [_adjust_to_tracks(
-                    R, t, intr, X, obs_start, obs_frame, obs_xy, greys[0].shape[0], velocity,
-                    value, config.track_huber_px, 15, free_intrinsics, pp_prior)
-                    for value in config.readout_candidates]
-                costs = [a[0] for a in adjusted]
-                best = int(np.argmin(costs))
-                readout_s = config.readout_candidates[best]
-                if readout_s > 0:
-                    R, t, intr, X = _adjust_to_tracks(
-                        *adjusted[best][1:], obs_start, obs_frame, obs_xy, greys[0].shape[0],
-                        velocity, readout_s, config.track_huber_px, 35, free_intrinsics,
-                        pp_prior)[1:]
-                    centres0 = np.array([-r.T @ x for r, x in zip(R, t)])
-                log.append("readout " + ", ".join(
-                    f"{v:g}: cost {c:.4g}" for v, c in zip(config.readout_candidates, costs))
-                    + f"; chose {readout_s:g} s from the tracks")
-                if progress:
-                    print(log[-1])
-            else:
-                choose(config.readout_candidates, set_readout, "readout", "s")
-        if blur and config.exposure_fraction is None:
-            choose(config.exposure_candidates, set_exposure, "exposure", "of a frame")
-        if shutter and config.readout_s is None or blur and config.exposure_fraction is None:
-            sigma = robust_scale()
-            huber, max_residual = config.huber * sigma, config.max_residual * sigma
-        log.append(f"level {level}: residual scale {sigma:.2f} grey levels")
-        if w_centre_unit:
-            w_centre = huber ** 2 * w_centre_unit
-        lam = config.initial_lambda
-        for it in range(config.iterations):
-            # The camera velocities (blur, rolling shutter) are those of the iteration's start
-            # for its step and the step's test: the Jacobians hold them fixed.
-            frozen_velocity = velocity(R, t)
-            cams = it >= config.depth_only_iterations
-            e = evaluate(R, t, affine, intr, rho, X, cams)
-            H, b, cost, count = e.H, e.b, e.cost, e.count
-            cost_prior = prior_cost(R, t, intr)
-            if rms_first is None:
-                rms_first = np.sqrt(cost / max(count, 1))
-            if cams:
-                _hold_baseline(H, b, R, t, baseline_ref, config.scale_prior)
-                if w_centre > 0:
-                    # Centre c = -R^T t moves by -R^T v under the increment (v, w).
-                    for k in range(1, K):
-                        sl = slice(N_INTR + N_FRAME * (k - 1), N_INTR + N_FRAME * (k - 1) + 3)
-                        c = -R[k].T @ t[k]
-                        H[sl, sl] += w_centre * np.eye(3)
-                        b[sl] += -w_centre * R[k] @ (c - centres0[k])
-                if not free_intrinsics or level > config.intrinsics_level:
-                    H[:N_INTR, :N_INTR] += 1e12 * np.eye(N_INTR)
-                else:
-                    # The prior in the level's pixels (cx_l = cx / s): cost w s² (cx_l - c0 / s)².
-                    H[1:3, 1:3] += np.diag(w_pp * s * s)
-                    b[1:3] += w_pp * s * (intr[1:3] - pp0)
-                dc = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), b)
-                dcl = np.where(e.idx >= 0, dc[np.maximum(e.idx, 0)], 0.0)
-                drho = -(e.bpp + np.sum(e.Hcp * dcl, 1)) / (e.Hpp * (1 + lam) + 1e-12)
-                R2, t2, aff2 = _update_frames(R, t, affine, dc[N_INTR:])
-                intr2 = _full_intrinsics(_level_intrinsics(intr, s) + dc[:N_INTR], s)
-                X2 = X + _track_steps(e, dc, obs_start, obs_frame, lam)
-            else:
-                drho = -e.bpp / (e.Hpp * (1 + lam) + 1e-12)
-                R2, t2, aff2, intr2, X2 = R, t, affine, intr, X
-            rho2 = np.clip(rho + drho, rho * 0.5, rho * 2.0)
-            e2 = evaluate(R2, t2, aff2, intr2, rho2, X2, False)
-            cost2, count2 = e2.cost, e2.count
-            accept = cost2 + prior_cost(R2, t2, intr2) <= cost + cost_prior
-            if accept:
-                R, t, affine, intr, rho, X = R2, t2, aff2, intr2, rho2, X2
-                lam = max(lam / 4, 1e-7)
-            else:
-                lam *= 4
-            log.append(f"level {level} it {it:2d} {'joint' if cams else 'depth'}: rms "
-                       f"{np.sqrt(cost / max(count, 1)):.3f} -> "
-                       f"{np.sqrt(cost2 / max(count2, 1)):.3f}, {count2} residuals, "
-                       f"{'accepted' if accept else 'rejected'}, f {intr[0]:.2f}, "
-                       f"lambda {lam:.1e}, |drho|/rho {np.median(np.abs(drho) / rho):.1e}")
-            if progress:
-                print(log[-1])
-    frozen_velocity = None
-    e = evaluate(R, t, affine, intr, rho, X, False)
-    cost, count = e.cost, e.count
-    out = Intrinsics(intrinsics.width, intrinsics.height, float(intr[0]), float(intr[0]),
-                     float(intr[1]), float(intr[2]), float(intr[3]), float(intr[4]))
+    for level in reversed(range(config.pyramid_levels)):
+        finest = _Level(problem, level)
+        finest.prepare(st)
+        first = finest.iterate(st)
+        rms_first = first if rms_first is None else rms_first
+    finest.frozen_velocity = None
+    e = finest.at(st)
+    full, processed = problem.full, problem.intrinsics
+    out = Intrinsics(processed.width, processed.height, float(st.intr[0]), float(st.intr[0]),
+                     float(st.intr[1]), float(st.intr[2]), float(st.intr[3]),
+                     float(st.intr[4]))
     if (out.width, out.height) != (full.width, full.height):
         out = out.scaled(full.width, full.height)
-    return PBAResult(out, R, t, affine, len(host), count, float(rms_first),
-                     float(np.sqrt(cost / max(count, 1))),
-                     time.perf_counter() - start, log,
-                     exposure_s / frame_interval_s if blur else None,
-                     readout_s if shutter else None)
+    return PBAResult(out, st.R, st.t, st.affine, len(problem.host), e.count, float(rms_first),
+                     float(np.sqrt(e.cost / max(e.count, 1))),
+                     time.perf_counter() - start, problem.log,
+                     st.exposure_s / frame_interval_s if problem.blur else None,
+                     st.readout_s if problem.shutter else None)

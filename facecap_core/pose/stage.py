@@ -16,18 +16,56 @@ import logging
 import tempfile
 import time
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
 from facecap_core.camera import CAMERAS_JSON
-from facecap_core.config import MIN_YAW_SPAN_DEG, PoseConfig
+from facecap_core.config import StrictModel
 from facecap_core.errors import InputError
-from facecap_core.keyframes import load_keyframes
+from facecap_core.keyframes import KEYFRAMES_JSON, load_keyframes
 from facecap_core.pose.colmap_sfm import Poses, run_sfm
 from facecap_core.pose.geometric import refine_with_tracks, triangulate
 from facecap_core.pose.io import write_outputs
-from facecap_core.pose.pba import photometric_bundle_adjustment
+from facecap_core.pose.pba import PBAConfig, photometric_bundle_adjustment
+from facecap_core.stage import Folders, Stage, capture_in
 from facecap_core.video import read_frames
+
+MIN_YAW_SPAN_DEG = 40.0
+"""Fewest degrees round the head a capture's views must span (see
+``LandmarkConfig.min_yaw_span_deg``)."""
+
+
+class PoseConfig(StrictModel):
+    """Camera poses of the keyframes (``facecap_core/pose/stage.py``): pycolmap SfM, our
+    geometric refinement with the LK tracks, then photometric bundle adjustment."""
+
+    sfm_width: int = Field(1280, ge=320, le=8192)
+    """Keyframes are given to SIFT/SfM at most this wide (pixels)."""
+    match_overlap: int = Field(10, ge=1, le=100)
+    """Sequential matching pairs each keyframe with this many following ones."""
+    use_tracks: bool = True
+    """Add the keyframe tracker's LK tracks to the SfM model and re-adjust it with the
+    principal point free (otherwise the SfM result is the geometric solution)."""
+    method: Literal["geometric", "pba"] = "pba"
+    """Final refinement: ``pba`` (photometric bundle adjustment) or ``geometric`` only."""
+    pba: PBAConfig = Field(default_factory=lambda: PBAConfig())
+    """Photometric bundle adjustment settings."""
+    min_registered: int = Field(5, ge=3, le=1000)
+    """Fewest registered keyframes to go on with (unregistered ones are left out)."""
+    min_registered_fraction: float = Field(0.5, ge=0, le=1)
+    """Fewest registered keyframes as a fraction of all: below it the capture is refused, as
+    the views that did register are then as likely a lucky subset as the face."""
+    threads: int = Field(1, ge=1, le=256)
+    """Threads for SfM's matching and mapping. One makes the stage reproducible (a rerun
+    gives the same cameras, so nightly re-evaluations compare like with like); with more,
+    COLMAP's threaded matching moves the focal length by up to 0.2 % from run to run."""
+    extraction_threads: int = Field(2, ge=1, le=256)
+    """Threads for SfM's SIFT extraction (one image each): an image's features do not
+    depend on them (the same keypoints from 1 and 2 threads), so they cost no
+    reproducibility; two halve the extraction, a third of SfM's time at 720p."""
+
 
 POINTS = "points.ply"
 SPARSE = "sparse.npz"
@@ -208,3 +246,12 @@ def figures(folder: str | Path) -> dict:
     doc = json.loads(path.read_text())
     return {"keyframes": len(doc["keyframes"]), "focal_px": round(doc["intrinsics"]["fx"], 2),
             "dropped_keyframes": doc.get("dropped", [])}
+
+
+def run(inputs: Folders, out: Path, config: PoseConfig, params: dict) -> None:
+    main(capture_in(inputs["video"]), inputs["keyframes"] / KEYFRAMES_JSON, out, config)
+
+
+STAGE = Stage("poses", step="poses", version="3", inputs=("video", "keyframes"),
+              section="poses", run=run, outputs=(CAMERAS_JSON, POINTS, SPARSE, *COLMAP_MODEL),
+              exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=figures)

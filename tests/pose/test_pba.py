@@ -6,6 +6,7 @@ import pytest
 
 from facecap_core.camera import Intrinsics, project, rotation_matrix, undistort
 from facecap_core.pose import pba
+from tests.tolerances import expect_exact_cameras
 
 
 def _smooth_images(rng, count: int):
@@ -116,8 +117,8 @@ def test_pba_improves_on_its_starting_point():
     albedo sampled bilinearly, so not exactly photo-consistent)."""
     from facecap_core.assets import packaged_ict_model
     from facecap_core.camera import camera_center, look_at
-    from facecap_core.config import PBAConfig
     from facecap_core.pose.evaluate import pose_errors
+    from facecap_core.pose.pba import PBAConfig
     from facecap_core.render import RaycastScene, interpolate
     from facecap_core.template import Template
 
@@ -204,8 +205,8 @@ def test_a_width_bound_adjusts_at_the_bounded_size():
     import cv2
 
     from facecap_core.camera import camera_center
-    from facecap_core.config import PBAConfig
     from facecap_core.pose.evaluate import pose_errors
+    from facecap_core.pose.pba import PBAConfig
 
     images, intr, R, t, points, hosts = _plane_scene(640, 480)
     rng = np.random.default_rng(0)
@@ -243,8 +244,8 @@ def test_the_blur_model_undoes_what_motion_blur_does_to_the_poses():
     velocity from the neighbouring views' poses and times, the exposure given) 0.09°; the
     centres 0.078 % and 0.029 %. The bounds sit halfway."""
     from facecap_core.camera import camera_center
-    from facecap_core.config import PBAConfig
     from facecap_core.pose.evaluate import pose_errors
+    from facecap_core.pose.pba import PBAConfig
 
     images, intr, R, t, points, hosts = _plane_scene(320, 240, blur_deg=5.0)
     rng = np.random.default_rng(0)
@@ -295,10 +296,9 @@ def test_the_tracks_alone_recover_exact_cameras_and_intrinsics():
     information): twelve cameras on a 80° arc, exact observations of 300 points, the start
     turned 0.5° with the focal length 1 % and the principal point 4 px off, and the points
     moved by 1 mm. Gauss-Newton on exact data converges to the exact cameras: the bounds
-    are float rounding (a rotation angle read through arccos of a trace is exact only to
-    ~4e-6°, see tests/test_pose.py)."""
-    from facecap_core.config import PBAConfig
+    are float rounding (tests/tolerances.py)."""
     from facecap_core.pose.evaluate import pose_errors
+    from facecap_core.pose.pba import PBAConfig
 
     intr, R, t, points, rows, turned, start_t, start = _arc_scene(80.0, (163.0, 117.0), 0.0,
                                                                    turn_deg=0.5)
@@ -313,8 +313,7 @@ def test_the_tracks_alone_recover_exact_cameras_and_intrinsics():
     before = pose_errors(turned, start_t, start, R, t, intr)
     after = pose_errors(result.R, result.t, result.intrinsics, R, t, intr)
     assert before["rotation_deg"] == pytest.approx(0.5) and before["focal_pct"] > 0.99
-    assert after["rotation_deg"] < 1e-5 and after["centre_pct"] < 1e-6, after
-    assert after["focal_pct"] < 1e-6 and after["principal_point_px"] < 1e-6, after
+    expect_exact_cameras(after)
 
 
 @pytest.mark.parametrize("noise_px", [0.5, 0.01], ids=["noisy tracks", "exact tracks"])
@@ -325,9 +324,9 @@ def test_the_principal_point_prior_gives_way_to_the_data(noise_px):
     refinement hands PBA). From that start, the prior (1 % of the image) brings it back to
     the true one (at the centre here) and the rotations with it. Where the tracks are nearly
     exact the prior gives way: a principal point 5 px off the centre (1.25 % across) is kept."""
-    from facecap_core.config import PBAConfig
     from facecap_core.pose.evaluate import pose_errors
     from facecap_core.pose.geometric import triangulate
+    from facecap_core.pose.pba import PBAConfig
 
     pp = (159.5, 119.5) if noise_px > 0.1 else (163.5, 116.5)
     intr, R, t, points, rows, turned, start_t, start = _arc_scene(80.0, pp, noise_px)
@@ -404,10 +403,10 @@ def test_the_tracks_under_a_rolling_shutter_recover_the_cameras():
 
     got = Intrinsics(320, 240, intr_[0], intr_[0], intr_[1], intr_[2], intr_[3], intr_[4])
     after = pose_errors(R_, t_, got, R, t, intr)
-    assert after["rotation_deg"] < 1e-5 and after["focal_pct"] < 1e-6, after
+    expect_exact_cameras(after)
     # The scale is the gauge's: the first baseline keeps its length.
     baseline = [np.linalg.norm(r[1].T @ x[1] - r[0].T @ x[0]) for r, x in ((R_, t_), (R, t))]
-    assert after["centre_pct"] < 1e-6 and baseline[0] == pytest.approx(baseline[1], rel=1e-9)
+    assert baseline[0] == pytest.approx(baseline[1], rel=1e-9)
     # Exact under the true readout (float rounding, ~1e-24 px² in all); a global shutter
     # folds most of the shear into the cameras but cannot reach zero (measured 0.016 px²).
     assert costs[readout] < 1e-12 and costs[0.0] > 1e-3, costs

@@ -4,16 +4,17 @@ import numpy as np
 import pytest
 
 from facecap.synthetic import load_gt_cameras, synthesize
+from facecap.synthetic.config import SynthConfig
 from facecap_core.camera import Intrinsics, rotation_matrix
-from facecap_core.config import PoseConfig, SynthConfig
 from facecap_core.keyframes import load_keyframes
 from facecap_core.keyframes import main as keyframes_main
 from facecap_core.pose.colmap_sfm import Poses, run_sfm
 from facecap_core.pose.evaluate import pose_errors
 from facecap_core.pose.geometric import triangulate
 from facecap_core.pose.io import write_colmap_text, write_outputs
-from facecap_core.pose.stage import estimate_poses, track_hosts
+from facecap_core.pose.stage import PoseConfig, estimate_poses, track_hosts
 from facecap_core.video import read_frames
+from tests.tolerances import expect_equal_cameras, expect_exact_cameras
 
 
 def _ring(n=8, seed=0):
@@ -39,10 +40,8 @@ def test_pose_errors_ignore_a_similarity_of_the_world():
     t_est = [s * tg - Re @ b for Re, tg in zip(R_est, t_gt)]
     intr = Intrinsics(640, 360, 500, 500, 320, 180, 0.01, 0)
     err = pose_errors(R_est, t_est, intr, R_gt, t_gt, intr)
-    # A rotation angle is arccos((trace - 1) / 2): near 0 a rounding error e in the trace
-    # becomes sqrt(e) in the angle. A few float64 roundings (e ~ 10 * 2.2e-16) give
-    # sqrt(2 * 2.2e-15) rad = 3.8e-6 degrees, so exact poses read as up to ~4e-6 degrees.
-    assert err["rotation_deg"] < 1e-5 and err["centre_pct"] < 1e-6 and err["focal_pct"] == 0
+    expect_exact_cameras(err)
+    assert err["focal_pct"] == 0
 
 
 def test_triangulation_recovers_points_and_rejects_outliers():
@@ -144,10 +143,7 @@ def test_sift_threads_do_not_change_the_cameras(capture, tmp_path):
     images = read_frames(capture.video, kf.indices, width=640)
     one, two = (run_sfm(images, tmp_path / f"sfm{n}", kf.video_size, extraction_threads=n)
                 for n in (1, 2))
-    assert one.frame_indices == two.frame_indices
-    assert np.array_equal(np.asarray(one.R), np.asarray(two.R))
-    assert np.array_equal(np.asarray(one.t), np.asarray(two.t))
-    assert one.intrinsics == two.intrinsics
+    expect_equal_cameras(one, two)
 
 
 def test_pose_stage_needs_the_keyframe_stage(tmp_path):

@@ -1,0 +1,104 @@
+"""The pipeline: its stages in the order they run, and their settings assembled into the
+one config of a run.
+
+Adding a stage is its module (its settings model, its ``run`` and its ``STAGE`` row,
+:mod:`facecap_core.stage`) and its line in :data:`STAGES` here; a stage with settings also
+names its section in :class:`PipelineConfig`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import BaseModel, Field
+
+from facecap_core import coarse, frames, keyframes
+from facecap_core.coarse import CoarseConfig
+from facecap_core.config import StrictModel, build, load_yaml
+from facecap_core.evaluation import stage as evaluation_stage
+from facecap_core.fitting import stage as fitting_stage
+from facecap_core.keyframes import KeyframeConfig
+from facecap_core.landmarks import stage as landmark_stage
+from facecap_core.landmarks.stage import LandmarkConfig
+from facecap_core.mvs import depth, fusion, views
+from facecap_core.mvs.depth import DepthMapConfig
+from facecap_core.mvs.fusion import FusionConfig
+from facecap_core.mvs.views import ViewSelectionConfig
+from facecap_core.nonrigid.nicp import FittingConfig
+from facecap_core.pose import stage as pose_stage
+from facecap_core.pose.stage import PoseConfig
+from facecap_core.stage import Stage
+
+
+class MVSConfig(StrictModel):
+    """Dense multi-view stereo: view selection, PatchMatch depth maps, filtering, fusion.
+    Each part is its own stage with its own cache key: a changed fusion setting
+    recomputes no depth map."""
+
+    views: ViewSelectionConfig = ViewSelectionConfig()
+    """View selection."""
+    depth: DepthMapConfig = DepthMapConfig()
+    """Depth maps (one stage run per keyframe)."""
+    fusion: FusionConfig = FusionConfig()
+    """Consistency filter and fusion."""
+    workers: int = Field(2, ge=1, le=16)
+    """Depth maps computed at once by one capture run (threads; the kernels release the
+    GIL). It changes no result, so no artifact depends on it."""
+
+
+class PipelineConfig(StrictModel):
+    """Every stage's settings for one reconstruction (``facecap reconstruct --config``).
+
+    A YAML file holds any subset: ``{mvs: {depth: {iterations: 4}}, fitting: {use_edges: false}}``;
+    what it leaves out keeps its default. Each stage's artifact key hashes its own section
+    only, so changing one section recomputes that stage and the ones after it."""
+
+    keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
+    """Tracking and keyframe selection."""
+    poses: PoseConfig = Field(default_factory=PoseConfig)
+    """Camera poses and intrinsics."""
+    landmarks: LandmarkConfig = Field(default_factory=LandmarkConfig)
+    """68-point and ear landmarks, triangulation."""
+    coarse: CoarseConfig = Field(default_factory=CoarseConfig)
+    """Coarse template fit and metric scale."""
+    mvs: MVSConfig = Field(default_factory=MVSConfig)
+    """View selection, depth maps, fusion."""
+    fitting: FittingConfig = Field(default_factory=FittingConfig)
+    """Non-rigid template fitting and texture."""
+
+
+def section_model(section: str) -> type[BaseModel]:
+    """The settings model at a dotted path of :class:`PipelineConfig` (``"mvs.depth"``)."""
+    model: type[BaseModel] = PipelineConfig
+    for part in section.split("."):
+        model = model.model_fields[part].annotation
+    return model
+
+
+def load_pipeline_config(source: str | Path | PipelineConfig | dict | None = None,
+                         overrides: dict | None = None) -> PipelineConfig:
+    """The pipeline config from a YAML file, a config given as such (a flow parameter) or
+    the defaults, with ``overrides``."""
+    if isinstance(source, PipelineConfig):
+        if not overrides:
+            return source  # validated where it was made
+        source = source.model_dump(mode="json", exclude_unset=True)
+    if source is None or isinstance(source, dict):
+        return build(PipelineConfig, {**(source or {}), **(overrides or {})},
+                     source="pipeline config")
+    return load_yaml(PipelineConfig, source, overrides)
+
+
+STAGES: tuple[Stage, ...] = (
+    keyframes.STAGE,
+    pose_stage.STAGE,
+    frames.STAGE,
+    landmark_stage.STAGE,
+    coarse.STAGE,
+    views.STAGE,
+    depth.STAGE,
+    fusion.STAGE,
+    fitting_stage.STAGE,
+    evaluation_stage.STAGE,
+)
+"""The stages in the order they run."""
