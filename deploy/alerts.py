@@ -18,7 +18,6 @@ automation of each name, and an automation the operator paused stays paused.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 from uuid import UUID
 
@@ -34,9 +33,6 @@ from facecap.flows.dataset import reconstruct_dataset
 from facecap.flows.evaluate import evaluate_dataset
 from facecap_core.errors import InputError
 from facecap_core.settings import settings
-
-if TYPE_CHECKING:
-    from prefect.automations import Automation
 
 WEBHOOK_ENV = "FACECAP_ALERT_WEBHOOK"
 BLOCK_NAME = "facecap-alerts"

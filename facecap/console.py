@@ -14,8 +14,6 @@ from facecap.tasks.scratch import process_scratch, remove_orphans
 # Imported where used: Prefect reads its settings when first imported; prefect_defaults() sets
 # them first.
 
-# Prefect is imported inside the functions: it reads its settings when first imported, and
-# prefect_defaults() sets them first.
 
 def prefect_defaults() -> None:
     """Defaults for running flows on the embedded server of a 2-core machine. Prefect reads

@@ -8,7 +8,7 @@ by a **size prior** (see docs/landmarks.md, "Metric scale"):
   template millimetre);
 * an average face's landmark configuration is ``landmark_size`` times the template's (a
   population mean measured once, with the detector's convention: see
-  :class:`~facecap_core.config.CoarseConfig`);
+  :class:`~facecap_core.coarse.CoarseConfig`);
 * so one camera unit is ``landmark_size / lambda`` millimetres.
 
 The error of such a prior is the spread of face sizes around the mean (≈ 5 % for the

@@ -8,7 +8,7 @@ Layout::
     ROOT/<subject>/scan_landmarks.json  68 3D landmarks of the scan (iBUG order); needed
                                         to score against the scan
 
-Results go to ``OUT/<subject>/<capture>/`` (see :mod:`flows.capture`). Names may contain
+Results go to ``OUT/<subject>/<capture>/`` (see :mod:`facecap.flows.capture`). Names may contain
 spaces and any Unicode; hidden entries (``.name``) are ignored; nothing outside ROOT is
 ever read — a symbolic link that leaves ROOT is refused.
 """

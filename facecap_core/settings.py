@@ -108,7 +108,7 @@ class FacecapSettings(BaseSettings):
     fault: str | None = None
     """Fault injection for the robustness tests, ``STAGE[:N[:HOW]]``: the N-th computation
     (default 1) of STAGE in a process fails before its commit; HOW is ``exit`` (default),
-    ``interrupt`` or ``oserror`` (``tasks.runner.inject_fault``). Default unset: no fault.
+    ``interrupt`` or ``oserror`` (``facecap.tasks.runner.inject_fault``). Default unset: no fault.
     Never set it outside a test."""
 
     @field_validator("input_roots", mode="before")

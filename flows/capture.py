@@ -1,6 +1,6 @@
 """``reconstruct-capture``: one video in, a metric mesh in template topology out.
 
-The flow runs the rows of the stage graph (:mod:`tasks.graph`) over the artifact store
+The flow runs the rows of the stage graph (:mod:`facecap.tasks.graph`) over the artifact store
 (every stage cached by content: rerunning computes nothing, a changed setting recomputes
 only the stages that read it and those after them), fans the depth maps out over threads
 (the PatchMatch kernels release the GIL, so ``mvs.workers`` threads use that many cores of
@@ -247,7 +247,7 @@ def _export(store: str, keys: dict[str, str], writer: ResultWriter, scratch: Pat
 
 
 def _page(store: str, keys: dict[str, str], report: dict, results: dict[str, Path]) -> bytes:
-    """``index.html`` of the run (:mod:`flows.page`), the heat map on the mesh from the
+    """``index.html`` of the run (:mod:`facecap.flows.page`), the heat map on the mesh from the
     evaluation's metric protocol."""
 
 
@@ -421,7 +421,8 @@ def preflight(video: str | Path, config: ConfigParameter | Path = None, scan: st
                            (video, scan, scan_landmarks, config_file(config)))
         check_output_folder(Path(out))
         results = {(Path(out) / n).resolve() for n in OUTPUT_NAMES}
-        for what, path in (("capture", video), ("scan", scan), ("scan landmarks", scan_landmarks)):
+        for what, path in (("capture", video), ("scan", scan), ("scan landmarks", scan_landmarks),
+                           ("config", config_file(config))):
             if path and Path(path).resolve() in results:
                 raise InputError(f"the {what} {path} would be overwritten by a result of the same "
                                  f"name in the output folder {out}; give another --out")

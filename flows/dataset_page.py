@@ -3,7 +3,7 @@
 Written by the dataset flow when its captures are done and again by each nightly evaluation:
 a thumbnail of each capture (its preview), its figures (keyframes, metric scale, surface,
 accuracy), its status (done, failed and why, regressed), a link to its own page
-(``<subject>/<capture>/index.html``, :mod:`flows.page`) and the history of its accuracy
+(``<subject>/<capture>/index.html``, :mod:`facecap.flows.page`) and the history of its accuracy
 over the nightly evaluations as a small plot. The table sorts by any column (a click on its
 heading). Self-contained like the capture pages: it opens from disk.
 """
@@ -173,7 +173,7 @@ def rewrite_dataset_page(out: Path) -> None:
 
 def store_dataset_page(out: Path, store) -> str:
     """Keep a copy of the dataset page in the store whose links open each capture's page
-    from there (:func:`flows.page.stored_link`, a day), for the link from the Prefect UI;
+    from there (:func:`facecap.flows.page.stored_link`, a day), for the link from the Prefect UI;
     returns its key. Made from the captures' stored pages: ``forget`` removes it with them."""
 
     inputs: dict[str, str] = {}

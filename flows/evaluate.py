@@ -120,7 +120,7 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
                       "scan": call_ingest(store, entry.scan, entry.scan.name, name),
                       "scan_landmarks": call_ingest(store, entry.scan_landmarks,
                                                     entry.scan_landmarks.name, name)}
-            key, _ = call_stage("evaluation", store, inputs, {}, name)
+            key, _ = call_stage("evaluation", store, inputs, None, name)
 
             doc = json.loads((open_store(store).get(key) / "evaluation.json").read_text())
             current[name] = doc["similarity"]

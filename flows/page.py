@@ -47,7 +47,7 @@ MAX_CLOUD_POINTS = 60_000
 
 PAGE_STAGE = "page"
 """The store keeps each run's page as an artifact of this name, made from the run's stage
-artifacts: what a link from the Prefect UI opens (:func:`flows.ui.results_link`), what
+artifacts: what a link from the Prefect UI opens (:func:`facecap.flows.ui.results_link`), what
 ``forget`` removes with the face it shows, what ``prune --unreferenced`` keeps while a
 ``report.json`` names it."""
 

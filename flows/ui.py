@@ -73,7 +73,7 @@ def png_data_uri(path: Path, max_width: int = 960) -> str:
 
 
 def mesh_preview(results: dict[str, Path], target: Path) -> Path | None:
-    """Render ``target`` from a run's results (name -> file, as :func:`flows.capture._export`
+    """Render ``target`` from a run's results (name -> file, as :func:`facecap.flows.capture._export`
     staged them): the accuracy heat map (metric protocol) when a scan was given, otherwise
     the mesh in its own colours turned to face the viewer; None without a mesh."""
 
@@ -135,7 +135,7 @@ def page_link(store, key: str | None, folder: Path) -> tuple[str, str]:
 
 
 def results_link(report: dict, out: Path) -> tuple[str, str]:
-    """``(link, where)`` to a capture run's page (:mod:`flows.page`): :func:`page_link` to
+    """``(link, where)`` to a capture run's page (:mod:`facecap.flows.page`): :func:`page_link` to
     the page its report names, or to ``index.html`` in the output folder."""
 
     page, _ = report_keys(report)
@@ -222,7 +222,7 @@ def dataset_link_key(out: Path) -> str:
 
 def publish_dataset_page(out: Path, store: str) -> None:
     """Link the Prefect UI to the dataset page of ``out`` (just rewritten): a copy kept in
-    the store whose links open the captures' pages (:func:`flows.dataset_page.
+    the store whose links open the captures' pages (:func:`facecap.flows.dataset_page.
     store_dataset_page`), for :data:`RESULTS_LINK_SECONDS`; else the page on disk."""
 
 

@@ -35,7 +35,7 @@ class Removal:
     captures: list[str] = field(default_factory=list)
     """``subject/capture`` of each capture forgotten (their UI pages go too)."""
     in_use: list[str] = field(default_factory=list)
-    """Artifacts kept because a run in progress holds them (see :func:`tasks.runner.lease`)."""
+    """Artifacts kept because a run in progress holds them (see :func:`facecap.tasks.runner.lease`)."""
     damaged: dict[str, str] = field(default_factory=dict)
     """Artifacts a prune kept because their manifest cannot be read (so neither can their
     age): their key and the one-line problem, which says what to do."""
@@ -178,7 +178,7 @@ def _run_reports(folder: Path) -> Iterator[dict]:
 
 
 def report_keys(doc: dict) -> tuple[str | None, list[str]]:
-    """The artifact keys a run report names: its page's (:func:`flows.page.store_page`; None
+    """The artifact keys a run report names: its page's (:func:`facecap.flows.page.store_page`; None
     without one) and its stages', leaving out whatever is not a key (a results folder is
     anyone's to write)."""
     def key(row) -> str | None:

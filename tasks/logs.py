@@ -3,7 +3,7 @@ INFO and above goes to the API log of the flow or task run it happens in (the ru
 the UI), depth maps computed in the task runner's threads included.
 
 facecap_core knows nothing of Prefect: it logs with ``logging.getLogger(__name__)``. The
-handler is attached here, by the code that runs the stages (:mod:`tasks.stages` on import,
+handler is attached here, by the code that runs the stages (:mod:`facecap.tasks.stages` on import,
 so a worker started with Prefect's default settings has it), and it does not depend on
 ``PREFECT_LOGGING_EXTRA_LOGGERS``: where that setting names facecap_core (or one of its
 modules) the handler Prefect put there is replaced, so that each record is sent once.

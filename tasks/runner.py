@@ -1,7 +1,7 @@
 """How every stage task runs: content-addressed, locked, stored atomically, retried only
 when the fault is transient.
 
-A stage call is identified by its row in the stage graph (:mod:`tasks.graph`: name and
+A stage call is identified by its row in the stage graph (:mod:`facecap.tasks.graph`: name and
 version), the keys of its input artifacts, its config section (JSON) and its params. Together
 they make the artifact key. The store is the only cache: a stage whose artifact is stored is
 never computed again, by any run on any worker, and :func:`run_stage` says whether it

@@ -1,4 +1,4 @@
-"""One thin Prefect task per row of the stage graph (:mod:`tasks.graph`): read the inputs
+"""One thin Prefect task per row of the stage graph (:mod:`facecap.tasks.graph`): read the inputs
 from the store, compute, store the outputs.
 
 Every task has the signature ``(store, inputs, config, params, label) -> (key, computed)``:
@@ -7,7 +7,7 @@ section of the run's PipelineConfig, validated once where the config was read, o
 and ``params`` its per-keyframe parameters. The store is the cache: a task whose
 artifact is stored returns at once with ``computed`` false, and the run report takes that
 flag from the tasks themselves. What facecap_core logs at INFO and above while a task runs
-is in the task run's log (:mod:`tasks.logs`).
+is in the task run's log (:mod:`facecap.tasks.logs`).
 """
 
 from __future__ import annotations

@@ -251,9 +251,10 @@ def _config_bytes(tmp: Path, data: bytes) -> Path:
     return tmp / "pipeline.yaml"
 
 
-def _config(tmp: Path, text: str) -> Path:
-    (tmp / "pipeline.yaml").write_text(text)
-    return tmp / "pipeline.yaml"
+def _config(tmp: Path, text: str, name: str = "pipeline.yaml") -> Path:
+    tmp.mkdir(parents=True, exist_ok=True)
+    (tmp / name).write_text(text)
+    return tmp / name
 
 
 def _scan(tmp: Path) -> Path:
@@ -403,6 +404,10 @@ CORPUS = {
         lambda m, t, k: ["reconstruct", _copy(m["orbit"], t / "results" / "report.json"),
                          "--out", t / "results"], ["report.json would be overwritten",
                                                     "another --out"]),
+    "a config named like a result in --out": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                         _config(t / "results", "{}\n", "coarse.json"), "--out", t / "results"],
+        ["config", "coarse.json would be overwritten", "another --out"]),
     "an IPD no adult has": (lambda m, t, k: ["reconstruct", m["orbit"], "--ipd-mm", "6.3"],
                             ["--ipd-mm", "ipd_mm", "greater than or equal to 40"]),
     "config: unknown section": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",

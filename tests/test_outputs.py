@@ -435,7 +435,7 @@ def test_a_full_facecap_home_is_one_line(media, kept, tmp_path, capfd, prefect_s
 def test_the_local_server_logs_to_a_file_and_dies_with_its_command(tmp_path):
     """The server a command starts for itself writes to ``logs/server.log`` (its shutdown
     traceback never reaches the console), and a SIGKILL of the command stops it."""
-    script = ("import sys, time\nfrom flows.local_server import start_local_server\n"
+    script = ("import sys, time\nfrom facecap.flows.local_server import start_local_server\n"
               "print(start_local_server(), flush=True)\ntime.sleep(600)\n")
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API")}
     env.update(FACECAP_HOME=str(tmp_path / "home"), PREFECT_HOME=str(tmp_path / "ph"),

@@ -200,7 +200,7 @@ def test_core_logs_go_to_runs_once_whatever_the_extra_loggers_say(tmp_path):
     import subprocess
     import sys
 
-    script = ("import logging, tasks.stages\n"
+    script = ("import logging, facecap.tasks.stages\n"
               "for name in ('facecap_core', 'facecap_core.mvs'):\n"
               "    logger = logging.getLogger(name)\n"
               "    print(name, logger.level, [type(h).__name__ for h in logger.handlers])\n")

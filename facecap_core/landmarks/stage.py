@@ -10,7 +10,7 @@
    each detection's **agreement**: the median reprojection error of its inner points against
    the landmarks triangulated from all views, relative to the face box size.
 3. **Gate** (the paper: high-confidence, near-frontal frames): |yaw| and agreement within the
-   :class:`~facecap_core.config.LandmarkConfig` limits (the detector's score is checked
+   :class:`~facecap_core.landmarks.stage.LandmarkConfig` limits (the detector's score is checked
    at detection).
 4. **3D landmarks**: the 51 inner points (iBUG 17–67; the jaw contour 0–16 depends on the
    view and is left out, as in the paper) triangulated from the gated keyframes, then moved
@@ -37,7 +37,6 @@ cameras' intrinsics (video frames of another size are mapped to it).
 from __future__ import annotations
 
 import hashlib
-import importlib
 import json
 import logging
 import time
@@ -57,7 +56,7 @@ from facecap_core.camera import (
 from facecap_core.config import StrictModel
 from facecap_core.errors import InputError
 from facecap_core.face import DETECTOR, MESH_TO_68_FILE, Detection, detect
-from facecap_core.landmarks import iris
+from facecap_core.landmarks import ears, iris
 from facecap_core.landmarks.convention import (
     OFFSETS_FILE,
     correct,
@@ -222,14 +221,7 @@ def detect_keyframes(video: str | Path, cams: CameraSet, config: LandmarkConfig
 
 
 def _ear_module():
-    """The ear module when it and its trained model are installed, else None."""
-
-    try:
-        ears = importlib.import_module("facecap_core.landmarks.ears")
-    except ModuleNotFoundError as exc:
-        if exc.name == "facecap_core.landmarks.ears":
-            return None
-        raise
+    """The ear module when its trained models are installed, else None."""
     return ears if ears.model_available() else None
 
 

@@ -368,7 +368,7 @@ def check_inputs(ref: MVSView, sources: list[MVSView], prior: CoarsePrior) -> No
 
 def patchmatch_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, config) -> DepthMap:
     """Depth, normal and cost maps of ``ref`` over the prior's region (``config``:
-    :class:`~facecap_core.config.DepthMapConfig`). Raw: no filtering."""
+    :class:`~facecap_core.mvs.depth.DepthMapConfig`). Raw: no filtering."""
     start, cpu = time.perf_counter(), time.thread_time()
     check_inputs(ref, sources, prior)
     h, w = ref.grey.shape

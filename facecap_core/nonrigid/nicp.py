@@ -1,6 +1,6 @@
 """Optimal-step non-rigid ICP of the template to cloud, landmarks, ear points and edges.
 
-:func:`fit` runs the schedule of :class:`~facecap_core.config.FittingConfig`: for each
+:func:`fit` runs the schedule of :class:`~facecap_core.nonrigid.nicp.FittingConfig`: for each
 stiffness level (global → local, landmark weight falling with it) up to
 ``iterations_per_level`` optimal steps; each step recomputes the cloud targets (every
 ``recompute_every`` steps) and the silhouette targets (every ``edge_recompute_every``) from

@@ -1,4 +1,4 @@
-"""The artifact store's interface and what its backends share (:mod:`tasks.store`)."""
+"""The artifact store's interface and what its backends share (:mod:`facecap.tasks.store`)."""
 
 from __future__ import annotations
 
@@ -90,9 +90,9 @@ def _filesystem(url: str | os.PathLike[str]) -> tuple[fsspec.AbstractFileSystem,
 class ArtifactStore:
     """Content-addressed artifacts in a local folder or under any fsspec URL.
 
-    :func:`tasks.store.open_store` gives the backend for a URL:
-    :class:`~tasks.store.local.LocalStore` for a folder, :class:`~tasks.store.remote.RemoteStore`
-    for an object store. See :mod:`tasks.store` for the layout and the commit protocol.
+    :func:`facecap.tasks.store.open_store` gives the backend for a URL:
+    :class:`~facecap.tasks.store.local.LocalStore` for a folder, :class:`~facecap.tasks.store.remote.RemoteStore`
+    for an object store. See :mod:`facecap.tasks.store` for the layout and the commit protocol.
     """
 
     is_local = False

@@ -44,7 +44,7 @@ class LocalStore(ArtifactStore):
 
     def presigned_url(self, key: str, name: str, expires: int) -> str | None:
         """A link to the file on the page server of ``FACECAP_PAGES_URL``
-        (:mod:`tasks.store.links`), valid ``expires`` seconds (at most 7 days); None where no
+        (:mod:`facecap.tasks.store.links`), valid ``expires`` seconds (at most 7 days); None where no
         page server is configured."""
 
         self._entry(self.manifest(key), name)
