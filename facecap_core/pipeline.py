@@ -4,10 +4,21 @@ one config of a run.
 Adding a stage is its module (its settings model, its ``run`` and its ``STAGE`` row,
 :mod:`facecap_core.stage`) and its line in :data:`STAGES` here; a stage with settings also
 names its section in :class:`PipelineConfig`.
+
+One stage runs alone on folders, without Prefect or the store (to debug it, or to try a
+setting on one capture's artifacts)::
+
+    python -m facecap_core.pipeline depth --input frames=F --input coarse=C --input views=V \
+        --index 12 --config pipeline.yaml --out OUT
+
+Each input is a folder laid out as the store keeps that artifact (the capture's holds
+``video.mp4`` or ``photos/``); the stage writes its files into ``OUT``.
 """
 
 from __future__ import annotations
 
+import argparse
+import sys
 from pathlib import Path
 
 from pydantic import BaseModel, Field
@@ -15,6 +26,7 @@ from pydantic import BaseModel, Field
 from facecap_core import coarse, frames, keyframes
 from facecap_core.coarse import CoarseConfig
 from facecap_core.config import StrictModel, build, load_yaml
+from facecap_core.errors import FacecapError
 from facecap_core.evaluation import stage as evaluation_stage
 from facecap_core.fitting import stage as fitting_stage
 from facecap_core.keyframes import KeyframeConfig
@@ -102,3 +114,44 @@ STAGES: tuple[Stage, ...] = (
     evaluation_stage.STAGE,
 )
 """The stages in the order they run."""
+
+
+def run_alone(argv: list[str] | None = None) -> Path:
+    """``python -m facecap_core.pipeline``: one stage on folders; returns its output folder."""
+    parser = argparse.ArgumentParser(
+        prog="python -m facecap_core.pipeline",
+        description="Run one stage alone on folders laid out as the store keeps artifacts.")
+    parser.add_argument("stage", choices=[stage.name for stage in STAGES])
+    parser.add_argument("--input", action="append", default=[], metavar="NAME=FOLDER",
+                        help="an input artifact's folder (repeat for each input)")
+    parser.add_argument("--out", required=True, help="the folder the stage writes into")
+    parser.add_argument("--config", help="a PipelineConfig YAML (the stage reads its section)")
+    parser.add_argument("--index", type=int, help="the keyframe, for a per-keyframe stage")
+    args = parser.parse_args(argv)
+    stage = next(s for s in STAGES if s.name == args.stage)
+    inputs = {}
+    for item in args.input:
+        name, sep, folder = item.partition("=")
+        if not sep or not name or not Path(folder).is_dir():
+            parser.error(f"--input {item}: give NAME=FOLDER with an existing folder")
+        inputs[name] = Path(folder)
+    missing = [name for name in stage.inputs if name not in inputs]
+    if missing:
+        parser.error(f"the {stage.name} stage reads {', '.join(missing)}: give "
+                     + " ".join(f"--input {name}=FOLDER" for name in missing))
+    if (args.index is None) != (stage.per_keyframe is None):
+        parser.error(f"--index is for a per-keyframe stage, which {stage.name} "
+                     f"{'is' if stage.per_keyframe else 'is not'}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    params = {"index": args.index} if stage.per_keyframe else {}
+    stage.run(inputs, out, stage.settings(load_pipeline_config(args.config)), params)
+    return out
+
+
+if __name__ == "__main__":
+    try:
+        print(run_alone())
+    except FacecapError as exc:
+        print(f"python -m facecap_core.pipeline: error: {exc}", file=sys.stderr)
+        sys.exit(2)
