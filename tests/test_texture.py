@@ -1,5 +1,5 @@
 """Vertex colours from the keyframes (``facecap_core/texture.py``); the colours of a fitted
-head are tested with the fitting (``tests/test_fitting.py``)."""
+head are tested with the fitting (``tests/fitting/test_fitting.py``)."""
 
 from __future__ import annotations
 

@@ -105,7 +105,7 @@ def test_james_hand_labelled_contour_is_reproducible_and_on_his_scan():
     from facecap.synthetic import make_subject
     from facecap.synthetic.config import SynthConfig
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     doc = json.loads((root / "benchmarks/data/james_ear_contour.json").read_text())
     spec = importlib.util.spec_from_file_location("james_ear_contour",
                                                   root / "tools/james_ear_contour.py")

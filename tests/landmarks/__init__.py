@@ -1,0 +1,1 @@
+"""Tests of facecap_core.landmarks, one file per module."""
