@@ -48,7 +48,8 @@ LAYERS = (
     # The command line, on top.
     ("facecap", 14),
 )
-"""(module prefix, layer): a module's layer is that of its longest prefix here."""
+"""(module prefix, layer): a module's layer is that of its longest prefix here; a stage the
+list lacks takes its place from the pipeline's order (:func:`layers`)."""
 
 FORBIDDEN = {"facecap_core": ("prefect",), "facecap.synthetic": ("tasks", "flows", "deploy"),
              "facecap.ear_training": ("tasks", "flows", "deploy")}
@@ -163,15 +164,49 @@ def _is_type_checking(node: ast.AST) -> bool:
         or getattr(node.test, "attr", None) == "TYPE_CHECKING")
 
 
-def layer(module: str) -> int:
-    best = max((p for p, _ in LAYERS if module == p or module.startswith(p + ".")), key=len)
-    return dict(LAYERS)[best]
+def pipeline_rows() -> list[str]:
+    """The stage modules in the order ``facecap_core/pipeline.py`` lists their rows (read from
+    its ``STAGES`` and its imports, without importing it); a module named ``stage`` stands for
+    its package."""
+    tree = ast.parse((ROOT / "facecap_core" / "pipeline.py").read_text())
+    names = {}
+    for node in tree.body:
+        if isinstance(node, ast.ImportFrom) and node.module:
+            for a in node.names:
+                names[a.asname or a.name] = f"{node.module}.{a.name}"
+    rows = next(node.value.elts for node in tree.body if isinstance(node, ast.AnnAssign | ast.Assign)
+                and getattr(getattr(node, "target", None) or node.targets[0], "id", "") == "STAGES")
+    modules = [names[row.value.id] for row in rows]
+    return [m.rpartition(".")[0] if m.endswith(".stage") else m for m in modules]
+
+
+def layers() -> dict[str, float]:
+    """:data:`LAYERS`, and a stage it does not list (a new one) between the rows around it
+    in the pipeline's order."""
+    found = dict(LAYERS)
+    rows = pipeline_rows()
+    for i, module in enumerate(rows):
+        if max((p for p in found if module == p or module.startswith(p + ".")),
+               key=len) == "facecap_core":  # listed nowhere but among the helpers
+            before = max((layer(m, found) for m in rows[:i]), default=0)
+            after = min((layer(m, found) for m in rows[i + 1:]
+                         if layer(m, found) > before), default=before + 1)
+            found[module] = (before + after) / 2
+    return found
+
+
+def layer(module: str, known: dict[str, float] | None = None) -> float:
+    known = known or layers()
+    best = max((p for p in known if module == p or module.startswith(p + ".")), key=len)
+    return known[best]
 
 
 def layer_violations(graph: dict[str, set[str]], third_party: dict[str, set[str]]) -> list[str]:
     """``importer -> imported`` for each import that points up the layers or that
     :data:`FORBIDDEN` names."""
-    found = [f"{m} -> {d}" for m in sorted(graph) for d in sorted(graph[m]) if layer(d) > layer(m)]
+    known = layers()
+    found = [f"{m} -> {d}" for m in sorted(graph) for d in sorted(graph[m])
+             if layer(d, known) > layer(m, known)]
     found += [f"{m} -> {t}" for m in sorted(graph) for t in sorted(third_party[m] & set(UNINSTALLED))]
     for package, banned in FORBIDDEN.items():
         found += [f"{m} -> {t}" for m in sorted(graph)
