@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("facecap_core", "facecap", "tasks", "flows", "deploy")
 LAYERS = (
     # The shared helpers: every facecap_core module that is not in a stage below (camera,
-    # geometry, meshio, render, template, face, video, photos, frames, config, the non-rigid
+    # geometry, meshio, render, template, face, video, photos, config, the non-rigid
     # registration, ...): they import only each other.
     ("facecap_core", 0),
     # The stages, in pipeline order: a stage imports helpers and earlier stages only.
