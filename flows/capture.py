@@ -51,7 +51,6 @@ from facecap.tasks.graph import (
     VIDEO,
     Stage,
     capture_input_name,
-    is_keyframe_row,
     producer,
     stages_until,
 )
@@ -117,8 +116,7 @@ def _inputs(stage: Stage, keys: dict[str, str]) -> dict[str, str] | None:
     for name in stage.inputs + stage.optional:
         source = producer(name)
         fanned = source in BY_NAME and BY_NAME[source].per_keyframe
-        items = {k: v for k, v in keys.items() if fanned and is_keyframe_row(k)
-                 and BY_NAME[source].is_row(k)}
+        items = {k: v for k, v in keys.items() if fanned and BY_NAME[source].is_row(k)}
         if source in keys:
             inputs[name] = keys[source]
         elif items:  # a per-keyframe stage: every keyframe's artifact
@@ -161,8 +159,7 @@ class _RunProgress:
 
 
 def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: BaseModel | None,
-             label: str,
-             workers: int, progress: bool, run_progress: _RunProgress,
+             label: str, workers: int, progress: bool, run_progress: _RunProgress,
              deadline: float | None = None) -> dict[str, tuple[str, bool]]:
     """One task per keyframe, at most ``workers`` at once; the run's progress artifact (and
     with ``progress`` a console bar) advanced after each."""

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import open3d as o3d
 import trimesh
 
 from facecap.tasks.graph import is_keyframe_row
@@ -30,8 +31,6 @@ from facecap.tasks.store.keys import KEY_PATTERN
 from facecap_core.coarse import ears_summary, scale_summary
 from facecap_core.errors import FacecapError
 from facecap_core.frames import frame_name
-
-# Imported where used: open3d (a second to import) only where a page shows a cloud.
 
 _log = logging.getLogger(__name__)
 
@@ -146,8 +145,6 @@ def _cameras(cameras_json: Path, centre: np.ndarray, frames: Path | None = None
 
 
 def _cloud(cloud_ply: Path, seed: int = 0) -> dict:
-    import open3d as o3d
-
     cloud = o3d.io.read_point_cloud(str(cloud_ply))
     points = np.asarray(cloud.points, np.float32)
     colours = (np.clip(np.asarray(cloud.colors), 0, 1) * 255).astype(np.uint8) \

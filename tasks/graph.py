@@ -49,8 +49,7 @@ OUTPUT_NAMES = frozenset(n for names in EXPORTED.values() for n in names) | {
 def is_keyframe_row(row: str) -> bool:
     """Whether a run report's row is one keyframe's run of a per-keyframe stage
     (``depth_00012``), which reports summarise per stage."""
-    return any(stage.per_keyframe and stage.is_row(row) and row != stage.name
-               for stage in STAGES)
+    return any(stage.is_row(row) and row != stage.name for stage in STAGES)
 
 
 def producer(input_name: str) -> str:

@@ -132,7 +132,7 @@ def analyse() -> dict:
         for f in functions:
             length = f.end_lineno - f.lineno + 1
             if length > LONG_FUNCTION:
-                top = text.split("\n")[f.lineno:f.body[0].end_lineno + 2]
+                top = lines_of[f.lineno:f.body[0].end_lineno + 2]
                 said = any(line.strip().startswith(LONG_REASON) for line in top)
                 long_functions.append((f"{rel}:{f.lineno} {f.name}", length, said))
             for node in ast.walk(f):
@@ -180,25 +180,31 @@ def pipeline_rows() -> list[str]:
     return [m.rpartition(".")[0] if m.endswith(".stage") else m for m in modules]
 
 
+def _under(module: str, prefix: str) -> bool:
+    return module == prefix or module.startswith(prefix + ".")
+
+
+def _longest_prefix(module: str, prefixes) -> str:
+    return max((p for p in prefixes if _under(module, p)), key=len)
+
+
 def layers() -> dict[str, float]:
     """:data:`LAYERS`, and a stage it does not list (a new one) between the rows around it
     in the pipeline's order."""
     found = dict(LAYERS)
     rows = pipeline_rows()
     for i, module in enumerate(rows):
-        if max((p for p in found if module == p or module.startswith(p + ".")),
-               key=len) == "facecap_core":  # listed nowhere but among the helpers
+        if _longest_prefix(module, found) == "facecap_core":  # listed among the helpers only
             before = max((layer(m, found) for m in rows[:i]), default=0)
-            after = min((layer(m, found) for m in rows[i + 1:]
-                         if layer(m, found) > before), default=before + 1)
+            after = min((n for n in (layer(m, found) for m in rows[i + 1:]) if n > before),
+                        default=before + 1)
             found[module] = (before + after) / 2
     return found
 
 
 def layer(module: str, known: dict[str, float] | None = None) -> float:
     known = known or layers()
-    best = max((p for p in known if module == p or module.startswith(p + ".")), key=len)
-    return known[best]
+    return known[_longest_prefix(module, known)]
 
 
 def layer_violations(graph: dict[str, set[str]], third_party: dict[str, set[str]]) -> list[str]:
@@ -210,7 +216,7 @@ def layer_violations(graph: dict[str, set[str]], third_party: dict[str, set[str]
     found += [f"{m} -> {t}" for m in sorted(graph) for t in sorted(third_party[m] & set(UNINSTALLED))]
     for package, banned in FORBIDDEN.items():
         found += [f"{m} -> {t}" for m in sorted(graph)
-                  if m == package or m.startswith(package + ".")
+                  if _under(m, package)
                   for t in sorted(third_party[m] & set(banned))]
     return found
 

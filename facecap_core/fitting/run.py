@@ -16,6 +16,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 import trimesh
 from scipy.spatial import cKDTree
 
@@ -29,8 +30,6 @@ from facecap_core.nonrigid.roughness import face_edges, roughness
 from facecap_core.template import Template
 from facecap_core.texture import vertex_colours
 from facecap_core.video import read_frames
-
-# Imported where used: open3d (a second to import) only where a cloud or mesh is read or written.
 
 MESH_PLY = "mesh.ply"
 MESH_OBJ = "mesh.obj"
@@ -64,8 +63,6 @@ def load_cloud_errors(path: str | Path
             return (z["points"].astype(float),
                     z["normals"].astype(float) if "normals" in z else None,
                     z["errors"].astype(float).ravel() if "errors" in z else None)
-    import open3d as o3d
-
     pc = o3d.t.io.read_point_cloud(str(path))
     if "positions" not in pc.point or len(pc.point.positions) == 0:
         raise InputError(f"point cloud {path} is empty or unreadable (expected PLY/PCD/XYZ)")

@@ -16,13 +16,12 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import open3d as o3d
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from facecap_core.geometry import umeyama
 from facecap_core.nonrigid.solver import edges_of
-
-# Imported where used: open3d (a second to import) only for the self-intersection test.
 
 MAX_EDGE_STRETCH = 3.0
 """An edge beyond this many times its (similarity-scaled) template length counts as
@@ -67,8 +66,6 @@ def self_intersecting_pairs(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     ray casting, float32 about the centroid: 1e-5 mm on a head), and each crossing pairs the
     crossed triangle with the triangles that hold the edge. Coplanar overlaps are not seen.
     """
-    import open3d as o3d
-
     v = np.asarray(vertices, float)
     f = np.asarray(faces, np.int64)
     centre = v.mean(0)

@@ -65,7 +65,6 @@ from facecap_core.landmarks.convention import (
     robust_head_frame,
 )
 from facecap_core.landmarks.ear_check import check_ears
-from facecap_core.landmarks.ears import model_digest
 from facecap_core.landmarks.triangulate import Triangulation, box_size, triangulate
 from facecap_core.pose.stage import MIN_YAW_SPAN_DEG
 from facecap_core.stage import Folders, Stage, capture_in
@@ -539,7 +538,7 @@ def models_digest() -> str:
     except PackageNotFoundError:
         mesh = "no-mediapipe"
     tables = hashlib.sha256(MESH_TO_68_FILE.read_bytes() + OFFSETS_FILE.read_bytes())
-    return f"ears-{model_digest()}-{mesh}-tables-{tables.hexdigest()[:12]}"
+    return f"ears-{ears.model_digest()}-{mesh}-tables-{tables.hexdigest()[:12]}"
 
 
 STAGE = Stage("landmarks", step="landmarks", version="7", inputs=("video", "poses"),

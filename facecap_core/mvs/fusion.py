@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 from pydantic import Field
 
 from facecap_core.camera import CAMERAS_JSON
@@ -31,8 +32,6 @@ from facecap_core.mvs.filtering import _partners, agreement, backproject, geomet
 from facecap_core.mvs.images import load_view, metric_cameras
 from facecap_core.mvs.patchmatch import DepthMap
 from facecap_core.stage import Folders, Stage
-
-# Imported where used: open3d (a second to import) only where the cloud is written.
 
 
 class FusionConfig(StrictModel):
@@ -132,8 +131,6 @@ def write_ply(cloud: PointCloud, path: str | Path) -> Path:
     """Binary PLY with positions, normals, colours and, when known, each point's ``spread``
     (mm) and ``views`` as scalar properties (MeshLab, CloudCompare, open3d); written to a temporary name
     first so a crash never leaves half a file."""
-    import open3d as o3d
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     pc = o3d.t.geometry.PointCloud()

@@ -1326,10 +1326,11 @@ class _Level:
             p.velocity, value, config.track_huber_px, 15, p.free_intrinsics, pp_prior)
             for value in config.readout_candidates]
         costs = [a[0] for a in adjusted]
-        st.readout_s = config.readout_candidates[int(np.argmin(costs))]
+        best = int(np.argmin(costs))
+        st.readout_s = config.readout_candidates[best]
         if st.readout_s > 0:
             st.R, st.t, st.intr, st.X = _adjust_to_tracks(
-                *adjusted[int(np.argmin(costs))][1:], p.obs_start, p.obs_frame, p.obs_xy,
+                *adjusted[best][1:], p.obs_start, p.obs_frame, p.obs_xy,
                 p.shape[0], p.velocity, st.readout_s, config.track_huber_px, 35,
                 p.free_intrinsics, pp_prior)[1:]
             st.centres0 = np.array([-r.T @ x for r, x in zip(st.R, st.t)])
