@@ -15,6 +15,7 @@ import traceback
 from pathlib import Path
 
 from facecap import console, tools
+from facecap.flows import local_server
 from facecap_core.errors import FacecapError, InputError
 
 # Imported where used: each command imports what it runs, so that `facecap --help` and a bad
@@ -398,7 +399,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--fps", type=float, default=30.0, help="video frame rate")
     d.add_argument("--seconds", type=float, default=6.0, help="sweep duration")
     d.set_defaults(func=_cmd_demo)
-    for runs_flows in (r, ds, ed, sv, d):  # also after the command: facecap reconstruct ... --verbose
+    for runs_flows in (sub.choices[name] for name in FLOW_COMMANDS):  # --verbose after the
         runs_flows.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS,
                                 help=verbose)
     return p
@@ -411,8 +412,21 @@ def _as_user_sees_it(exc: FacecapError, args) -> str:
     return as_user_sees_it(str(exc), getattr(args, "video", None) or "the video")
 
 
+FLOW_COMMANDS = ("reconstruct", "dataset", "evaluate-dataset", "serve", "demo")
+"""The commands that run flows, on a Prefect server of their own unless one is named."""
+
+
+def _runs_flows(argv: list[str]) -> bool:
+    """Whether ``argv`` asks for a command that runs flows (and not for its help)."""
+    words = [word for word in argv if not word.startswith("-")]
+    return bool(words) and words[0] in FLOW_COMMANDS and not {"-h", "--help"} & set(argv)
+
+
 def main(argv: list[str] | None = None) -> int:
     console.prefect_defaults()
+    # The command's own process: its server starts while it loads the pipeline and Prefect.
+    if argv is None and _runs_flows(sys.argv[1:]):
+        local_server.spawn_local_server(quiet="--verbose" not in sys.argv)
     try:
         args = build_parser().parse_args(argv)
     except UsageError as exc:

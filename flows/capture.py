@@ -140,14 +140,22 @@ class _RunProgress:
     share split among its maps), in whole percents, its description naming the capture and
     the last step."""
 
+    EVERY_S = 1.0
+    """The least time between two updates (each is a call to the API): the last is always
+    sent."""
+
     def __init__(self, label: str, stages: list[str]):
         self.label, self.stages, self.done = label, len(stages), 0
         self.weights = [WORK_SECONDS.get(name, 1.0) for name in stages]
         self.total = sum(self.weights) or 1.0
         self.id = prefect.artifacts.create_progress_artifact(0.0, description=f"{label}: started")
+        self.sent = time.monotonic()
 
     def update(self, what: str, fraction: float = 0.0) -> None:
         """``what`` happened; ``fraction`` of the stage in progress is done."""
+        if self.done < self.stages and time.monotonic() - self.sent < self.EVERY_S:
+            return
+        self.sent = time.monotonic()
         current = self.weights[self.done] if self.done < self.stages else 0.0
         work = sum(self.weights[: self.done]) + fraction * current
         percent = float(min(100, round(100.0 * work / self.total)))

@@ -1,11 +1,14 @@
 """The Prefect server a ``facecap`` command starts for itself when no ``PREFECT_API_URL`` is
 set, held to the command's life.
 
-Prefect starts that server as a child process (uvicorn) and stops it at exit; a command that
-is killed (SIGKILL, the OOM killer) cannot stop it, and the server would live on. So the
-command starts the server itself, first, and with it a watchdog: a tiny process that holds the
-reading end of a pipe whose writing end only the command holds. When the command ends, however
-it ends, the kernel closes that end, the watchdog reads end-of-file and stops the server.
+Prefect would start that server as a child process (uvicorn) when its client is first used,
+after seconds of loading its server code, and stop it at exit; a command that is killed
+(SIGKILL, the OOM killer) cannot stop it, and the server would live on. So the command starts
+Prefect's server itself, first thing (while it loads the pipeline and Prefect, on the other
+core), names it as its ``PREFECT_API_URL`` once it answers, and starts with it a watchdog: a
+tiny process that holds the reading end of a pipe whose writing end only the command holds.
+When the command ends, however it ends, the kernel closes that end, the watchdog reads
+end-of-file and stops the server.
 
 The server's own output (its shutdown can print a traceback of a cancelled database query)
 goes to ``$FACECAP_HOME/logs/server.log``, not to the command's console.
@@ -14,15 +17,17 @@ goes to ``$FACECAP_HOME/logs/server.log``, not to the command's console.
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from facecap.tasks.scratch import start_ticks
 from facecap_core.assets import facecap_home
 
 # Imported where used: Prefect reads its settings when first imported; the command line sets them
-# first (facecap/console.py).
+# first (facecap/console.py). httpx (Prefect loads it) after the server's start, not before.
 
 LOG_NAME = "server.log"
 MAX_LOG_BYTES = 4 * 2**20
@@ -58,9 +63,10 @@ os.kill(pid, signal.SIGKILL)
 ends, and exits by itself when the server ends first. The server is identified by its pid and
 start time, so a reused pid is never signalled."""
 
-_lifeline: int | None = None
-"""The pipe's writing end: open for as long as this process lives."""
-_watchdog: subprocess.Popen | None = None
+_spawned: _Server | None = None
+"""The server started by :func:`spawn_local_server` and not yet adopted."""
+_adopted: _Server | None = None
+"""This process's server: its lifeline stays open for as long as this process lives."""
 
 
 def server_log() -> Path:
@@ -72,37 +78,108 @@ def server_log() -> Path:
     return log
 
 
-def start_local_server(quiet: bool = True) -> int | None:
-    """Start this process's Prefect server and its watchdog unless an API URL is set (or
-    the server runs already); returns the server's pid when it started it."""
-    from prefect.server.api.server import SubprocessASGIServer
-    from prefect.settings import PREFECT_API_URL, PREFECT_SERVER_EPHEMERAL_ENABLED
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
 
-    global _lifeline
-    if PREFECT_API_URL.value() or not PREFECT_SERVER_EPHEMERAL_ENABLED.value():
+
+def _uvicorn(port: int, quiet: bool) -> subprocess.Popen:
+    """Prefect's own ephemeral server (``SubprocessASGIServer``'s command and environment),
+    on ``port``."""
+    command = [sys.executable, "-m", "uvicorn", "--factory",
+               "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port",
+               str(port), "--log-level", "error", "--lifespan", "on"]
+    env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1",
+           "PREFECT__SERVER_FINAL": "1"}
+    if "prefect.settings" in sys.modules:  # settings changed in this process, as Prefect does
+        from prefect.settings import get_current_settings
+
+        env.update(get_current_settings().to_environment_variables(exclude_unset=True))
+    if not quiet:
+        return subprocess.Popen(command, env=env)
+    with open(server_log(), "ab") as log:
+        return subprocess.Popen(command, env=env, stdout=log, stderr=log)
+
+
+class _Server:
+    """A server process of this command's, on a free port, with the watchdog that stops it
+    when the command ends (the watchdog holds the reading end of ``lifeline``)."""
+
+    def __init__(self, quiet: bool):
+        self.port = _free_port()
+        self.process = _uvicorn(self.port, quiet)
+        reading, self.lifeline = os.pipe()
+        pid = self.process.pid
+        try:
+            subprocess.Popen([sys.executable, "-c", WATCHDOG, str(pid), start_ticks(pid)],
+                             stdin=reading, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL,
+                             start_new_session=True)  # a Ctrl-C of the terminal reaches it not
+        finally:
+            os.close(reading)
+
+    def stop(self) -> None:
+        self.process.terminate()
+        os.close(self.lifeline)
+
+    def wait_until_answering(self, timeout_s: float, quiet: bool) -> _Server:
+        """This server once its health check answers, or another on a new port should
+        this one's be taken meanwhile (uvicorn's exit code 3)."""
+        import httpx
+
+        deadline = time.monotonic() + timeout_s
+        with httpx.Client() as client:
+            while time.monotonic() < deadline:
+                code = self.process.poll()
+                if code == 3:
+                    self.stop()
+                    return _Server(quiet).wait_until_answering(deadline - time.monotonic(),
+                                                               quiet)
+                if code is not None:
+                    break
+                try:
+                    if client.get(f"http://127.0.0.1:{self.port}/api/health").status_code == 200:
+                        return self
+                except httpx.TransportError:
+                    pass
+                time.sleep(0.05)
+        self.stop()
+        where = f"; its log: {server_log()}" if quiet else ""
+        raise RuntimeError(f"the local Prefect server did not start (exit code "
+                           f"{self.process.poll()}) within {timeout_s:g} s{where}")
+
+
+def spawn_local_server(quiet: bool = True) -> None:
+    """Start the server's process now, before this process imports Prefect: the two start
+    at once (the server takes seconds to answer). :func:`start_local_server` adopts it, or
+    stops it when Prefect's settings name a server of their own; the watchdog stops it when
+    this process ends (bad input, before any flow)."""
+    global _spawned
+    if _spawned is None and os.environ.get("PREFECT_API_URL") is None:
+        _spawned = _Server(quiet)
+
+
+def start_local_server(quiet: bool = True) -> int | None:
+    """Start this process's Prefect server and its watchdog (or adopt the one
+    :func:`spawn_local_server` started) unless Prefect's settings name a server; returns the
+    server's pid when it started it. The server's address becomes this process's
+    ``PREFECT_API_URL`` (and its children's)."""
+    from prefect.context import refresh_global_settings_context
+    from prefect.settings import get_current_settings
+
+    global _spawned, _adopted
+    settings = get_current_settings()
+    if settings.api.url or not settings.server.ephemeral.enabled:
+        if _spawned is not None:
+            _spawned.stop()
+            _spawned = None
         return None
-    server = SubprocessASGIServer()
-    if server.running:
-        return None
-    if quiet:
-        with open(server_log(), "ab") as log:
-            console = os.dup(2)
-            try:  # the server inherits the standard error it is started with
-                os.dup2(log.fileno(), 2)
-                server.start()
-            finally:
-                os.dup2(console, 2)
-                os.close(console)
-    else:
-        server.start()
-    pid = server.server_process.pid
-    reading, _lifeline = os.pipe()
-    global _watchdog
-    try:
-        _watchdog = subprocess.Popen(
-            [sys.executable, "-c", WATCHDOG, str(pid), start_ticks(pid)], stdin=reading,
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            start_new_session=True)  # a Ctrl-C of the terminal reaches it not
-    finally:
-        os.close(reading)
-    return pid
+    server, _spawned = _spawned or _Server(quiet), None
+    _adopted = server.wait_until_answering(settings.server.ephemeral.startup_timeout_seconds,
+                                           quiet)
+    # As a server of one's own: Prefect's client then neither imports nor starts its
+    # ephemeral server (seconds of loading that the command does not need).
+    os.environ["PREFECT_API_URL"] = f"http://127.0.0.1:{_adopted.port}/api"
+    refresh_global_settings_context()
+    return _adopted.process.pid

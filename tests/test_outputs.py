@@ -431,6 +431,27 @@ def test_a_full_facecap_home_is_one_line(media, kept, tmp_path, capfd, prefect_s
     assert_kept(before, snapshot(kept["out"]))
 
 
+def test_a_refused_command_stops_the_server_it_started(tmp_path):
+    """A command that runs flows starts its server first thing, before it has read its
+    arguments; refused (bad input, exit 2), it stops that server rather than leave it."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API")}
+    env.update(FACECAP_HOME=str(tmp_path / "home"), PREFECT_HOME=str(tmp_path / "ph"))
+    proc = subprocess.Popen([sys.executable, "-m", "facecap", "reconstruct",
+                             str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "out")],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+    children = set()
+    while proc.poll() is None:
+        children |= _children(proc.pid)
+        time.sleep(0.02)
+    assert proc.returncode == 2 and "capture not found" in proc.stderr.read()
+    assert children, "the command started no server"
+    deadline = time.monotonic() + 10
+    while _alive(children) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not _alive(children), "the refused command's server lives on"
+
+
 @pytest.mark.slow
 def test_the_local_server_logs_to_a_file_and_dies_with_its_command(tmp_path):
     """The server a command starts for itself writes to ``logs/server.log`` (its shutdown

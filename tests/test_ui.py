@@ -76,6 +76,29 @@ def test_a_forgotten_subjects_ui_pages_are_deleted_and_no_one_elses():
             ["capture-alice-take1", *(k for label in others for k in artifact_keys(label))])
 
 
+STAGE_NAMES = ["keyframes", "poses", "frames", "landmarks", "coarse", "views", "depth",
+               "fusion", "fitting", "evaluation"]
+
+
+def test_the_progress_bar_calls_the_api_at_most_so_often_and_always_at_the_end(monkeypatch):
+    """Each update is a call to the API: a run whose stages are all reused (a second each
+    would be many) sends only the last, 100 %."""
+    import prefect.artifacts
+
+    from facecap.flows.capture import _RunProgress
+
+    shown = []
+    monkeypatch.setattr(prefect.artifacts, "create_progress_artifact", lambda *a, **k: "id")
+    monkeypatch.setattr(prefect.artifacts, "update_progress_artifact",
+                        lambda _id, percent, description: shown.append(percent))
+    monkeypatch.setattr(_RunProgress, "EVERY_S", 3600.0)
+    progress = _RunProgress("s/c", STAGE_NAMES)
+    for name in STAGE_NAMES:
+        progress.update(f"{name} half way", 0.5)
+        progress.stage_done(name)
+    assert shown == [100]
+
+
 def test_the_progress_bar_follows_the_work_in_whole_percents(monkeypatch):
     """The depth maps and the poses are most of a capture's time: with the poses done and
     17 of 40 depth maps made, the bar is near half way, not at 80 % as when each stage was an
@@ -88,9 +111,9 @@ def test_the_progress_bar_follows_the_work_in_whole_percents(monkeypatch):
     monkeypatch.setattr(prefect.artifacts, "create_progress_artifact", lambda *a, **k: "id")
     monkeypatch.setattr(prefect.artifacts, "update_progress_artifact",
                         lambda _id, percent, description: shown.append(percent))
-    stages = ["keyframes", "poses", "frames", "landmarks", "coarse", "views", "depth",
-              "fusion", "fitting", "evaluation"]
-    progress = _RunProgress("s/c", stages)
+    monkeypatch.setattr(_RunProgress, "EVERY_S", 0.0)
+    progress = _RunProgress("s/c", STAGE_NAMES)
+    stages = STAGE_NAMES
     for name in stages[:6]:
         progress.stage_done(name)
     progress.update("depth map 17 of 40", 17 / 40)
