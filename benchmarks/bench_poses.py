@@ -35,14 +35,19 @@ CAPTURES = [f"out/captures/{name}_1280x720_30fps_8s"
 """The evaluation captures (docs/poses.md says how each is rendered); ict:4, ict:5 and ict:6
 are the calibration captures of PBA's settings and are not evaluated here."""
 BARS = {"rotation_deg": 0.04, "centre_pct": 0.05, "focal_pct": 0.25}
+WORSE_DEG = 0.01
+"""Final rotations count as worse than the geometric start's beyond this (the figures'
+rounding; bench_pose_starts.py's verdict)."""
 ROWS = {"sfm": "(a) pycolmap incremental mapping",
         "geometric": "(b) ours, geometric (SfM + LK tracks + BA)",
         "pba": "(c) ours, photometric BA (the default)",
         "pba_no_blur": "(d) = (c) without the motion-blur model",
-        "pba_photometric": "(e) photometric residuals only, intrinsics held, centre prior"}
+        "pba_photometric": "(e) photometric residuals only, intrinsics held, centre prior",
+        "pba_pp_free": "(f) = (c) with the principal point free (no prior, as before it)"}
 ABLATIONS = {"pba_no_blur": {"motion_blur": False},
              "pba_photometric": {"track_weight": 0.0, "refine_intrinsics": False,
-                                 "centre_prior_pct": 0.05}}
+                                 "centre_prior_pct": 0.05},
+             "pba_pp_free": {"principal_point_prior_pct": 0.0}}
 """What each PBA ingredient contributes: (c) with one thing taken away."""
 
 
@@ -131,6 +136,13 @@ def report(results: list[dict]) -> str:
               if all(r["rows"]["pba"][k] < r["rows"]["geometric"][k] for k in BARS)]
     lines += ["", f"(c) better than (b) on rotation, centre and focal length: {len(better)} of "
               f"{len(results)} captures" + (f" ({', '.join(better)})" if better else "")]
+    for name in ("pba", "pba_pp_free"):
+        worse = [r["capture"] for r in results if name in r["rows"]
+                 and r["rows"][name]["rotation_deg"] > r["rows"]["geometric"]["rotation_deg"]
+                 + WORSE_DEG]
+        lines.append(f"{ROWS[name][:3]} rotations worse than (b)'s by more than {WORSE_DEG}°: "
+                     f"{len(worse)} of {len(results)} captures"
+                     + (f" ({', '.join(worse)})" if worse else ""))
     lines += ["", "Tracking + keyframes + PBA (bar ≤ 90 s):"]
     for r in results:
         w, c = r["tracking_keyframes_pba_s"]
