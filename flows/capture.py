@@ -141,8 +141,8 @@ class _RunProgress:
     the last step."""
 
     EVERY_S = 1.0
-    """The least time between two updates (each is a call to the API): the last is always
-    sent."""
+    """The least time between two updates within a stage (each is a call to the API; a
+    stage's end is always sent)."""
 
     def __init__(self, label: str, stages: list[str]):
         self.label, self.stages, self.done = label, len(stages), 0
@@ -151,9 +151,10 @@ class _RunProgress:
         self.id = prefect.artifacts.create_progress_artifact(0.0, description=f"{label}: started")
         self.sent = time.monotonic()
 
-    def update(self, what: str, fraction: float = 0.0) -> None:
-        """``what`` happened; ``fraction`` of the stage in progress is done."""
-        if self.done < self.stages and time.monotonic() - self.sent < self.EVERY_S:
+    def update(self, what: str, fraction: float = 0.0, every_s: float | None = None) -> None:
+        """``what`` happened; ``fraction`` of the stage in progress is done. Not sent if
+        the last update was less than ``every_s`` ago."""
+        if every_s is not None and time.monotonic() - self.sent < every_s:
             return
         self.sent = time.monotonic()
         current = self.weights[self.done] if self.done < self.stages else 0.0
@@ -189,7 +190,7 @@ def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: BaseModel
         bar.update()
         if len(results) < len(indices):  # the last one completes the stage
             run_progress.update(f"{stage.name} map {len(results)} of {len(indices)}",
-                                len(results) / len(indices))
+                                len(results) / len(indices), every_s=run_progress.EVERY_S)
     bar.close()
     return results
 

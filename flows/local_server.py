@@ -16,6 +16,8 @@ goes to ``$FACECAP_HOME/logs/server.log``, not to the command's console.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import os
 import socket
 import subprocess
@@ -23,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from facecap.tasks.scratch import start_ticks
+from facecap.tasks.scratch import process_scratch, start_ticks
 from facecap_core.assets import facecap_home
 
 # Imported where used: Prefect reads its settings when first imported; the command line sets them
@@ -86,12 +88,12 @@ def _free_port() -> int:
 
 def _uvicorn(port: int, quiet: bool) -> subprocess.Popen:
     """Prefect's own ephemeral server (``SubprocessASGIServer``'s command and environment),
-    on ``port``."""
+    on ``port``, its temporary files in this command's scratch folder."""
     command = [sys.executable, "-m", "uvicorn", "--factory",
                "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port",
                str(port), "--log-level", "error", "--lifespan", "on"]
     env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1",
-           "PREFECT__SERVER_FINAL": "1"}
+           "PREFECT__SERVER_FINAL": "1", "TMPDIR": str(process_scratch())}
     if "prefect.settings" in sys.modules:  # settings changed in this process, as Prefect does
         from prefect.settings import get_current_settings
 
@@ -106,58 +108,75 @@ class _Server:
     """A server process of this command's, on a free port, with the watchdog that stops it
     when the command ends (the watchdog holds the reading end of ``lifeline``)."""
 
+    STARTS = 3
+    """Tries at starting, should uvicorn exit with its start-up failure code (3: the port
+    taken meanwhile, or the application's start failed)."""
+
     def __init__(self, quiet: bool):
         self.port = _free_port()
         self.process = _uvicorn(self.port, quiet)
         reading, self.lifeline = os.pipe()
         pid = self.process.pid
         try:
-            subprocess.Popen([sys.executable, "-c", WATCHDOG, str(pid), start_ticks(pid)],
-                             stdin=reading, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.DEVNULL,
-                             start_new_session=True)  # a Ctrl-C of the terminal reaches it not
+            self.watchdog = subprocess.Popen(
+                [sys.executable, "-c", WATCHDOG, str(pid), start_ticks(pid)], stdin=reading,
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                start_new_session=True)  # a Ctrl-C of the terminal reaches it not
+        except BaseException:
+            self.process.kill()
+            os.close(self.lifeline)
+            raise
         finally:
             os.close(reading)
 
-    def stop(self) -> None:
+    def stop(self, wait_s: float = 0.0) -> None:
+        """Stop the server (and with it the watchdog), waiting ``wait_s`` for its
+        shutdown."""
         self.process.terminate()
+        try:
+            self.process.wait(wait_s)
+        except subprocess.TimeoutExpired:
+            if wait_s:
+                self.process.kill()
         os.close(self.lifeline)
 
     def wait_until_answering(self, timeout_s: float, quiet: bool) -> _Server:
-        """This server once its health check answers, or another on a new port should
-        this one's be taken meanwhile (uvicorn's exit code 3)."""
+        """This server once its health check answers, or another should this one exit with
+        uvicorn's start-up failure code (at most :attr:`STARTS` in all)."""
         import httpx
 
-        deadline = time.monotonic() + timeout_s
+        deadline, server = time.monotonic() + timeout_s, self
         with httpx.Client() as client:
-            while time.monotonic() < deadline:
-                code = self.process.poll()
-                if code == 3:
-                    self.stop()
-                    return _Server(quiet).wait_until_answering(deadline - time.monotonic(),
-                                                               quiet)
-                if code is not None:
+            for start in range(self.STARTS):
+                if start:
+                    server = _Server(quiet)
+                while time.monotonic() < deadline and server.process.poll() is None:
+                    try:
+                        if client.get(f"http://127.0.0.1:{server.port}/api/health"
+                                      ).status_code == 200:
+                            return server
+                    except httpx.TransportError:
+                        pass
+                    time.sleep(0.05)
+                server.stop()
+                if server.process.returncode != 3:
                     break
-                try:
-                    if client.get(f"http://127.0.0.1:{self.port}/api/health").status_code == 200:
-                        return self
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.05)
-        self.stop()
         where = f"; its log: {server_log()}" if quiet else ""
-        raise RuntimeError(f"the local Prefect server did not start (exit code "
-                           f"{self.process.poll()}) within {timeout_s:g} s{where}")
+        code = server.process.returncode
+        raise RuntimeError(f"the local Prefect server did not start within {timeout_s:g} s"
+                           + (f" (exit code {code})" if code is not None else "") + where)
 
 
 def spawn_local_server(quiet: bool = True) -> None:
     """Start the server's process now, before this process imports Prefect: the two start
     at once (the server takes seconds to answer). :func:`start_local_server` adopts it, or
     stops it when Prefect's settings name a server of their own; the watchdog stops it when
-    this process ends (bad input, before any flow)."""
+    this process ends (bad input, before any flow). Only a head start: a server that cannot
+    be started here is started, or reported, by :func:`start_local_server`."""
     global _spawned
     if _spawned is None and os.environ.get("PREFECT_API_URL") is None:
-        _spawned = _Server(quiet)
+        with contextlib.suppress(Exception):
+            _spawned = _Server(quiet)
 
 
 def start_local_server(quiet: bool = True) -> int | None:
@@ -178,8 +197,11 @@ def start_local_server(quiet: bool = True) -> int | None:
     server, _spawned = _spawned or _Server(quiet), None
     _adopted = server.wait_until_answering(settings.server.ephemeral.startup_timeout_seconds,
                                            quiet)
+    atexit.register(_adopted.stop, wait_s=5.0)  # the next command may start at once
     # As a server of one's own: Prefect's client then neither imports nor starts its
-    # ephemeral server (seconds of loading that the command does not need).
+    # ephemeral server (seconds of loading that the command does not need). It serves no
+    # UI: Prefect must not link to one.
     os.environ["PREFECT_API_URL"] = f"http://127.0.0.1:{_adopted.port}/api"
+    os.environ.setdefault("PREFECT_UI_URL", "")
     refresh_global_settings_context()
     return _adopted.process.pid

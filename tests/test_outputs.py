@@ -431,11 +431,17 @@ def test_a_full_facecap_home_is_one_line(media, kept, tmp_path, capfd, prefect_s
     assert_kept(before, snapshot(kept["out"]))
 
 
-def test_a_refused_command_stops_the_server_it_started(tmp_path):
+@pytest.mark.parametrize("setting, expected", [
+    ({}, "capture not found"),
+    ({"FACECAP_CAPTURE_TIMEOUT_S": "abc"}, "FACECAP_CAPTURE_TIMEOUT_S"),
+], ids=["a capture that is not there", "a setting that is no number"])
+def test_a_refused_command_stops_the_server_it_started(tmp_path, setting, expected):
     """A command that runs flows starts its server first thing, before it has read its
-    arguments; refused (bad input, exit 2), it stops that server rather than leave it."""
+    arguments and settings; refused (bad input, exit 2, one line, however early), it stops
+    that server rather than leave it."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API")}
-    env.update(FACECAP_HOME=str(tmp_path / "home"), PREFECT_HOME=str(tmp_path / "ph"))
+    env.update(FACECAP_HOME=str(tmp_path / "home"), PREFECT_HOME=str(tmp_path / "ph"),
+               **setting)
     proc = subprocess.Popen([sys.executable, "-m", "facecap", "reconstruct",
                              str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "out")],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -444,8 +450,8 @@ def test_a_refused_command_stops_the_server_it_started(tmp_path):
     while proc.poll() is None:
         children |= _children(proc.pid)
         time.sleep(0.02)
-    assert proc.returncode == 2 and "capture not found" in proc.stderr.read()
-    assert children, "the command started no server"
+    err = proc.stderr.read()
+    assert proc.returncode == 2 and expected in err and len(err.splitlines()) == 1, err
     deadline = time.monotonic() + 10
     while _alive(children) and time.monotonic() < deadline:
         time.sleep(0.2)

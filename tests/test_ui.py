@@ -80,9 +80,10 @@ STAGE_NAMES = ["keyframes", "poses", "frames", "landmarks", "coarse", "views", "
                "fusion", "fitting", "evaluation"]
 
 
-def test_the_progress_bar_calls_the_api_at_most_so_often_and_always_at_the_end(monkeypatch):
-    """Each update is a call to the API: a run whose stages are all reused (a second each
-    would be many) sends only the last, 100 %."""
+def test_the_progress_bar_sends_every_stage_and_the_maps_at_most_so_often(monkeypatch):
+    """Each update is a call to the API: the depth maps' updates within a stage are sent at
+    most once a second (40 reused maps would be 40 calls), a stage's end always (the UI is
+    never left at an earlier stage)."""
     import prefect.artifacts
 
     from facecap.flows.capture import _RunProgress
@@ -90,13 +91,14 @@ def test_the_progress_bar_calls_the_api_at_most_so_often_and_always_at_the_end(m
     shown = []
     monkeypatch.setattr(prefect.artifacts, "create_progress_artifact", lambda *a, **k: "id")
     monkeypatch.setattr(prefect.artifacts, "update_progress_artifact",
-                        lambda _id, percent, description: shown.append(percent))
+                        lambda _id, percent, description: shown.append(description))
     monkeypatch.setattr(_RunProgress, "EVERY_S", 3600.0)
     progress = _RunProgress("s/c", STAGE_NAMES)
     for name in STAGE_NAMES:
-        progress.update(f"{name} half way", 0.5)
+        for i in range(1, 40):
+            progress.update(f"{name} map {i} of 40", i / 40, every_s=progress.EVERY_S)
         progress.stage_done(name)
-    assert shown == [100]
+    assert len(shown) == len(STAGE_NAMES) and "(10 of 10 stages)" in shown[-1]
 
 
 def test_the_progress_bar_follows_the_work_in_whole_percents(monkeypatch):
@@ -111,7 +113,6 @@ def test_the_progress_bar_follows_the_work_in_whole_percents(monkeypatch):
     monkeypatch.setattr(prefect.artifacts, "create_progress_artifact", lambda *a, **k: "id")
     monkeypatch.setattr(prefect.artifacts, "update_progress_artifact",
                         lambda _id, percent, description: shown.append(percent))
-    monkeypatch.setattr(_RunProgress, "EVERY_S", 0.0)
     progress = _RunProgress("s/c", STAGE_NAMES)
     stages = STAGE_NAMES
     for name in stages[:6]:
