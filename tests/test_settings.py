@@ -272,12 +272,12 @@ def test_numbers_of_flow_parameters_and_json_are_taken_as_before():
     from facecap.synthetic.config import SynthConfig
     from facecap_core.pipeline import PipelineConfig, load_pipeline_config
 
-    values = {"mvs": {"depth": {"iterations": 4}}, "coarse": {"ipd_mm": 63, "iris_cue": False},
+    values = {"mvs": {"depth": {"iterations": 3}}, "coarse": {"ipd_mm": 63, "iris_cue": False},
               "fitting": {"stiffness": [50, 10, 2], "landmark_weight": [5, 1, 1]}}
     for config in (load_pipeline_config(values),
                    PipelineConfig.model_validate_json(json.dumps(values))):
         assert config.coarse.ipd_mm == 63.0 and config.fitting.stiffness == [50.0, 10.0, 2.0]
-        assert config.mvs.depth.iterations == 4 and config.coarse.iris_cue is False
+        assert config.mvs.depth.iterations == 3 and config.coarse.iris_cue is False
     synth = SynthConfig.model_validate_json(json.dumps(
         {"fps": 30, "k1_range": [-1, 0], "ict_model": "/models/ict.npz", "bayer": True}))
     assert synth.k1_range == (-1.0, 0.0) and synth.ict_model == Path("/models/ict.npz")

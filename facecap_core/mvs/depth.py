@@ -52,8 +52,10 @@ class DepthMapConfig(StrictModel):
     init_from_coarse: bool = True
     """Also test the coarse mesh's plane at initialisation (the paper initialises with it)."""
 
-    iterations: int = Field(5, ge=1, le=32)
-    """Red–black PatchMatch iterations (each updates both colours once)."""
+    iterations: int = Field(4, ge=1, le=32)
+    """Red–black PatchMatch iterations (each updates both colours once). Four: as accurate
+    as five on the real-skin calibration captures (ICT 11 `clean` and `phone_512`), three
+    and two were worse on `phone_512` (docs/mvs.md, "How many iterations")."""
     neighbours: str = Field("fast", pattern="^(fast|full)$")
     """Gipuma's propagation pattern: 8 ('fast': ±1, ±5 on both axes) or 20 ('full')."""
     refine_trials: int = Field(3, ge=0, le=10)
