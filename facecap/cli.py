@@ -399,7 +399,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--fps", type=float, default=30.0, help="video frame rate")
     d.add_argument("--seconds", type=float, default=6.0, help="sweep duration")
     d.set_defaults(func=_cmd_demo)
-    for runs_flows in (sub.choices[name] for name in FLOW_COMMANDS):  # --verbose after the
+    # --verbose after the command too: facecap reconstruct ... --verbose
+    for runs_flows in (sub.choices[name] for name in FLOW_COMMANDS):
         runs_flows.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS,
                                 help=verbose)
     return p
