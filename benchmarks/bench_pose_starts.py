@@ -61,6 +61,8 @@ CAPTURES = {
                                    principal_point_jitter=0.0, seed=16),
     "ict1_3840x2160_off_centre": dict(subject="ict:1", width=3840, height=2160, fps=10.0,
                                       duration_s=3.0, principal_point_jitter=0.03, seed=17),
+    # bench_poses.py's capture where PBA ends worse than its start (an 8 s 720p sweep).
+    "ict2_1280x720_8s": dict(subject="ict:2", width=1280, height=720, duration_s=8.0, seed=2),
 }
 DEFAULT_CAPTURES = list(CAPTURES)[:4]
 WORSE_DEG = 0.01
