@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import importlib.util
 import os
 import socket
 import subprocess
@@ -89,9 +90,10 @@ def _free_port() -> int:
 def _uvicorn(port: int, quiet: bool) -> subprocess.Popen:
     """Prefect's own ephemeral server (``SubprocessASGIServer``'s command and environment),
     on ``port``, its temporary files in this command's scratch folder."""
-    command = [sys.executable, "-m", "uvicorn", "--factory",
-               "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port",
-               str(port), "--log-level", "error", "--lifespan", "on"]
+    prefect_dir = Path(importlib.util.find_spec("prefect").origin).parent  # not imported
+    command = [sys.executable, "-m", "uvicorn", "--app-dir", str(prefect_dir.parent),
+               "--factory", "prefect.server.api.server:create_app", "--host", "127.0.0.1",
+               "--port", str(port), "--log-level", "error", "--lifespan", "on"]
     env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1",
            "PREFECT__SERVER_FINAL": "1", "TMPDIR": str(process_scratch())}
     if "prefect.settings" in sys.modules:  # settings changed in this process, as Prefect does
