@@ -68,8 +68,6 @@ start time, so a reused pid is never signalled."""
 
 _spawned: _Server | None = None
 """The server started by :func:`spawn_local_server` and not yet adopted."""
-_adopted: _Server | None = None
-"""This process's server: its lifeline stays open for as long as this process lives."""
 
 
 def server_log() -> Path:
@@ -189,7 +187,7 @@ def start_local_server(quiet: bool = True) -> int | None:
     from prefect.context import refresh_global_settings_context
     from prefect.settings import get_current_settings
 
-    global _spawned, _adopted
+    global _spawned
     settings = get_current_settings()
     if settings.api.url or not settings.server.ephemeral.enabled:
         if _spawned is not None:
@@ -197,13 +195,15 @@ def start_local_server(quiet: bool = True) -> int | None:
             _spawned = None
         return None
     server, _spawned = _spawned or _Server(quiet), None
-    _adopted = server.wait_until_answering(settings.server.ephemeral.startup_timeout_seconds,
-                                           quiet)
-    atexit.register(_adopted.stop, wait_s=5.0)  # the next command may start at once
+    server = server.wait_until_answering(settings.server.ephemeral.startup_timeout_seconds,
+                                         quiet)
+    # Its lifeline stays open until then; stopped and waited for, the next command may start
+    # at once.
+    atexit.register(server.stop, wait_s=5.0)
     # As a server of one's own: Prefect's client then neither imports nor starts its
     # ephemeral server (seconds of loading that the command does not need). It serves no
     # UI: Prefect must not link to one.
-    os.environ["PREFECT_API_URL"] = f"http://127.0.0.1:{_adopted.port}/api"
+    os.environ["PREFECT_API_URL"] = f"http://127.0.0.1:{server.port}/api"
     os.environ.setdefault("PREFECT_UI_URL", "")
     refresh_global_settings_context()
-    return _adopted.process.pid
+    return server.process.pid
