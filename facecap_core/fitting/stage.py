@@ -9,6 +9,7 @@ writes what :func:`facecap_core.fitting.run.fit_and_write` writes (``mesh.ply``,
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -53,12 +54,15 @@ def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str |
     cams = read_cameras_json(coarse / CAMERAS_JSON)
     keyframes = []
     if config.use_edges or config.texture:
-        for i, R, t in zip(cams.frame_indices, cams.R, cams.t):
+        def keyframe(i, R, t):
             image = load_frame(frames_dir, i)
             if frame_width and image.shape[1] > frame_width:
                 h = int(round(image.shape[0] * frame_width / image.shape[1]))
                 image = cv2.resize(image, (frame_width, h), interpolation=cv2.INTER_AREA)
-            keyframes.append(Keyframe(image, cams.intrinsics, R, t))
+            return Keyframe(image, cams.intrinsics, R, t)
+
+        with ThreadPoolExecutor(2) as pool:  # decoding lets go of the GIL
+            keyframes = list(pool.map(keyframe, cams.frame_indices, cams.R, cams.t))
     if cloud_ply is None:
         config = config.model_copy(update={"use_cloud": False})
     landmarks = load_landmarks(coarse / LANDMARKS_3D)

@@ -21,6 +21,7 @@ means "no target" (the vertex then follows its neighbours through the stiffness 
 from __future__ import annotations
 
 import functools
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -29,11 +30,15 @@ from numba import njit
 
 from facecap_core.camera import Intrinsics, camera_center, project, undistort
 
-__all__ = ["Keyframe", "CloudGrid", "cloud_targets", "landmark_targets", "silhouette_vertices",
-           "edge_map", "edge_targets", "boundary_distance"]
+__all__ = ["Keyframe", "CloudGrid", "cloud_targets", "landmark_targets", "face_planes",
+           "silhouette_vertices", "edge_map", "edge_targets", "boundary_distance"]
 
 
 # --------------------------------------------------------------------------- point cloud
+
+CLOUD_THREADS = 2
+"""Threads of the normal-ray search (the fit's other steps leave the machine's second core
+idle)."""
 
 
 @dataclass
@@ -65,7 +70,7 @@ class CloudGrid:
         return cls(np.ascontiguousarray(P[order]), N, E, origin, float(cell), dims, starts)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _normal_ray_kernel(V, Nv, P, Pn, Pe, origin, cell, dims, starts, radius, perp_tol, min_cos,
                        max_keep):
     n = V.shape[0]
@@ -146,10 +151,19 @@ def cloud_targets(vertices: np.ndarray, normals: np.ndarray, grid: CloudGrid, ra
     Nv = np.ascontiguousarray(normals, float)
     if grid.cell < radius / 3:
         raise ValueError("cloud grid cell too small for the search radius")
-    t, count, _, point_error = _normal_ray_kernel(
-        V, Nv, grid.points, grid.normals, grid.errors, grid.origin, grid.cell, grid.dims,
-        grid.starts, float(radius), float(perp_tol),
-        float(np.cos(np.radians(normal_agreement_deg))), max_keep)
+    min_cos = float(np.cos(np.radians(normal_agreement_deg)))
+
+    def run(rows: slice):
+        return _normal_ray_kernel(V[rows], Nv[rows], grid.points, grid.normals, grid.errors,
+                                  grid.origin, grid.cell, grid.dims, grid.starts, float(radius),
+                                  float(perp_tol), min_cos, max_keep)
+
+    # Each vertex is its own query: runs of vertices on threads give the same targets. Runs
+    # of a few thousand share the work out evenly (the face's vertices are dense in places).
+    cuts = np.linspace(0, len(V), 8 * CLOUD_THREADS + 1).astype(np.int64)
+    with ThreadPoolExecutor(CLOUD_THREADS) as pool:
+        parts = list(pool.map(run, [slice(a, z) for a, z in zip(cuts[:-1], cuts[1:])]))
+    t, count, _, point_error = (np.concatenate(p) for p in zip(*parts))
     ok = count >= min_points
     return ok, V + t[:, None] * Nv, count, point_error
 
@@ -221,25 +235,35 @@ def _shared_edges(faces_bytes: bytes, n_faces: int, n_vertices: int
     return edges, order[same] % n_faces, order[same + 1] % n_faces
 
 
+def face_planes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each triangle's (unnormalised) normal and first corner: what tells, for any camera,
+    whether it faces it. The same for every keyframe of one fitting step."""
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces, np.int64)
+    return np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), v[f[:, 0]]
+
+
 def silhouette_vertices(vertices: np.ndarray, faces: np.ndarray, kf: Keyframe, scene,
-                        exclude: np.ndarray | None = None, depth_tol: float = 1.0
-                        ) -> np.ndarray:
+                        exclude: np.ndarray | None = None, depth_tol: float = 1.0,
+                        planes: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Ids of visible vertices on the occluding contour of the mesh in a keyframe.
 
     A contour edge joins a front-facing and a back-facing triangle (seen from the camera
     centre); its vertices are kept when a ray from the camera reaches them unoccluded
-    (z-buffer by ray casting, ``depth_tol`` mm), and not in ``exclude``.
+    (z-buffer by ray casting, ``depth_tol`` mm), and not in ``exclude``. ``planes``: the
+    mesh's :func:`face_planes`, when already worked out.
     """
     v = np.asarray(vertices, float)
     f = np.asarray(faces, np.int64)
     c = camera_center(kf.R, kf.t)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    front = np.einsum("ij,ij->i", fn, c - v[f[:, 0]]) > 0
+    normal, corner = planes if planes is not None else face_planes(v, f)
+    front = np.einsum("ij,ij->i", normal, c - corner) > 0
     edges, face_a, face_b = _shared_edges(f.tobytes(), len(f), len(v))
-    contour = front[face_a] != front[face_b]
-    ids = np.unique(edges[contour])
+    on_contour = np.zeros(len(v), bool)
+    on_contour[edges[front[face_a] != front[face_b]]] = True
     if exclude is not None:
-        ids = ids[~exclude[ids]]
+        on_contour &= ~exclude
+    ids = np.flatnonzero(on_contour)
     if len(ids) == 0:
         return ids
     d = v[ids] - c
@@ -274,14 +298,15 @@ def nearest_edge_pixels(edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def edge_targets(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray, kf: Keyframe,
                  scene, nearest: tuple[np.ndarray, np.ndarray], max_px: float,
-                 min_cos: float, exclude: np.ndarray | None = None
+                 min_cos: float, exclude: np.ndarray | None = None,
+                 planes: tuple[np.ndarray, np.ndarray] | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Silhouette vertices of one keyframe and their back-projected edge targets (mm).
 
     Returns ``(vertex ids, targets (k, 3))`` for the contour vertices whose nearest edge
     pixel is within ``max_px`` and lies along the projected vertex normal (|cos| >= min_cos).
     """
-    ids = silhouette_vertices(vertices, faces, kf, scene, exclude)
+    ids = silhouette_vertices(vertices, faces, kf, scene, exclude, planes=planes)
     if len(ids) == 0:
         return ids, np.zeros((0, 3))
     intr = kf.intrinsics

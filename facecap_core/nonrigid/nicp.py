@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -28,6 +29,7 @@ from facecap_core.nonrigid.constraints import (
     cloud_targets,
     edge_map,
     edge_targets,
+    face_planes,
     landmark_targets,
     nearest_edge_pixels,
 )
@@ -275,9 +277,11 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
                 else np.ones(len(ear_points[0])))
     use_edges = config.use_edges and len(keyframes) > 0 and config.edge_weight > 0
     edge_exclude = boundary_distance(n, faces, config.edge_boundary_rings) if use_edges else None
-    nearest = [nearest_edge_pixels(edge_map(kf.image, config.edge_blur_sigma,
-                                            *config.canny_thresholds)) for kf in keyframes
-               ] if use_edges else []
+    nearest = []
+    if use_edges:
+        with ThreadPoolExecutor(2) as pool:  # OpenCV's calls let go of the GIL
+            nearest = list(pool.map(lambda kf: nearest_edge_pixels(edge_map(
+                kf.image, config.edge_blur_sigma, *config.canny_thresholds)), keyframes))
 
     V = v0.copy()
     face = face_vertices(template.vertices, template.landmarks)
@@ -374,9 +378,10 @@ def _edge_terms(V, normals, faces, keyframes, nearest, exclude, config):
     wu = np.zeros((n, 3))
     scene = RaycastScene()
     scene.add(V, faces)
+    planes = face_planes(V, faces)
     for kf, near in zip(keyframes, nearest):
         ids, tg = edge_targets(V, normals, faces, kf, scene, near, config.edge_max_px,
-                               config.edge_min_cos, exclude)
+                               config.edge_min_cos, exclude, planes)
         np.add.at(w, ids, config.edge_weight)
         np.add.at(wu, ids, config.edge_weight * tg)
     return w, wu

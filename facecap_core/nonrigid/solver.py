@@ -23,6 +23,8 @@ for the 53k-vertex template (213k unknowns) on one core; scipy's SuperLU, the fa
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
@@ -34,16 +36,24 @@ __all__ = ["NicpSystem", "edges_of", "have_cholmod"]
 
 def edges_of(faces: np.ndarray) -> np.ndarray:
     """Unique undirected edges (E, 2) of a triangle mesh, smaller id first, in lexicographic
-    order (found as one integer key each: np.unique over rows is six times slower, and the
-    fold checks ask for the template's edges many times a fit)."""
-    f = np.asarray(faces, np.int64)
+    order (read-only: the fold checks ask for the template's edges many times a fit, so they
+    are worked out once per mesh)."""
+    f = np.ascontiguousarray(faces, np.int64)
+    return _edges_of(f.tobytes(), len(f))
+
+
+@functools.lru_cache(maxsize=4)
+def _edges_of(faces_bytes: bytes, n_faces: int) -> np.ndarray:
+    f = np.frombuffer(faces_bytes, np.int64).reshape(n_faces, 3)
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     e.sort(axis=1)
-    if not len(e):
-        return e
-    n = int(e.max()) + 1
-    keys = np.unique(e[:, 0] * n + e[:, 1])
-    return np.column_stack([keys // n, keys % n])
+    if len(e):
+        # One integer key per edge: np.unique over rows is six times slower.
+        n = int(e.max()) + 1
+        keys = np.unique(e[:, 0] * n + e[:, 1])
+        e = np.column_stack([keys // n, keys % n])
+    e.flags.writeable = False
+    return e
 
 
 def have_cholmod() -> bool:

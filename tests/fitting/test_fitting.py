@@ -21,11 +21,13 @@ from facecap_core.fitting import FittingConfig, Keyframe, NicpSystem, fit, fit_a
 from facecap_core.nonrigid.constraints import (
     CloudGrid,
     cloud_targets,
+    face_planes,
     nearest_edge_pixels,
     silhouette_vertices,
 )
 from facecap_core.nonrigid.nicp import initial_similarity
 from facecap_core.nonrigid.roughness import face_edges, roughness
+from facecap_core.nonrigid.solver import edges_of
 from facecap_core.render import RaycastScene, interpolate
 from facecap_core.template import INNER_LANDMARKS, Template, head_frame
 from facecap_core.texture import vertex_colours
@@ -108,6 +110,18 @@ def test_solver_matches_direct_solve_and_keeps_affine():
         assert np.abs(results[0] - results[1]).max() < 1e-5
 
 
+def test_edges_of_a_mesh_are_each_edge_once_and_read_only():
+    """Two triangles sharing an edge have five edges, smaller id first, in order; the array
+    is shared between calls (worked out once per mesh), so it cannot be written."""
+    faces = np.array([[0, 1, 2], [2, 1, 3]])
+    edges = edges_of(faces)
+    np.testing.assert_array_equal(edges, [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]])
+    assert edges_of(faces.copy()) is edges
+    with pytest.raises(ValueError):
+        edges[0, 0] = 5
+    np.testing.assert_array_equal(edges_of(faces[:1]), [[0, 1], [0, 2], [1, 2]])
+
+
 def test_stiffness_only_leaves_affine_template_affine(setup):
     """Landmarks only, consistent with a global affine map of the template: the whole mesh
     follows that map (no data term, stiffness fills in everywhere)."""
@@ -145,6 +159,27 @@ def test_cloud_targets_reject_outliers_and_find_holes():
     assert np.median(np.abs(z)) < 0.35  # single-vertex targets: median of ~7 noisy points
     assert np.abs(z).max() < 2.0  # outliers never win the median
     assert np.allclose(targets[ok][:, :2], verts[ok][:, :2])  # along the normal line
+
+
+def test_cloud_targets_are_the_same_on_any_number_of_threads(monkeypatch):
+    """The vertices are shared out among threads in runs: every run count gives the targets
+    one pass over all vertices gives, to the bit."""
+    from facecap_core.nonrigid import constraints
+
+    rng = np.random.default_rng(1)
+    pts = rng.normal(0, 20, (5000, 3))
+    verts = rng.normal(0, 20, (997, 3))  # not a multiple of any run count
+    normals = rng.normal(size=(997, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    grid = CloudGrid.build(pts, rng.normal(size=(5000, 3)), cell=6.0, errors=rng.random(5000))
+    results = []
+    for threads in (1, 2, 3):
+        monkeypatch.setattr(constraints, "CLOUD_THREADS", threads)
+        results.append(cloud_targets(verts, normals, grid, radius=6.0, perp_tol=3.0))
+    assert results[0][0].sum() > 100  # most vertices find points
+    for other in results[1:]:
+        for a, b in zip(results[0], other):
+            np.testing.assert_array_equal(a, b)
 
 
 def test_nearest_edge_pixel_labels():
@@ -384,6 +419,8 @@ def test_silhouette_vertices_are_the_contour_a_camera_sees():
     ids = silhouette_vertices(V, F, kf, scene)
     assert set(ids) <= set(expected) and len(ids) >= 0.95 * len(expected)
     np.testing.assert_array_equal(silhouette_vertices(V, F, kf, scene), ids)  # worked out once
+    np.testing.assert_array_equal(silhouette_vertices(V, F, kf, scene,
+                                                      planes=face_planes(V, F)), ids)
     # Vertices on the far side's rim of a second sphere behind the first are hidden.
     behind = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
     both_V = np.concatenate([V, np.asarray(behind.vertices) - 400.0 * centre /
