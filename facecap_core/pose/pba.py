@@ -274,13 +274,14 @@ def _samples(dx, dy, most):
 @nb.njit(cache=True, nogil=True)
 def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, host_weights,
                 motion, max_samples, velocity, readout, rows, R_rel, t_rel, affine, intr,
-                huber, max_residual, with_cameras, H, b, Hpp, bpp, Hcp_store, idx_store, stats,
-                res_out):
+                huber, max_residual, with_cameras, jacobians, H, b, Hpp, bpp, Hcp_store,
+                idx_store, stats, res_out):
     """Residuals, weights and Jacobians of every point; Schur-reduced normal equations.
 
     Camera unknowns are [intrinsics (5), keyframes 1..K-1 (8 each)]; keyframe 0 is fixed.
     Per point, its camera columns (intrinsics, host, targets) are gathered locally, and
-    H_cc - h_cp h_cp^T / h_pp is scattered into H when ``with_cameras``. A point's residuals
+    H_cc - h_cp h_cp^T / h_pp is scattered into H when ``with_cameras``; without
+    ``jacobians`` only the cost (and ``res_out``) is computed. A point's residuals
     in one target are dropped together when their root mean square exceeds ``max_residual``
     (the point occluded there, or a highlight): each then costs a constant. ``res_out``, when
     not empty, receives every residual's magnitude (the robust scale).
@@ -307,6 +308,7 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
     count = 0
     dxd = np.zeros((2, N_INTR))
     dxn = np.zeros((2, N_INTR))
+    nonzero = np.arange(N_INTR + 2 * N_FRAME)  # a residual's camera columns
     for p in range(host.shape[0]):
         h = host[p]
         ah = affine[h, 0]
@@ -407,8 +409,9 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
                     continue
                 cache[k - t0, q, 0] = It
                 cache[k - t0, q, 1] = Ih
-                cache[k - t0, q, 2] = _streak(grad_x[tg], ut, vt, sx, sy, nt)
-                cache[k - t0, q, 3] = _streak(grad_y[tg], ut, vt, sx, sy, nt)
+                if jacobians:
+                    cache[k - t0, q, 2] = _streak(grad_x[tg], ut, vt, sx, sy, nt)
+                    cache[k - t0, q, 3] = _streak(grad_y[tg], ut, vt, sx, sy, nt)
         for k in range(t0, t1):
             tg = targets[k]
             ea = np.exp(affine[tg, 0] - ah)
@@ -456,7 +459,6 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
                 X0, X1, X2 = target_X[k - t0, q, 0], target_X[k - t0, q, 1], target_X[k - t0, q, 2]
                 if not X2 > 1e-9:
                     continue
-                yx, yy, s2, fac, dfac = _distortion_terms(X0, X1, X2, k1, k2)
                 gw = host_weights[p, q]
                 if not pair_ok[k - t0]:
                     # Leaving the image costs as much as an outlier, so that no step can
@@ -478,6 +480,9 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
                     w = gw * huber / ar
                     cost += gw * (2 * huber * ar - huber * huber)
                 count += 1
+                if not jacobians:
+                    continue
+                yx, yy, s2, fac, dfac = _distortion_terms(X0, X1, X2, k1, k2)
                 dX0, dX1, dX2 = _point_gradient(gx, gy, X0, X1, X2, f, yx, yy, fac, dfac)
                 for c in range(n_loc):
                     J[c] = 0.0
@@ -517,14 +522,20 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
                 hpp += w * jp * jp
                 bp += w * jp * r
                 if with_cameras:
-                    for c1 in range(n_loc):
+                    # Only the intrinsics', the host's and this target's columns can be
+                    # non-zero: the products of those alone (in the same order) are the sums.
+                    for i in range(N_FRAME):
+                        nonzero[N_INTR + i] = bh_ + i
+                        nonzero[N_INTR + N_FRAME + i] = bt + i
+                    for i1 in range(N_INTR + 2 * N_FRAME):
+                        c1 = nonzero[i1]
                         if J[c1] == 0.0:
                             continue
                         wj = w * J[c1]
                         bc[c1] += wj * r
                         hcp[c1] += wj * jp
-                        for c2 in range(c1, n_loc):
-                            Hcc[c1, c2] += wj * J[c2]
+                        for i2 in range(i1, N_INTR + 2 * N_FRAME):
+                            Hcc[c1, nonzero[i2]] += wj * J[nonzero[i2]]
         Hpp[p] = hpp
         bpp[p] = bp
         for c in range(max_local):
@@ -569,7 +580,7 @@ def _accumulate_in_chunks(host, uv, rho, target_start, targets, images, grad_x, 
                           host_weights, motion, max_samples, velocity, readout, rows, R_rel,
                           t_rel, affine, intr, huber, max_residual, with_cameras, H, b, Hpp,
                           bpp, Hcp_store, idx_store, stats, res_out,
-                          chunks: int = ACCUMULATE_CHUNKS):
+                          chunks: int = ACCUMULATE_CHUNKS, jacobians: bool = True):
     """:func:`_accumulate` over ``chunks`` runs of points at once: per-point outputs are
     written in place (the runs are disjoint), the camera system and the cost summed in
     order, the residual magnitudes gathered at the front of ``res_out`` (stats[2] of them)."""
@@ -583,7 +594,8 @@ def _accumulate_in_chunks(host, uv, rho, target_start, targets, images, grad_x, 
         a, z, H_, b_, stats_, out = part
         _accumulate(host[a:z], uv[a:z], rho[a:z], target_start[a:z + 1], targets, images,
                     grad_x, grad_y, host_weights[a:z], motion, max_samples, velocity, readout,
-                    rows, R_rel, t_rel, affine, intr, huber, max_residual, with_cameras, H_,
+                    rows, R_rel, t_rel, affine, intr, huber, max_residual, with_cameras,
+                    jacobians, H_,
                     b_, Hpp[a:z], bpp[a:z], Hcp_store[a:z], idx_store[a:z], stats_, out)
 
     if chunks == 1:
@@ -632,9 +644,10 @@ def _accumulate_tracks(X, obs_start, obs_frame, obs_xy, R, t, intr, weight, hube
         n = o1 - o0
         # local unknowns: intrinsics (5), then 6 pose unknowns per observation
         n_loc = N_INTR + 6 * n
-        Hcc = np.zeros((n_loc, n_loc))
-        Wc = np.zeros((3, n_loc))
-        bc = np.zeros(n_loc)
+        m = n_loc if with_cameras else 0  # a long track's camera block is large: only if used
+        Hcc = np.zeros((m, m))
+        Wc = np.zeros((3, m))
+        bc = np.zeros(m)
         Hp = np.zeros((3, 3))
         bp = np.zeros(3)
         for o in range(o0, o1):
@@ -953,13 +966,10 @@ def _update_frames(R, t, affine, delta):
 
 
 def _relative(R, t):
-    K = len(R)
-    R_rel = np.empty((K, K, 3, 3))
-    t_rel = np.empty((K, K, 3))
-    for h in range(K):
-        for k in range(K):
-            R_rel[h, k] = R[k] @ R[h].T
-            t_rel[h, k] = t[k] - R_rel[h, k] @ t[h]
+    """Every pair's relative pose: R_rel[h, k] = R_k R_hᵀ, t_rel[h, k] = t_k - R_rel[h, k] t_h."""
+    R, t = np.asarray(R, float), np.asarray(t, float)
+    R_rel = np.matmul(R[None], np.swapaxes(R, 1, 2)[:, None])
+    t_rel = t[None] - np.matmul(R_rel, t[:, None, :, None])[..., 0]
     return R_rel, t_rel
 
 
@@ -1249,9 +1259,10 @@ class _Level:
                 self.host_weights[sel, q] = c2 / (c2 + g2)
 
     def evaluate(self, st: _State, R, t, affine, intr, rho, X, with_cameras: bool,
-                 with_tracks: bool = True, residuals=None) -> _Normal:
+                 with_tracks: bool = True, residuals=None, jacobians: bool = True) -> _Normal:
         """The cost and normal equations at cameras ``R, t, affine, intr`` and points
-        ``rho, X`` (the exposure and readout of ``st``)."""
+        ``rho, X`` (the exposure and readout of ``st``); without ``jacobians`` the
+        photometric residuals' cost alone (a step's test, a model's choice)."""
         p = self.p
         R_rel, t_rel = _relative(R, t)
         e = _Normal(p.n_cam, len(p.host), p.max_local, len(X), len(p.obs_frame))
@@ -1264,7 +1275,8 @@ class _Level:
                               st.readout_s, rows, R_rel, t_rel, affine, intr_l, self.huber,
                               self.max_residual, with_cameras,
                               e.H, e.b, e.Hpp, e.bpp, e.Hcp, e.idx, e.stats,
-                              residuals if residuals is not None else np.zeros(0))
+                              residuals if residuals is not None else np.zeros(0),
+                              jacobians=jacobians)
         if with_tracks and len(X):
             _accumulate_tracks(X, p.obs_start, p.obs_frame, p.obs_xy / self.s, np.asarray(R),
                                np.asarray(t), intr_l, p.track_w * self.s * self.s,
@@ -1282,7 +1294,7 @@ class _Level:
         """1.4826 x the median residual magnitude at the current cameras (grey levels): the
         residuals' standard deviation, whatever the outliers."""
         buf = np.empty(8 * len(self.p.targets))
-        e = self.at(st, with_tracks=False, residuals=buf)
+        e = self.at(st, with_tracks=False, residuals=buf, jacobians=False)
         n = int(e.stats[2])
         # At least the noise of 8-bit quantisation (1/sqrt(12) grey levels): exact renders
         # would otherwise make every residual an outlier.
@@ -1304,7 +1316,7 @@ class _Level:
         costs = []
         for value in candidates:
             setattr(st, field, value if scale is None else value * scale)
-            e = self.at(st, with_tracks=False)
+            e = self.at(st, with_tracks=False, jacobians=False)
             costs.append(e.cost / max(e.count, 1))
         best = candidates[int(np.argmin(costs))]
         setattr(st, field, best if scale is None else best * scale)
@@ -1413,7 +1425,7 @@ class _Level:
                 drho = -e.bpp / (e.Hpp * (1 + lam) + 1e-12)
                 R2, t2, aff2, intr2, X2 = st.R, st.t, st.affine, st.intr, st.X
             rho2 = np.clip(st.rho + drho, st.rho * 0.5, st.rho * 2.0)
-            e2 = self.evaluate(st, R2, t2, aff2, intr2, rho2, X2, False)
+            e2 = self.evaluate(st, R2, t2, aff2, intr2, rho2, X2, False, jacobians=False)
             accept = e2.cost + p.prior_cost(st, R2, t2, intr2) <= cost + cost_prior
             if accept:
                 st.R, st.t, st.affine, st.intr, st.rho, st.X = R2, t2, aff2, intr2, rho2, X2

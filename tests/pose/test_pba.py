@@ -37,7 +37,7 @@ def test_kernel_residuals_match_a_direct_warp():
                     np.ones(n, np.int64), nb.typed.List(imgs), gx, gy, np.ones((n, 8)),
                     np.zeros((2, 6)), 9, np.zeros((2, 6)), 0.0, 240, R_rel, t_rel,
                     np.zeros((2, 2)),
-                    np.array([intr.fx, intr.cx, intr.cy, intr.k1, intr.k2]), 1e9, 1e9, False,
+                    np.array([intr.fx, intr.cx, intr.cy, intr.k1, intr.k2]), 1e9, 1e9, False, True,
                     np.zeros((13, 13)), np.zeros(13), np.zeros(n), np.zeros(n),
                     np.zeros((n, 21)), np.full((n, 21), -1, np.int64), stats, np.zeros(0))
     residuals = []
@@ -70,7 +70,7 @@ def test_the_normal_equations_do_not_depend_on_how_the_points_are_split():
     R_rel, t_rel = pba._relative(R, t)
     n_cam, local = pba.N_INTR + 2 * pba.N_FRAME, pba.N_INTR + 3 * pba.N_FRAME
 
-    def system(chunks):
+    def system(chunks, jacobians=True):
         out = [np.zeros((n_cam, n_cam)), np.zeros(n_cam), np.zeros(n), np.zeros(n),
                np.zeros((n, local)), np.full((n, local), -1, np.int64), np.zeros(3),
                np.zeros(8 * len(targets))]
@@ -79,11 +79,16 @@ def test_the_normal_equations_do_not_depend_on_how_the_points_are_split():
             np.ones((n, 8)), np.zeros((3, 6)), 9,
             np.zeros((3, 6)), 0.0, 240, R_rel, t_rel, np.zeros((3, 2)),
             np.array([intr.fx, intr.cx, intr.cy, intr.k1, intr.k2]), 4.0, 12.0, True, *out,
-            chunks=chunks)
+            chunks=chunks, jacobians=jacobians)
         return out
 
     one, two, five = system(1), system(2), system(5)
     assert one[6][1] > 8 * n  # residuals in both targets of most points
+    # A step's test asks for the cost alone: the same cost, count and residuals, no system.
+    cost_only = system(2, jacobians=False)
+    np.testing.assert_array_equal(cost_only[6], two[6])
+    np.testing.assert_array_equal(cost_only[7], two[7])
+    assert not cost_only[0].any() and not cost_only[2].any()
     for other in (two, five):
         for a, b in zip(one[:6], other[:6]):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-9)
