@@ -15,7 +15,6 @@ import json
 import logging
 import tempfile
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Literal
 
@@ -188,17 +187,10 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
     config = config or PoseConfig()
     work = Path(work_dir)
     images = read_frames(video, keyframes.indices, width=config.sfm_width)
-    with ThreadPoolExecutor(1) as pool:
-        # PBA's keyframes are decoded (straight to its processing width: it holds every
-        # keyframe at once) while SfM matches and maps on one core.
-        greys = (pool.submit(read_frames, video, keyframes.indices,
-                             width=config.pba.max_width, grey=True)
-                 if config.method == "pba" else None)
-        sfm = run_sfm(images, work / "sfm", keyframes.video_size, overlap=config.match_overlap,
-                      threads=config.threads, ordered=keyframes.ordered,
-                      focal_px=keyframes.focal_px, extraction_threads=config.extraction_threads)
-        del images
-        registered_enough(sfm, len(keyframes.indices), config)
+    sfm = run_sfm(images, work / "sfm", keyframes.video_size, overlap=config.match_overlap,
+                  threads=config.threads, ordered=keyframes.ordered,
+                  focal_px=keyframes.focal_px, extraction_threads=config.extraction_threads)
+    registered_enough(sfm, len(keyframes.indices), config)
     if not keyframes.ordered:
         sfm = reorder(sfm, sweep_order(sfm))
     steps = {"sfm": sfm}
@@ -207,9 +199,11 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
         current = refine_with_tracks(sfm, keyframes.observations, keyframes.indices,
                                      work / "geometric")
         steps["geometric"] = current
-    if greys is not None:
+    if config.method == "pba":
         start = time.perf_counter()
-        grey_list = [greys.result()[i] for i in current.frame_indices]
+        # Decoded straight to PBA's processing width: PBA holds every keyframe at once.
+        greys = read_frames(video, keyframes.indices, width=config.pba.max_width, grey=True)
+        grey_list = [greys[i] for i in current.frame_indices]
         refined = photometric_refinement(current, grey_list, config, progress, keyframes)
         refined.seconds = current.seconds + time.perf_counter() - start
         current = steps["pba"] = refined
