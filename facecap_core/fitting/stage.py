@@ -22,7 +22,7 @@ from facecap_core.frames import load_frame
 from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_3D
 from facecap_core.meshio import load_landmarks
 from facecap_core.mvs.fusion import CLOUD
-from facecap_core.nonrigid.constraints import Keyframe
+from facecap_core.nonrigid.constraints import FIT_THREADS, Keyframe
 from facecap_core.nonrigid.nicp import FittingConfig
 from facecap_core.stage import Folders, Stage
 from facecap_core.template import Template
@@ -61,7 +61,7 @@ def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str |
                 image = cv2.resize(image, (frame_width, h), interpolation=cv2.INTER_AREA)
             return Keyframe(image, cams.intrinsics, R, t)
 
-        with ThreadPoolExecutor(2) as pool:  # decoding lets go of the GIL
+        with ThreadPoolExecutor(FIT_THREADS) as pool:  # decoding lets go of the GIL
             keyframes = list(pool.map(keyframe, cams.frame_indices, cams.R, cams.t))
     if cloud_ply is None:
         config = config.model_copy(update={"use_cloud": False})

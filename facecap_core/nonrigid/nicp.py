@@ -23,6 +23,7 @@ from facecap_core.config import MAX_LEVELS, StrictModel
 from facecap_core.errors import InputError
 from facecap_core.geometry import umeyama
 from facecap_core.nonrigid.constraints import (
+    FIT_THREADS,
     CloudGrid,
     Keyframe,
     boundary_distance,
@@ -279,9 +280,12 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
     edge_exclude = boundary_distance(n, faces, config.edge_boundary_rings) if use_edges else None
     nearest = []
     if use_edges:
-        with ThreadPoolExecutor(2) as pool:  # OpenCV's calls let go of the GIL
-            nearest = list(pool.map(lambda kf: nearest_edge_pixels(edge_map(
-                kf.image, config.edge_blur_sigma, *config.canny_thresholds)), keyframes))
+        def edges_near(kf: Keyframe):
+            return nearest_edge_pixels(edge_map(kf.image, config.edge_blur_sigma,
+                                                *config.canny_thresholds))
+
+        with ThreadPoolExecutor(FIT_THREADS) as pool:  # OpenCV's calls let go of the GIL
+            nearest = list(pool.map(edges_near, keyframes))
 
     V = v0.copy()
     face = face_vertices(template.vertices, template.landmarks)

@@ -1261,8 +1261,9 @@ class _Level:
     def evaluate(self, st: _State, R, t, affine, intr, rho, X, with_cameras: bool,
                  with_tracks: bool = True, residuals=None, jacobians: bool = True) -> _Normal:
         """The cost and normal equations at cameras ``R, t, affine, intr`` and points
-        ``rho, X`` (the exposure and readout of ``st``); without ``jacobians`` the
-        photometric residuals' cost alone (a step's test, a model's choice)."""
+        ``rho, X`` (the exposure and readout of ``st``); without ``jacobians`` only the
+        cost: the photometric residuals' Jacobians are skipped (a step's test, a model's
+        choice)."""
         p = self.p
         R_rel, t_rel = _relative(R, t)
         e = _Normal(p.n_cam, len(p.host), p.max_local, len(X), len(p.obs_frame))
@@ -1482,7 +1483,7 @@ def photometric_bundle_adjustment(images: list[np.ndarray], intrinsics: Intrinsi
         first = finest.iterate(st)
         rms_first = first if rms_first is None else rms_first
     finest.frozen_velocity = None
-    e = finest.at(st)
+    e = finest.at(st, jacobians=False)
     full, processed = problem.full, problem.intrinsics
     out = Intrinsics(processed.width, processed.height, float(st.intr[0]), float(st.intr[0]),
                      float(st.intr[1]), float(st.intr[2]), float(st.intr[3]),
