@@ -308,7 +308,8 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
     count = 0
     dxd = np.zeros((2, N_INTR))
     dxn = np.zeros((2, N_INTR))
-    nonzero = np.arange(N_INTR + 2 * N_FRAME)  # a residual's camera columns
+    # A residual's camera columns: the intrinsics and the host's (fixed), then its target's.
+    nonzero = np.arange(N_INTR + 2 * N_FRAME)
     for p in range(host.shape[0]):
         h = host[p]
         ah = affine[h, 0]
@@ -525,7 +526,6 @@ def _accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, ho
                     # Only the intrinsics', the host's and this target's columns can be
                     # non-zero: the products of those alone (in the same order) are the sums.
                     for i in range(N_FRAME):
-                        nonzero[N_INTR + i] = bh_ + i
                         nonzero[N_INTR + N_FRAME + i] = bt + i
                     for i1 in range(N_INTR + 2 * N_FRAME):
                         c1 = nonzero[i1]
