@@ -101,72 +101,80 @@ def _bilateral_weights(ref, us, vs, dxs, dys, sigma_c, sigma_s, wn, wa, ok):
 
 
 @numba.njit(nogil=True, cache=True, fastmath=True)
-def _hypothesis_cost(u, v, row, d, n0, n1, n2, srcs, A, b, fx, fy, cx, cy, dxs, dys,
-                     wn, wa, nbest, best):
-    """Aggregated cost of plane (depth ``d`` at pixel (u, v), normal n) over the sources."""
+def _view_cost(s, u, v, row, m0, m1, m2, srcs, A, b, dxs, dys, wn, wa):
+    """1 - NCC of the window at (u, v) against source ``s`` under the plane m (the
+    homography H = A + b m^T maps reference pixels to source pixels)."""
+    h = srcs.shape[1]
+    w = srcs.shape[2]
+    h00 = A[s, 0, 0] + b[s, 0] * m0
+    h01 = A[s, 0, 1] + b[s, 0] * m1
+    h02 = A[s, 0, 2] + b[s, 0] * m2
+    h10 = A[s, 1, 0] + b[s, 1] * m0
+    h11 = A[s, 1, 1] + b[s, 1] * m1
+    h12 = A[s, 1, 2] + b[s, 1] * m2
+    h20 = A[s, 2, 0] + b[s, 2] * m0
+    h21 = A[s, 2, 1] + b[s, 2] * m1
+    h22 = A[s, 2, 2] + b[s, 2] * m2
+    px = h00 * u + h01 * v + h02
+    py = h10 * u + h11 * v + h12
+    pz = h20 * u + h21 * v + h22
+    s1 = 0.0
+    s2 = 0.0
+    c = 0.0
+    for k in range(dxs.shape[0]):
+        dx = dxs[k]
+        dy = dys[k]
+        z = pz + h20 * dx + h21 * dy
+        if z <= 1e-9:
+            return MAX_COST
+        iz = 1.0 / z
+        x = (px + h00 * dx + h01 * dy) * iz
+        y = (py + h10 * dx + h11 * dy) * iz
+        if x < 0.0 or y < 0.0 or x >= w - 1 or y >= h - 1:
+            return MAX_COST
+        x0 = int(x)
+        y0 = int(y)
+        ax = x - x0
+        ay = y - y0
+        top = srcs[s, y0, x0] + ax * (srcs[s, y0, x0 + 1] - srcs[s, y0, x0])
+        bot = srcs[s, y0 + 1, x0] + ax * (srcs[s, y0 + 1, x0 + 1] - srcs[s, y0 + 1, x0])
+        val = top + ay * (bot - top)
+        wk = wn[row, k]
+        s1 += wk * val
+        s2 += wk * val * val
+        c += wa[row, k] * val
+    var = s2 - s1 * s1
+    if var <= 1e-10:
+        return MAX_COST
+    return min(max(1.0 - c / np.sqrt(var), 0.0), MAX_COST)
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _plane(u, v, d, n0, n1, n2, fx, fy, cx, cy):
+    """m = K^-T n / delta of the plane through depth ``d`` at pixel (u, v) with normal n;
+    ok is False for a plane seen edge-on or from behind."""
     rx = (u - cx) / fx
     ry = (v - cy) / fy
     ndr = n0 * rx + n1 * ry + n2
-    if ndr > -1e-3:  # plane seen edge-on or from behind
-        return MAX_COST
+    if ndr > -1e-3:
+        return 0.0, 0.0, 0.0, False
     delta = d * ndr  # plane: n . X = delta (camera frame)
-    m0 = n0 / fx / delta
-    m1 = n1 / fy / delta
-    m2 = (n2 - n0 * cx / fx - n1 * cy / fy) / delta
-    ns = dxs.shape[0]
-    nsrc = srcs.shape[0]
-    h = srcs.shape[1]
-    w = srcs.shape[2]
+    return (n0 / fx / delta, n1 / fy / delta,
+            (n2 - n0 * cx / fx - n1 * cy / fy) / delta, True)
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _hypothesis_cost(u, v, row, d, n0, n1, n2, views, srcs, A, b, fx, fy, cx, cy, dxs, dys,
+                     wn, wa, nbest, best):
+    """Aggregated cost of plane (depth ``d`` at pixel (u, v), normal n): the mean of the
+    best ``nbest`` per-view costs over the sources ``views``."""
+    m0, m1, m2, seen = _plane(u, v, d, n0, n1, n2, fx, fy, cx, cy)
+    if not seen:
+        return MAX_COST
     for k in range(nbest):
         best[k] = MAX_COST
-    for s in range(nsrc):
-        # Homography H = A + b m^T maps reference pixels to source pixels.
-        h00 = A[s, 0, 0] + b[s, 0] * m0
-        h01 = A[s, 0, 1] + b[s, 0] * m1
-        h02 = A[s, 0, 2] + b[s, 0] * m2
-        h10 = A[s, 1, 0] + b[s, 1] * m0
-        h11 = A[s, 1, 1] + b[s, 1] * m1
-        h12 = A[s, 1, 2] + b[s, 1] * m2
-        h20 = A[s, 2, 0] + b[s, 2] * m0
-        h21 = A[s, 2, 1] + b[s, 2] * m1
-        h22 = A[s, 2, 2] + b[s, 2] * m2
-        px = h00 * u + h01 * v + h02
-        py = h10 * u + h11 * v + h12
-        pz = h20 * u + h21 * v + h22
-        s1 = 0.0
-        s2 = 0.0
-        c = 0.0
-        valid = True
-        for k in range(ns):
-            dx = dxs[k]
-            dy = dys[k]
-            z = pz + h20 * dx + h21 * dy
-            if z <= 1e-9:
-                valid = False
-                break
-            iz = 1.0 / z
-            x = (px + h00 * dx + h01 * dy) * iz
-            y = (py + h10 * dx + h11 * dy) * iz
-            if x < 0.0 or y < 0.0 or x >= w - 1 or y >= h - 1:
-                valid = False
-                break
-            x0 = int(x)
-            y0 = int(y)
-            ax = x - x0
-            ay = y - y0
-            top = srcs[s, y0, x0] + ax * (srcs[s, y0, x0 + 1] - srcs[s, y0, x0])
-            bot = srcs[s, y0 + 1, x0] + ax * (srcs[s, y0 + 1, x0 + 1] - srcs[s, y0 + 1, x0])
-            val = top + ay * (bot - top)
-            wk = wn[row, k]
-            s1 += wk * val
-            s2 += wk * val * val
-            c += wa[row, k] * val
-        cost = MAX_COST
-        if valid:
-            var = s2 - s1 * s1
-            if var > 1e-10:
-                cost = 1.0 - c / np.sqrt(var)
-                cost = min(max(cost, 0.0), MAX_COST)
+    for s in views:
+        cost = _view_cost(s, u, v, row, m0, m1, m2, srcs, A, b, dxs, dys, wn, wa)
         # Insert into the sorted list of the best ``nbest`` costs.
         if cost < best[nbest - 1]:
             j = nbest - 1
@@ -178,6 +186,30 @@ def _hypothesis_cost(u, v, row, d, n0, n1, n2, srcs, A, b, fx, fy, cx, cy, dxs, 
     for k in range(nbest):
         total += best[k]
     return total / nbest
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _select_views(us, vs, ok, depth, normal, srcs, A, b, fx, fy, cx, cy, dxs, dys, wn, wa,
+                  nbest, views, cost):
+    """Per pixel, the sources sorted by their cost under the pixel's current plane (best
+    first), written into the rows of ``views``; the pixel's cost again from these."""
+    costs = np.empty(srcs.shape[0])
+    for r in range(us.shape[0]):
+        if not ok[r]:
+            continue
+        u, v = us[r], vs[r]
+        m0, m1, m2, seen = _plane(u, v, depth[v, u], normal[v, u, 0], normal[v, u, 1],
+                                  normal[v, u, 2], fx, fy, cx, cy)
+        if not seen:
+            continue
+        for s in range(srcs.shape[0]):
+            costs[s] = _view_cost(s, u, v, r, m0, m1, m2, srcs, A, b, dxs, dys, wn, wa)
+        order = np.argsort(costs, kind="mergesort")
+        views[r] = order.astype(np.int32)
+        total = 0.0
+        for k in range(nbest):
+            total += costs[order[k]]
+        cost[v, u] = total / nbest
 
 
 @numba.njit(nogil=True, cache=True, fastmath=True)
@@ -220,8 +252,10 @@ def _perturb_normal(n0, n1, n2, sigma, rx, ry):
 @numba.njit(nogil=True, cache=True, fastmath=True)
 def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
                 srcs, A, b, fx, fy, cx, cy, dxs, dys, wn, wa, nbest, iterations,
-                nbr, refine_trials, normal_sigma, seed, depth, normal, cost):
-    """Initialise and iterate PatchMatch in place on ``depth``, ``normal``, ``cost``."""
+                nbr, refine_trials, normal_sigma, seed, pixel_views, depth, normal, cost):
+    """Initialise and iterate PatchMatch in place on ``depth``, ``normal``, ``cost``; after
+    the first iteration each pixel is matched against its best ``pixel_views`` sources
+    (0: all)."""
     # Long on purpose: a numba kernel: the initialisation, propagation and refinement sweeps share
     # the per-pixel state in place.
     np.random.seed(seed)
@@ -229,6 +263,11 @@ def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
     h, w = idx.shape
     m = us.shape[0]
     max_tilt = 0.17  # cos(80°): steeper planes are not plausible skin
+    nsrc = srcs.shape[0]
+    views = np.empty((m, nsrc), np.int32)
+    for r in range(m):
+        views[r] = np.arange(nsrc)
+    nviews = nsrc
     for r in range(m):
         u, v = us[r], vs[r]
         rx = (u - cx) / fx
@@ -237,13 +276,13 @@ def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
             continue
         d = lo[v, u] + np.random.random() * (hi[v, u] - lo[v, u])
         n0, n1, n2 = _random_normal(rx, ry, max_tilt)
-        c = _hypothesis_cost(u, v, r, d, n0, n1, n2, srcs, A, b, fx, fy, cx, cy, dxs, dys,
-                             wn, wa, nbest, best)
+        c = _hypothesis_cost(u, v, r, d, n0, n1, n2, views[r], srcs, A, b, fx, fy, cx, cy,
+                             dxs, dys, wn, wa, nbest, best)
         if use_prior and np.isfinite(prior_depth[v, u]):
             p0, p1, p2 = prior_normal[v, u, 0], prior_normal[v, u, 1], prior_normal[v, u, 2]
             pd = prior_depth[v, u]
-            pc = _hypothesis_cost(u, v, r, pd, p0, p1, p2, srcs, A, b, fx, fy, cx, cy,
-                                  dxs, dys, wn, wa, nbest, best)
+            pc = _hypothesis_cost(u, v, r, pd, p0, p1, p2, views[r], srcs, A, b, fx, fy, cx,
+                                  cy, dxs, dys, wn, wa, nbest, best)
             if pc < c:
                 d, n0, n1, n2, c = pd, p0, p1, p2, pc
         depth[v, u] = d
@@ -254,6 +293,14 @@ def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
 
     for it in range(iterations):
         scale = 0.5 ** it
+        if it >= 1 and 0 < pixel_views < nsrc:
+            # Once the planes have roughly converged, a plane's best views are the
+            # surface's: the sources that see the pixel occluded or foreshortened drop
+            # out, and each hypothesis costs pixel_views / nsrc as much. Chosen again every
+            # iteration, from the plane the last one left.
+            _select_views(us, vs, ok, depth, normal, srcs, A, b, fx, fy, cx, cy, dxs, dys,
+                          wn, wa, nbest, views, cost)
+            nviews = pixel_views
         for colour in range(2):
             for r in range(m):
                 u, v = us[r], vs[r]
@@ -286,8 +333,8 @@ def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
                     # The same plane as the current one: nothing to test.
                     if abs(dp - d) < 1e-5 * d and q0 == n0 and q1 == n1 and q2 == n2:
                         continue
-                    cc = _hypothesis_cost(u, v, r, dp, q0, q1, q2, srcs, A, b, fx, fy, cx,
-                                          cy, dxs, dys, wn, wa, nbest, best)
+                    cc = _hypothesis_cost(u, v, r, dp, q0, q1, q2, views[r, :nviews], srcs,
+                                          A, b, fx, fy, cx, cy, dxs, dys, wn, wa, nbest, best)
                     if cc < c:
                         d, n0, n1, n2, c = dp, q0, q1, q2, cc
                 # Refinement: perturb depth, normal, then both, by shrinking steps.
@@ -302,8 +349,8 @@ def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
                             continue
                     if kind != 0:
                         m0, m1, m2 = _perturb_normal(n0, n1, n2, normal_sigma * step, rx, ry)
-                    cc = _hypothesis_cost(u, v, r, dd, m0, m1, m2, srcs, A, b, fx, fy, cx,
-                                          cy, dxs, dys, wn, wa, nbest, best)
+                    cc = _hypothesis_cost(u, v, r, dd, m0, m1, m2, views[r, :nviews], srcs,
+                                          A, b, fx, fy, cx, cy, dxs, dys, wn, wa, nbest, best)
                     if cc < c:
                         d, n0, n1, n2, c = dd, m0, m1, m2, cc
                 depth[v, u] = d
@@ -397,7 +444,8 @@ def patchmatch_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, c
                 bool(config.init_from_coarse), srcs, A, b, k.fx, k.fy, k.cx, k.cy, dxs, dys,
                 wn, wa, nbest, int(config.iterations), nbr, int(config.refine_trials),
                 float(np.radians(config.normal_perturbation_deg)),
-                int(config.seed) * 1000003 + int(ref.index), depth, normal, cost)
+                int(config.seed) * 1000003 + int(ref.index), int(config.pixel_views), depth,
+                normal, cost)
     # Pixels without a usable window keep no depth.
     depth[vs[~ok], us[~ok]] = 0.0
     normal[vs[~ok], us[~ok]] = 0.0

@@ -83,3 +83,42 @@ def test_bad_input_is_refused_with_a_message(scene):
     away = replace(v, R=R, t=t)
     with pytest.raises(InputError, match="does not overlap"):
         coarse_prior(away, scene["coarse"], scene["F"], 8.0, 2)
+
+
+def test_pixel_views_keep_the_sources_that_see_the_surface(scene):
+    """Three of nine sources are noise (a view of something else): from the second
+    iteration on each pixel keeps its six best sources, and the depth map is as accurate
+    and as complete as when every hypothesis is scored on all nine."""
+    views, src = scene["views"], scene["sources"]
+    i = len(views) // 2
+    good = [views[j] for j in src[i]]
+    rng = np.random.default_rng(0)
+    noise = [replace(v, index=1000 + k, grey=rng.random(v.grey.shape, dtype=np.float32))
+             for k, v in enumerate(good[:3])]
+    sources = good + noise
+    base = scene["config"].model_copy(update={"num_best_views": len(good)})
+    d, face = _face_pixels(views[i], scene)
+    figures = {}
+    for pixel_views in (0, len(good), len(sources)):
+        cfg = base.model_copy(update={"pixel_views": pixel_views})
+        raw, filt = compute_depth_map(views[i], sources, scene["coarse"], scene["F"], cfg)
+        ok = face & (filt.depth > 0)
+        figures[pixel_views] = (np.median(np.abs(filt.depth[ok] - d[ok])), ok.sum(), raw)
+    every, subset, no_op = figures[0], figures[len(good)], figures[len(sources)]
+    # Keeping the wrong sources puts noise into every cost: the depths go astray (the
+    # sources kept in reverse order: median 1.73 mm). Measured: median 0.91 mm with all
+    # views, 0.88 mm with six, 15 % of the face filtered in both.
+    assert subset[0] < 1.4 and subset[0] <= 1.1 * every[0] + 0.05, (subset, every)
+    assert subset[1] >= 0.95 * every[1], (subset[1], every[1])
+    # As many views as there are sources is no selection at all: the same map to the bit.
+    assert np.array_equal(no_op[2].depth, every[2].depth)
+
+
+def test_pixel_views_fewer_than_the_best_views_averaged_are_refused():
+    from pydantic import ValidationError
+
+    from facecap_core.mvs.depth import DepthMapConfig
+
+    with pytest.raises(ValidationError, match="pixel_views"):
+        DepthMapConfig(pixel_views=4, num_best_views=8)
+    assert DepthMapConfig(pixel_views=8, num_best_views=8).pixel_views == 8
