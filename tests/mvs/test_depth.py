@@ -110,6 +110,8 @@ def test_pixel_views_keep_the_sources_that_see_the_surface(scene):
     # views, 0.88 mm with six, 15 % of the face filtered in both.
     assert subset[0] < 1.4 and subset[0] <= 1.1 * every[0] + 0.05, (subset, every)
     assert subset[1] >= 0.95 * every[1], (subset[1], every[1])
+    # The views were chosen: from the second iteration on the hypotheses are scored anew.
+    assert not np.array_equal(subset[2].depth, every[2].depth)
     # As many views as there are sources is no selection at all: the same map to the bit.
     assert np.array_equal(no_op[2].depth, every[2].depth)
 
