@@ -69,7 +69,10 @@ def other_value(model: type[BaseModel], name: str, field):
     if isinstance(default, bool):
         candidates = [not default]
     elif isinstance(default, int | float):
-        candidates = [default + 1, default * 1.1, default - 1, default * 0.9, default / 2]
+        # Larger steps last: a field may have a floor above its default's neighbours
+        # (mvs.depth.pixel_views: 0 or at least num_best_views).
+        candidates = [default + 1, default * 1.1, default - 1, default * 0.9, default / 2,
+                      *(default + 2 ** k for k in range(1, 7))]
     elif isinstance(default, list | tuple):
         candidates = [[v * 0.9 if isinstance(v, float) else v - 1 for v in default]]
     elif default is None:
