@@ -9,6 +9,7 @@ stage's output, so these tests judge the orchestration, not the upstream stages.
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -270,11 +271,18 @@ def test_rerun_is_all_cached(first_run, capture):
     assert result["keys"] == first_run["keys"]
     assert set(store.keys()) == before
     assert result["computed"] == []
-    runs = read_api(lambda c: c.read_task_runs(flow_run_filter=FlowRunFilter(
-        id=FlowRunFilterId(any_=[result["flow_run_id"]]))))
-    stages = [run for run in runs if not run.name.startswith("ingest")]
-    assert stages and {run.state.name for run in stages} == {"Reused"}, \
-        sorted((run.name, run.state.name) for run in stages)
+    # The server records task runs' states from their events, which may land after the
+    # flow has returned on a loaded machine: read until every stage has one.
+    deadline = time.monotonic() + 60
+    while True:
+        runs = read_api(lambda c: c.read_task_runs(flow_run_filter=FlowRunFilter(
+            id=FlowRunFilterId(any_=[result["flow_run_id"]]))))
+        stages = [run for run in runs if not run.name.startswith("ingest")]
+        if (stages and all(run.state for run in stages)) or time.monotonic() > deadline:
+            break
+        time.sleep(0.5)
+    assert stages and {run.state and run.state.name for run in stages} == {"Reused"}, \
+        sorted((run.name, run.state and run.state.name) for run in stages)
 
 
 def test_fusion_change_recomputes_only_fusion_fitting_evaluation(first_run, capture):
