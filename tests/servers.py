@@ -45,3 +45,27 @@ def stop(process: subprocess.Popen, grace_s: float = 15) -> None:
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait(timeout=grace_s)
+
+
+def final_task_runs(flow_run_id, count: int, seconds: float = 60) -> list:
+    """The task runs of a flow run on the current Prefect server, once there are ``count``
+    and each has a final state (or as they are after ``seconds``). The server records task
+    runs from their events, which may land after the flow has returned: read right away, a
+    task run can still be missing, stateless or Running."""
+    import asyncio
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+
+    async def read() -> list:
+        async with get_client() as client:
+            return await client.read_task_runs(flow_run_filter=FlowRunFilter(
+                id=FlowRunFilterId(any_=[flow_run_id])))
+
+    deadline = time.monotonic() + seconds
+    while True:
+        runs = asyncio.run(read())
+        if (len(runs) >= count and all(run.state and run.state.is_final() for run in runs)
+                or time.monotonic() > deadline):
+            return runs
+        time.sleep(0.5)

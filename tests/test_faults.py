@@ -442,16 +442,14 @@ def _restart_after_first_failure(server, flow_name: str, stop: threading.Event) 
 def test_a_store_outage_is_retried_and_then_succeeds(prefect_api, tmp_path, monkeypatch):
     """The S3 endpoint is down when a task first needs it (the server stopped, as in
     tests/test_store_s3.py); the task's retry finds it back and the flow completes."""
-    import asyncio
     import uuid
 
     import boto3
     import s3fs
     from prefect import flow
-    from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
 
     from facecap.tasks.stages import call_ingest
+    from tests.servers import final_task_runs
     from tests.test_store_s3 import CREDENTIALS, LocalS3
 
     server = LocalS3()
@@ -487,12 +485,7 @@ def test_a_store_outage_is_retried_and_then_succeeds(prefect_api, tmp_path, monk
         watcher.join()
         s3fs.S3FileSystem.clear_instance_cache()
 
-    async def task_runs():
-        async with get_client() as client:
-            return await client.read_task_runs(flow_run_filter=FlowRunFilter(
-                id=FlowRunFilterId(any_=[state.state_details.flow_run_id])))
-
-    [run] = asyncio.run(task_runs())
+    [run] = final_task_runs(state.state_details.flow_run_id, count=1)
     assert run.run_count == 2 and run.state.name == "Completed"  # failed once, retried
     assert open_store(store_url).read_bytes(key, "video.mp4") == video.read_bytes()
     server.stop()

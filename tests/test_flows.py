@@ -9,7 +9,6 @@ stage's output, so these tests judge the orchestration, not the upstream stages.
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -262,7 +261,7 @@ def test_without_a_page_server_the_ui_link_names_the_page_on_disk(first_run, tmp
 def test_rerun_is_all_cached(first_run, capture):
     """A rerun computes nothing, and its task runs say so in the UI: each stage's task run
     ends in a state named Reused."""
-    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+    from tests.servers import final_task_runs
 
     store = open_store(first_run["store"])
     before = set(store.keys())
@@ -271,16 +270,8 @@ def test_rerun_is_all_cached(first_run, capture):
     assert result["keys"] == first_run["keys"]
     assert set(store.keys()) == before
     assert result["computed"] == []
-    # The server records task runs' states from their events, which may land after the
-    # flow has returned on a loaded machine: read until every stage has one.
-    deadline = time.monotonic() + 60
-    while True:
-        runs = read_api(lambda c: c.read_task_runs(flow_run_filter=FlowRunFilter(
-            id=FlowRunFilterId(any_=[result["flow_run_id"]]))))
-        stages = [run for run in runs if not run.name.startswith("ingest")]
-        if (stages and all(run.state for run in stages)) or time.monotonic() > deadline:
-            break
-        time.sleep(0.5)
+    every = final_task_runs(result["flow_run_id"], count=len(first_run["computed"]) + 2)
+    stages = [run for run in every if not run.name.startswith("ingest")]  # 2 ingests
     assert stages and {run.state and run.state.name for run in stages} == {"Reused"}, \
         sorted((run.name, run.state and run.state.name) for run in stages)
 

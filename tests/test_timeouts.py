@@ -27,10 +27,10 @@ def worker_home(tmp_path, monkeypatch):
 
 def test_a_stage_past_its_time_limit_fails_the_run(worker_home, live_server, monkeypatch):
     from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
     from facecap.flows.capture import reconstruct_capture
+    from tests.servers import final_task_runs
 
     video = write_video(worker_home / "orbit.mp4", orbit_frames(150))
     monkeypatch.setenv("FACECAP_STAGE_TIMEOUT_S", "0.05")  # decoding 150 frames takes longer
@@ -41,14 +41,11 @@ def test_a_stage_past_its_time_limit_fails_the_run(worker_home, live_server, mon
         seconds = time.perf_counter() - start
         with pytest.raises(FacecapError) as stopped:
             state.result()
+        run_id = state.state_details.flow_run_id
         with get_client(sync_client=True) as client:
-            run = client.read_flow_run(state.state_details.flow_run_id)
-            for _ in range(30):  # task runs reach the server as events, a moment later
-                keyframes = [t for t in client.read_task_runs(flow_run_filter=FlowRunFilter(
-                    id=FlowRunFilterId(any_=[run.id]))) if t.name.startswith("keyframes")]
-                if keyframes and keyframes[0].state and keyframes[0].state.is_final():
-                    break
-                time.sleep(1)
+            run = client.read_flow_run(run_id)
+        every = final_task_runs(run_id, count=2)  # the video's ingest and the keyframes
+        keyframes = [t for t in every if t.name.startswith("keyframes")]
     message = str(stopped.value)
     assert "keyframes stage" in message and "0.05 s" in message
     assert "FACECAP_STAGE_TIMEOUT_S" in message and "\n" not in message
