@@ -130,8 +130,8 @@ BAD = {
 }
 
 
-@pytest.mark.parametrize("case", sorted(BAD))
-def test_bad_input_is_one_clear_line(case, scan, tmp_path):
+def write_bad_inputs(tmp_path: Path, scan: Path) -> None:
+    """The files the BAD cases name under ``{d}``."""
     (tmp_path / "notes.txt").write_text("not a mesh")
     (tmp_path / "garbage.ply").write_bytes(b"ply\nformat nonsense\n\x00\xff" * 10)
     (tmp_path / "five.json").write_text(json.dumps(np.zeros((5, 3)).tolist()))
@@ -173,13 +173,41 @@ def test_bad_input_is_one_clear_line(case, scan, tmp_path):
         (tmp_path / name).write_text(header.format(n=n, f=n) + rows + "".join(
             "3 {} {} {}\n".format(*corners(i)) for i in range(n)))
     (tmp_path / "faceless.ply").write_text(header.format(n=n, f=0) + rows)
-    args, expected = BAD[case]
-    expected = expected.format(d=tmp_path, s=scan)
-    code, out, err = facecap(*[a.format(d=tmp_path, s=scan) for a in args])
+
+
+def facecap_here(capfd, *args):
+    """``facecap`` run in this process, as its console script runs it (exit code, stdout,
+    stderr), without a process start for each case."""
+    from facecap.cli import main
+
+    capfd.readouterr()
+    code = main([str(a) for a in args])
+    out, err = capfd.readouterr()
+    return code, out, err
+
+
+def assert_one_clear_line(code: int, out: str, err: str, expected: str) -> None:
     assert code == 2, (out, err)
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("facecap: error: "), err
     assert expected in lines[0] and "Traceback" not in err
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_input_is_one_clear_line(case, scan, tmp_path, capfd):
+    write_bad_inputs(tmp_path, scan)
+    args, expected = BAD[case]
+    code, out, err = facecap_here(capfd, *[a.format(d=tmp_path, s=scan) for a in args])
+    assert_one_clear_line(code, out, err, expected.format(d=tmp_path, s=scan))
+
+
+@pytest.mark.parametrize("case", ["missing mesh", "synth: unknown config key"])
+def test_the_command_in_its_own_process_says_bad_input_in_one_line(case, scan, tmp_path):
+    """The same as a user's shell sees it: a fresh process, whose imports may print too."""
+    write_bad_inputs(tmp_path, scan)
+    args, expected = BAD[case]
+    code, out, err = facecap(*[a.format(d=tmp_path, s=scan) for a in args])
+    assert_one_clear_line(code, out, err, expected.format(d=tmp_path, s=scan))
 
 
 def test_an_unexpected_exception_is_reported_as_a_bug_with_its_log(tmp_path, monkeypatch,

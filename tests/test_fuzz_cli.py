@@ -21,7 +21,7 @@ Every run must end either in success or in exit code 2 with exactly one stderr l
 ``facecap: error: ...`` and no traceback; never an internal error. The reconstruct runs are
 built so that none can start a flow (the output folder is a file, or the store is refused):
 a refusal is the only right answer for them, and the store the runs name and the photo
-folder must stay as they were. About a minute on the 2-core machine; hypothesis prints the failing input's smallest
+folder must stay as they were. Under a minute on the 2-core machine; hypothesis prints the failing input's smallest
 form if one fails.
 """
 
@@ -45,8 +45,8 @@ from facecap.cli import main
 from tests.media import write_video
 from tests.test_bad_inputs import orbit_frames, snapshot
 
-EXAMPLES = 3200
-"""Generated inputs per run: about a minute of the 2-core machine."""
+EXAMPLES = 1600
+"""Generated inputs per run: under a minute of the 2-core machine (each run draws new ones)."""
 
 
 @pytest.fixture(scope="module")
