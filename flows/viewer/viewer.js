@@ -22,6 +22,10 @@
   controls.enableDamping = true;
   const state = {ready: false, mode: "colour", setMode, toggle};
   window.facecap = state;
+  // Drawn when something changed (a turn, a zoom, a mode, a size), not every frame: an open
+  // page idles rather than keeping a core (or a laptop's GPU) busy.
+  let stale = true;
+  controls.addEventListener("change", () => { stale = true; });
 
   function resize() {
     const w = canvas.clientWidth, h = canvas.clientHeight;
@@ -30,6 +34,7 @@
       renderer.setSize(w, h, false);
       camera.aspect = w / Math.max(h, 1);
       camera.updateProjectionMatrix();
+      stale = true;
     }
   }
 
@@ -52,7 +57,14 @@
     if (mode !== "plain") mesh.geometry.setAttribute("color", colours[attribute]);
     mesh.material = materials[mode];
     document.getElementById("colourbar").hidden = mode !== "accuracy";
-    // A click (not a drag) near a camera, while the cameras are shown, opens what it saw.
+    for (const button of document.querySelectorAll("[data-mode]"))
+      button.setAttribute("aria-pressed", String(button.dataset.mode === mode));
+    state.mode = mode;
+    stale = true;
+    return true;
+  }
+
+  // A click (not a drag) near a camera, while the cameras are shown, opens what it saw.
   const centres = data.cameras ? buffer(data.cameras.centres, Float32Array) : null;
   function cameraOnScreen(i) {
     const p = new THREE.Vector3(centres[3 * i], centres[3 * i + 1], centres[3 * i + 2]);
@@ -90,12 +102,6 @@
     e.currentTarget.hidden = true;
   });
 
-  for (const button of document.querySelectorAll("[data-mode]"))
-      button.setAttribute("aria-pressed", String(button.dataset.mode === mode));
-    state.mode = mode;
-    return true;
-  }
-
   function toggle(name) {
     if (!(name in extras)) return false;
     extras[name].visible = !extras[name].visible;
@@ -107,6 +113,7 @@
     }
     document.querySelector(`[data-toggle="${name}"]`)
       .setAttribute("aria-pressed", String(extras[name].visible));
+    stale = true;
     return extras[name].visible;
   }
 
@@ -163,6 +170,7 @@
     resize();
     frame(geometry);
     state.ready = true;
+    stale = true;
   }, (error) => {
     state.reason = "the mesh could not be read";
     console.error("facecap: the mesh could not be read", error);
@@ -174,8 +182,11 @@
     button.addEventListener("click", () => toggle(button.dataset.toggle));
   (function loop() {
     resize();
-    controls.update();
-    renderer.render(scene, camera);
+    controls.update();  // moves the camera on while a turn is damped ("change": stale)
+    if (stale) {
+      stale = false;
+      renderer.render(scene, camera);
+    }
     requestAnimationFrame(loop);
   })();
 })();
