@@ -119,17 +119,33 @@ class _Comparison:
     stretch: np.ndarray  # per edge: fit length / template length
 
 
-def _compare(vertices: np.ndarray, moved: np.ndarray, faces: np.ndarray,
-             edges: np.ndarray) -> _Comparison:
-    n_fit, area_fit = _normals(vertices, faces)
-    n_tpl, area_tpl = _normals(moved, faces)
-    scale = np.median(area_tpl)
-    degenerate = area_fit <= 1e-9 * scale
-    valid = ~degenerate & (area_tpl > 1e-9 * scale)
-    flipped = valid & (np.einsum("ij,ij->i", n_fit, n_tpl) < 0)
+@dataclass
+class _Reference:
+    """The similarity-moved template's triangles and edges, which every comparison of a fit
+    with it reads (computed once per move, not once per comparison)."""
+
+    faces: np.ndarray
+    edges: np.ndarray  # (E, 2)
+    normals: np.ndarray  # per triangle, unit
+    area_bound: float  # a triangle of at most this (doubled) area is degenerate
+    valid: np.ndarray  # per triangle: the template's is not degenerate
+    lengths: np.ndarray  # per edge, at least 1e-12
+
+
+def _reference(moved: np.ndarray, faces: np.ndarray, edges: np.ndarray) -> _Reference:
+    normals, area = _normals(moved, faces)
+    bound = 1e-9 * np.median(area)
+    lengths = np.linalg.norm(moved[edges[:, 0]] - moved[edges[:, 1]], axis=1)
+    return _Reference(faces, edges, normals, bound, area > bound, np.maximum(lengths, 1e-12))
+
+
+def _compare(vertices: np.ndarray, ref: _Reference) -> _Comparison:
+    n_fit, area_fit = _normals(vertices, ref.faces)
+    degenerate = area_fit <= ref.area_bound
+    flipped = ~degenerate & ref.valid & (np.einsum("ij,ij->i", n_fit, ref.normals) < 0)
+    edges = ref.edges
     len_fit = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
-    len_tpl = np.linalg.norm(moved[edges[:, 0]] - moved[edges[:, 1]], axis=1)
-    return _Comparison(flipped, degenerate, edges, len_fit / np.maximum(len_tpl, 1e-12))
+    return _Comparison(flipped, degenerate, edges, len_fit / ref.lengths)
 
 
 def _moved_template(template: np.ndarray, vertices: np.ndarray) -> np.ndarray:
@@ -143,7 +159,8 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.nd
     vertices = np.asarray(vertices, float)
     template = np.asarray(template_vertices, float)
     faces = np.asarray(faces, np.int64)
-    c = _compare(vertices, _moved_template(template, vertices), faces, edges_of(faces))
+    c = _compare(vertices, _reference(_moved_template(template, vertices), faces,
+                                      edges_of(faces)))
     return MeshSanity(triangles=len(faces), flipped=int(c.flipped.sum()),
                       degenerate=int(c.degenerate.sum()),
                       stretched_edges=int((c.stretch > max_stretch).sum()),
@@ -162,12 +179,12 @@ def _adjacency(faces: np.ndarray, n: int):
     return sp.diags(1.0 / np.maximum(degree, 1)) @ A
 
 
-def _bad_faces(vertices, moved, faces, edges, max_stretch) -> np.ndarray:
+def _bad_faces(vertices, ref: _Reference, max_stretch) -> np.ndarray:
     """Triangles that are flipped or degenerate, or touch a stretched edge."""
-    c = _compare(vertices, moved, faces, edges)
+    c = _compare(vertices, ref)
     stretched = np.zeros(len(vertices), bool)
-    stretched[edges[c.stretch > max_stretch].ravel()] = True
-    return c.flipped | c.degenerate | stretched[faces].any(1)
+    stretched[ref.edges[c.stretch > max_stretch].ravel()] = True
+    return c.flipped | c.degenerate | stretched[ref.faces].any(1)
 
 
 def relax_folds(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.ndarray,
@@ -186,6 +203,7 @@ def relax_folds(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.n
     moved = _moved_template(T, V)
     A = _adjacency(faces, len(V))
     edges = edges_of(faces)
+    ref = _reference(moved, faces, edges)
     region = np.zeros(len(V), bool)
 
     def relax(bad_faces: np.ndarray, rings: int) -> None:
@@ -206,7 +224,7 @@ def relax_folds(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.n
         moved, never flipped."""
         count = 0
         for _ in range(4):
-            c = _compare(V, moved, faces, edges)
+            c = _compare(V, ref)
             bad = np.flatnonzero(c.flipped | c.degenerate)
             if not len(bad):
                 break
@@ -222,11 +240,12 @@ def relax_folds(vertices: np.ndarray, faces: np.ndarray, template_vertices: np.n
             # The template's similarity onto the relaxed fit has moved a little, so an edge
             # relaxed to just under the bound may be just over it now: another sweep.
             moved = _moved_template(T, V)
-            if not _bad_faces(V, moved, faces, edges, max_stretch).any():
+            ref = _reference(moved, faces, edges)
+            if not _bad_faces(V, ref, max_stretch).any():
                 break
         for attempt in range(last + 1):
             for r in range(rounds):
-                bad = _bad_faces(V, moved, faces, edges, max_stretch)
+                bad = _bad_faces(V, ref, max_stretch)
                 if not bad.any():
                     break
                 relax(bad, min(r + 1, 12))
