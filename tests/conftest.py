@@ -26,6 +26,18 @@ def ict_model() -> Path:
 
 
 @pytest.fixture(scope="session")
+def ict4_sweep(tmp_path_factory, ict_model):
+    """A 3 s 640x360 sweep of ICT identity 4 (seed 4), rendered once for the session and
+    only read: the pose stage's tests and the photo folder's share it."""
+    from facecap.synthetic import synthesize
+    from facecap.synthetic.config import SynthConfig
+
+    config = SynthConfig(subject="ict:4", ict_model=ict_model, width=640, height=360,
+                         duration_s=3.0, seed=4)
+    return synthesize(config, tmp_path_factory.mktemp("ict4-sweep"), progress=False)
+
+
+@pytest.fixture(scope="session")
 def live_server(tmp_path_factory) -> str:
     """A real ``prefect server start`` (its scheduler, triggers and actions services running,
     as on a facecap host) with its own database; yields its API URL. One server for the

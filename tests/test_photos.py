@@ -172,19 +172,16 @@ def test_empty_frame_list_reads_nothing_from_a_video(tmp_path):
 
 
 @pytest.mark.slow
-def test_shuffled_photos_get_every_camera_in_sweep_order(tmp_path, ict_model):
+def test_shuffled_photos_get_every_camera_in_sweep_order(tmp_path, ict4_sweep):
     """Photos of a sweep saved under shuffled names: exhaustive matching registers all, the
     views come out in sweep order, and the cameras are as good as the video's."""
-    from facecap.synthetic import load_gt_cameras, synthesize
-    from facecap.synthetic.config import SynthConfig
+    from facecap.synthetic import load_gt_cameras
     from facecap_core.keyframes import load_keyframes
     from facecap_core.keyframes import main as keyframes_main
     from facecap_core.pose.evaluate import pose_errors
     from facecap_core.pose.stage import PoseConfig, estimate_poses
 
-    capture = synthesize(SynthConfig(subject="ict:4", ict_model=ict_model, width=640,
-                                     height=360, duration_s=3.0, seed=4),
-                         tmp_path / "capture", progress=False)
+    capture = ict4_sweep
     taken = np.linspace(0, capture.frames - 1, 30).round().astype(int)
     names = np.random.default_rng(1).permutation(len(taken))
     folder = tmp_path / "photos"

@@ -3,8 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from facecap.synthetic import load_gt_cameras, synthesize
-from facecap.synthetic.config import SynthConfig
+from facecap.synthetic import load_gt_cameras
 from facecap_core.camera import Intrinsics, rotation_matrix
 from facecap_core.keyframes import load_keyframes
 from facecap_core.keyframes import main as keyframes_main
@@ -81,10 +80,8 @@ def test_colmap_text_model_reads_back(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def capture(tmp_path_factory, ict_model):
-    config = SynthConfig(subject="ict:4", ict_model=ict_model, width=640, height=360,
-                         duration_s=3.0, seed=4)
-    return synthesize(config, tmp_path_factory.mktemp("pose"), progress=False)
+def capture(ict4_sweep):
+    return ict4_sweep
 
 
 @pytest.mark.slow
