@@ -10,10 +10,8 @@ from tests.media import write_video
 
 
 @pytest.fixture(scope="module")
-def sweep(tmp_path_factory, ict_model):
-    config = SynthConfig(subject="ict:2", ict_model=ict_model, width=640, height=360,
-                         duration_s=3.0, fps=30, seed=2)
-    return synthesize(config, tmp_path_factory.mktemp("kf"), progress=False)
+def sweep(ict4_sweep):
+    return ict4_sweep  # a 3 s 640x360 sweep (tests/conftest.py)
 
 
 @pytest.mark.slow
