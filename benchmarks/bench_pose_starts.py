@@ -63,8 +63,19 @@ CAPTURES = {
                                       duration_s=3.0, principal_point_jitter=0.03, seed=17),
     # bench_poses.py's capture where PBA ends worse than its start (an 8 s 720p sweep).
     "ict2_1280x720_8s": dict(subject="ict:2", width=1280, height=720, duration_s=8.0, seed=2),
+    # Calibration captures (identities 4-6, PBA's calibration set, docs/poses.md): a setting
+    # is chosen on these and then evaluated on the ones above.
+    "cal_ict4_640x360": dict(subject="ict:4", width=640, height=360, duration_s=3.0, seed=4),
+    "cal_ict5_1280x720_8s": dict(subject="ict:5", width=1280, height=720, duration_s=8.0,
+                                 seed=5),
+    "cal_ict6_640x360": dict(subject="ict:6", width=640, height=360, duration_s=3.0, seed=6),
 }
 DEFAULT_CAPTURES = list(CAPTURES)[:4]
+VARIANTS = {"pba_free": {"principal_point_prior_pct": 0.0},
+            "pba_prior": {"principal_point_prior_pct": 1.0},
+            "pba_held": {"hold_principal_point": True}}
+"""PBA's settings compared from each start: the principal point free, with its prior
+around the image centre (the default), held where the geometric refinement put it."""
 WORSE_DEG = 0.01
 """PBA's rotations count as worse than its start beyond this (the figures' rounding)."""
 HELD_OUT = 5
@@ -114,9 +125,8 @@ def run_start(folder: Path, keyframes, seed: int, threads: int, work: Path) -> d
     greys = read_frames(video, geo.frame_indices, width=config.pba.max_width, grey=True)
     grey_list = [greys[i] for i in geo.frame_indices]
     solutions = {"sfm": sfm, "geometric": geo}
-    for name, pct in (("pba_free", 0.0), ("pba_prior", 1.0)):
-        variant = config.model_copy(update={"pba": config.pba.model_copy(
-            update={"principal_point_prior_pct": pct})})
+    for name, update in VARIANTS.items():
+        variant = config.model_copy(update={"pba": config.pba.model_copy(update=update)})
         solutions[name] = photometric_refinement(geo, grey_list, variant, keyframes=keyframes)
     row = {"seed": seed, "threads": threads}
     for name, poses in solutions.items():
@@ -141,19 +151,22 @@ def report(results: dict[str, list[dict]]) -> str:
              "*worse*: PBA's rotations more than 0.01° worse than the geometric start's; "
              "*held-out*: median reprojection error (px) of the tracks neither solve saw.", "",
              "| capture | seed | threads | geometric ° / pp px / held-out | PBA free ° / pp px / "
-             "held-out | PBA with prior ° / pp px / held-out |", "|---|---:|---:|---|---|---|"]
+             "held-out | PBA with prior ° / pp px / held-out | PBA, pp held ° / pp px / "
+             "held-out |", "|---|---:|---:|---|---|---|---|"]
     for name, rows in results.items():
         for r in rows:
             cells = [f"{r[s]['rotation_deg']:.3f} / {r[s]['principal_point_px']:.1f} / "
                      f"{r[s]['held_out_px']:.3f}" + (" **worse**" if s != "geometric"
                                                      and verdicts(r, s)[0] else "")
-                     for s in ("geometric", "pba_free", "pba_prior")]
+                     for s in ("geometric", *VARIANTS) if s in r]
             lines.append(f"| {name} | {r['seed']} | {r['threads']} | " + " | ".join(cells) + " |")
     every = [r for rows in results.values() for r in rows]
     lines += ["", "| PBA | ended worse | held-out criterion agrees with the truth | "
               "median rotation ° | median pp px | median focal % |", "|---|---:|---:|---:|---:|---:|"]
     for s, label in (("geometric", "(start: geometric)"), ("pba_free", "principal point free"),
-                     ("pba_prior", "with the prior")):
+                     ("pba_prior", "with the prior"), ("pba_held", "principal point held")):
+        if not all(s in r for r in every):
+            continue
         med = [np.median([r[s][k] for r in every])
                for k in ("rotation_deg", "principal_point_px", "focal_pct")]
         if s == "geometric":

@@ -98,6 +98,9 @@ class PBAConfig(StrictModel):
     of facecap's sensor model), weighed against the tracks by their noise: the data move it
     as far as they pin it (a tilt of every camera and a shift of the principal point
     reproject almost alike). 0: free."""
+    hold_principal_point: bool = False
+    """The principal point stays where the start (the geometric refinement) put it; focal
+    length and distortion are still refined. Instead of the prior above."""
     scale_prior: float = Field(1e8, gt=0)
     """Weight of the prior that fixes the length of the first baseline (the scale gauge)."""
     points_from_sparse: bool = True
@@ -1184,7 +1187,11 @@ class _Problem:
         pp_sigma = config.principal_point_prior_pct / 100 * np.array([intrinsics.width,
                                                                       intrinsics.height])
         self.w_pp = np.zeros(2)
-        if config.principal_point_prior_pct > 0 and tracks is not None and len(tracks[0]):
+        if config.hold_principal_point:
+            self.pp0 = np.array([intrinsics.cx, intrinsics.cy])
+            self.w_pp = np.full(2, 1e12)
+            self.log.append("principal point held at the start's")
+        elif config.principal_point_prior_pct > 0 and tracks is not None and len(tracks[0]):
             noise = _track_noise_px(tracks, R, t, intrinsics, self.full)
             self.w_pp = config.track_weight ** 2 * noise ** 2 / pp_sigma ** 2
             self.log.append(f"principal point prior: ±{config.principal_point_prior_pct:g} % "

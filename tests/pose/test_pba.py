@@ -321,6 +321,28 @@ def test_the_tracks_alone_recover_exact_cameras_and_intrinsics():
     expect_exact_cameras(after)
 
 
+def test_a_held_principal_point_stays_where_it_started():
+    """``hold_principal_point``: from the scene above (the start turned 0.5°, its focal length
+    1 % and its principal point 4 px off), the principal point ends where it started while
+    the focal length is still refined (towards the truth: the data pin it)."""
+    from facecap_core.pose.evaluate import pose_errors
+    from facecap_core.pose.pba import PBAConfig
+
+    intr, R, t, points, rows, turned, start_t, start = _arc_scene(80.0, (163.0, 117.0), 0.0,
+                                                                   turn_deg=0.5)
+    blank = [np.full((240, 320), 100.0, np.float32) for _ in R]
+    config = PBAConfig(iterations=30, pyramid_levels=1, motion_blur=False,
+                       hold_principal_point=True)
+    result = pba.photometric_bundle_adjustment(blank, start, turned, start_t, points, config,
+                                               sparse_hosts=np.full(len(points), 5),
+                                               tracks=(points, rows))
+    got = result.intrinsics
+    assert abs(got.cx - start.cx) < 1e-6 and abs(got.cy - start.cy) < 1e-6, got
+    before = pose_errors(turned, start_t, start, R, t, intr)
+    after = pose_errors(result.R, result.t, got, R, t, intr)
+    assert after["focal_pct"] < 0.5 * before["focal_pct"], (before, after)
+
+
 @pytest.mark.parametrize("noise_px", [0.5, 0.01], ids=["noisy tracks", "exact tracks"])
 def test_the_principal_point_prior_gives_way_to_the_data(noise_px):
     """Twelve cameras on an 80° arc: a tilt of every camera and a shift of the principal
