@@ -155,10 +155,11 @@ def report(results: dict[str, list[dict]]) -> str:
              "held-out |", "|---|---:|---:|---|---|---|---|"]
     for name, rows in results.items():
         for r in rows:
-            cells = [f"{r[s]['rotation_deg']:.3f} / {r[s]['principal_point_px']:.1f} / "
-                     f"{r[s]['held_out_px']:.3f}" + (" **worse**" if s != "geometric"
-                                                     and verdicts(r, s)[0] else "")
-                     for s in ("geometric", *VARIANTS) if s in r]
+            cells = [(f"{r[s]['rotation_deg']:.3f} / {r[s]['principal_point_px']:.1f} / "
+                      f"{r[s]['held_out_px']:.3f}" + (" **worse**" if s != "geometric"
+                                                      and verdicts(r, s)[0] else ""))
+                     if s in r else "–"  # a row from before the variant was measured
+                     for s in ("geometric", *VARIANTS)]
             lines.append(f"| {name} | {r['seed']} | {r['threads']} | " + " | ".join(cells) + " |")
     every = [r for rows in results.values() for r in rows]
     lines += ["", "| PBA | ended worse | held-out criterion agrees with the truth | "

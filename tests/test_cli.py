@@ -177,12 +177,18 @@ def write_bad_inputs(tmp_path: Path, scan: Path) -> None:
 
 def facecap_here(capfd, *args):
     """``facecap`` run in this process, as its console script runs it (exit code, stdout,
-    stderr), without a process start for each case."""
+    stderr), without a process start for each case. A Python warning would reach a user's
+    terminal as another line; here pytest would catch it first, so none may be raised."""
+    import warnings
+
     from facecap.cli import main
 
     capfd.readouterr()
-    code = main([str(a) for a in args])
+    with warnings.catch_warnings(record=True) as raised:
+        warnings.simplefilter("always")
+        code = main([str(a) for a in args])
     out, err = capfd.readouterr()
+    assert [str(w.message) for w in raised] == [], err
     return code, out, err
 
 

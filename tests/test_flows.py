@@ -272,8 +272,10 @@ def test_rerun_is_all_cached(first_run, capture):
     assert result["keys"] == first_run["keys"]
     assert set(store.keys()) == before
     assert result["computed"] == []
-    every = final_task_runs(result["flow_run_id"], count=len(first_run["computed"]) + 2)
-    stages = [run for run in every if not run.name.startswith("ingest")]  # 2 ingests
+    count = len(first_run["computed"]) + 2  # each stage's task run and the two ingests
+    every = final_task_runs(result["flow_run_id"], count)
+    assert len(every) == count, sorted(run.name for run in every)
+    stages = [run for run in every if not run.name.startswith("ingest")]
     assert stages and {run.state and run.state.name for run in stages} == {"Reused"}, \
         sorted((run.name, run.state and run.state.name) for run in stages)
 
