@@ -115,8 +115,7 @@ class _Comparison:
 
     flipped: np.ndarray  # per triangle
     degenerate: np.ndarray  # per triangle
-    edges: np.ndarray  # (E, 2)
-    stretch: np.ndarray  # per edge: fit length / template length
+    stretch: np.ndarray  # per edge of the reference: fit length / template length
 
 
 @dataclass
@@ -145,7 +144,7 @@ def _compare(vertices: np.ndarray, ref: _Reference) -> _Comparison:
     flipped = ~degenerate & ref.valid & (np.einsum("ij,ij->i", n_fit, ref.normals) < 0)
     edges = ref.edges
     len_fit = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
-    return _Comparison(flipped, degenerate, edges, len_fit / ref.lengths)
+    return _Comparison(flipped, degenerate, len_fit / ref.lengths)
 
 
 def _moved_template(template: np.ndarray, vertices: np.ndarray) -> np.ndarray:
