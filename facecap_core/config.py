@@ -35,8 +35,11 @@ MAX_CONFIG_BYTES = 256 * 1024
 """Largest config file read: every setting with a comment fits in a few kilobytes."""
 MAX_FRAMES = 100_000
 """Most frames any setting may ask a capture to have (about 7 minutes at 240 fps)."""
-
-
+KEY_NEUTRAL = "key_neutral"
+"""A setting's metadata (``Field(..., json_schema_extra={KEY_NEUTRAL: value})``): the value
+at which the stage does what it did before the setting existed. At that value the setting is
+left out of the stage's artifact key (``facecap.tasks.graph.config_data``), so adding it
+does not make every store compute that stage, and all after it, again."""
 
 
 class StrictModel(BaseModel):

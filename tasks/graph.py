@@ -4,7 +4,9 @@ the CLI's ``--until``, the run report and the UI derive from the pipeline's rows
 
 A stage's artifact key hashes its inputs' keys, the whole config section it reads (nothing
 else of the config, so a setting of another stage never invalidates it) and its version;
-bump a stage's version when its algorithm changes its output.
+bump a stage's version when its algorithm changes its output. A setting added to a stage
+that already has results names the value at which the stage does what it did without it
+(:data:`facecap_core.config.KEY_NEUTRAL`): at that value it is left out of the key.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 from pydantic import BaseModel
 
 from facecap.tasks.store import artifact_key
+from facecap_core.config import KEY_NEUTRAL
 from facecap_core.pipeline import STAGES
 from facecap_core.stage import PHOTOS, VIDEO, Stage, capture_input_name
 
@@ -24,10 +27,21 @@ RAW_INPUTS = ("video", "scan", "scan_landmarks")
 
 
 def config_data(config: BaseModel | dict | None) -> dict:
-    """A stage's settings as the JSON data its key hashes ({} without settings)."""
+    """A stage's settings as the JSON data its key hashes ({} without settings); a setting
+    at its :data:`KEY_NEUTRAL` value is left out."""
     if config is None:
         return {}
-    return config.model_dump(mode="json") if isinstance(config, BaseModel) else dict(config)
+    if not isinstance(config, BaseModel):
+        return dict(config)
+    data = config.model_dump(mode="json")
+    for name, field in type(config).model_fields.items():
+        value = getattr(config, name)
+        extra = field.json_schema_extra if isinstance(field.json_schema_extra, dict) else {}
+        if KEY_NEUTRAL in extra and value == extra[KEY_NEUTRAL]:
+            del data[name]
+        elif isinstance(value, BaseModel):
+            data[name] = config_data(value)
+    return data
 
 
 BY_NAME = {stage.name: stage for stage in STAGES}

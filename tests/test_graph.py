@@ -13,11 +13,21 @@ import typing
 from pathlib import Path
 
 import pytest
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, Field, ValidationError
 
 from facecap.flows.capture import _inputs
-from facecap.tasks.graph import BY_NAME, STAGES, STEPS, producer, stage_key, stages_until
+from facecap.tasks.graph import (
+    BY_NAME,
+    STAGES,
+    STEPS,
+    config_data,
+    producer,
+    stage_key,
+    stages_until,
+)
+from facecap_core.config import KEY_NEUTRAL, StrictModel
 from facecap_core.pipeline import PipelineConfig, section_model
+from facecap_core.pose.stage import PoseConfig
 
 AFTER_COARSE = {"views", "depth", "fusion", "fitting", "evaluation"}
 RECOMPUTED = {
@@ -123,6 +133,41 @@ def test_a_changed_field_recomputes_exactly_what_depends_on_it(path, field):
             reads_changed = (section is not None and stage.section == section) or any(
                 producer(name) in changed for name in stage.inputs + stage.optional)
             assert (stage.name in changed) == reads_changed, (stage.name, path)
+
+
+class _Before(StrictModel):
+    depth: float = 1.0
+
+
+class _Added(_Before):
+    """_Before with a setting added since, which at False does what the stage did before."""
+
+    hold: bool = Field(False, json_schema_extra={KEY_NEUTRAL: False})
+
+
+class _DefaultChanged(_Before):
+    hold: bool = Field(True, json_schema_extra={KEY_NEUTRAL: False})
+
+
+class _Section(StrictModel):
+    inner: _Added = _Added()
+
+
+def test_a_setting_added_at_its_neutral_value_keeps_the_keys():
+    inputs = {"keyframes": "k" * 64}
+    key = stage_key("poses", inputs, _Before())
+    assert stage_key("poses", inputs, _Added()) == key
+    assert stage_key("poses", inputs, _Added(hold=True)) != key
+    assert stage_key("poses", inputs, _Added(depth=2.0)) != key
+    # A default moved off the neutral value is a change: the stores compute again.
+    assert stage_key("poses", inputs, _DefaultChanged()) != key
+    assert config_data(_Section()) == {"inner": {"depth": 1.0}}
+    assert config_data(_Section(inner=_Added(hold=True))) == {"inner": {"depth": 1.0,
+                                                                        "hold": True}}
+    # The pose settings' principal-point hold came after the pose stage had results.
+    assert "hold_principal_point" not in config_data(PoseConfig())["pba"]
+    held = PoseConfig(pba={"hold_principal_point": True})
+    assert config_data(held)["pba"]["hold_principal_point"] is True
 
 
 def test_until_runs_a_prefix_of_the_graph():

@@ -51,7 +51,7 @@ import numpy as np
 from pydantic import Field
 
 from facecap_core.camera import Intrinsics, project, rotation_matrix
-from facecap_core.config import StrictModel
+from facecap_core.config import KEY_NEUTRAL, StrictModel
 from facecap_core.errors import FacecapError
 from facecap_core.video import processing_size
 
@@ -98,7 +98,7 @@ class PBAConfig(StrictModel):
     of facecap's sensor model), weighed against the tracks by their noise: the data move it
     as far as they pin it (a tilt of every camera and a shift of the principal point
     reproject almost alike). 0: free."""
-    hold_principal_point: bool = False
+    hold_principal_point: bool = Field(False, json_schema_extra={KEY_NEUTRAL: False})
     """The principal point stays where the start (the geometric refinement) put it; focal
     length and distortion are still refined. Instead of the prior above."""
     scale_prior: float = Field(1e8, gt=0)
