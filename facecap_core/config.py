@@ -39,7 +39,9 @@ KEY_NEUTRAL = "key_neutral"
 """A setting's metadata (``Field(..., json_schema_extra={KEY_NEUTRAL: value})``): the value
 at which the stage does what it did before the setting existed. At that value the setting is
 left out of the stage's artifact key (``facecap.tasks.graph.config_data``), so adding it
-does not make every store compute that stage, and all after it, again."""
+does not make every store compute that stage, and all after it, again. Only a field that
+holds a value, or a settings model directly, is looked at (not a list of models); the entry
+also shows in the settings' JSON schema, where validators ignore it."""
 
 
 class StrictModel(BaseModel):

@@ -2,8 +2,8 @@
 the CLI's ``--until``, the run report and the UI derive from the pipeline's rows
 (:data:`facecap_core.pipeline.STAGES`, each declared by its stage's module).
 
-A stage's artifact key hashes its inputs' keys, the whole config section it reads (nothing
-else of the config, so a setting of another stage never invalidates it) and its version;
+A stage's artifact key hashes its inputs' keys, the config section it reads (nothing else
+of the config, so a setting of another stage never invalidates it) and its version;
 bump a stage's version when its algorithm changes its output. A setting added to a stage
 that already has results names the value at which the stage does what it did without it
 (:data:`facecap_core.config.KEY_NEUTRAL`): at that value it is left out of the key.
@@ -28,7 +28,7 @@ RAW_INPUTS = ("video", "scan", "scan_landmarks")
 
 def config_data(config: BaseModel | dict | None) -> dict:
     """A stage's settings as the JSON data its key hashes ({} without settings); a setting
-    at its :data:`KEY_NEUTRAL` value is left out."""
+    at its :data:`KEY_NEUTRAL` value is left out (a mapping is hashed as given)."""
     if config is None:
         return {}
     if not isinstance(config, BaseModel):
@@ -38,7 +38,7 @@ def config_data(config: BaseModel | dict | None) -> dict:
         value = getattr(config, name)
         extra = field.json_schema_extra if isinstance(field.json_schema_extra, dict) else {}
         if KEY_NEUTRAL in extra and value == extra[KEY_NEUTRAL]:
-            del data[name]
+            data.pop(name, None)
         elif isinstance(value, BaseModel):
             data[name] = config_data(value)
     return data

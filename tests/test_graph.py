@@ -25,6 +25,7 @@ from facecap.tasks.graph import (
     stage_key,
     stages_until,
 )
+from facecap.tasks.store import artifact_key
 from facecap_core.config import KEY_NEUTRAL, StrictModel
 from facecap_core.pipeline import PipelineConfig, section_model
 from facecap_core.pose.stage import PoseConfig
@@ -164,10 +165,31 @@ def test_a_setting_added_at_its_neutral_value_keeps_the_keys():
     assert config_data(_Section()) == {"inner": {"depth": 1.0}}
     assert config_data(_Section(inner=_Added(hold=True))) == {"inner": {"depth": 1.0,
                                                                         "hold": True}}
-    # The pose settings' principal-point hold came after the pose stage had results.
-    assert "hold_principal_point" not in config_data(PoseConfig())["pba"]
+    # The pose settings' principal-point hold came after the pose stage had results: off,
+    # the pose key is the one of the same settings without the field.
+    before = PoseConfig().model_dump(mode="json")
+    del before["pba"]["hold_principal_point"]
+    assert stage_key("poses", inputs, PoseConfig()) == artifact_key(
+        "poses", inputs, before, BY_NAME["poses"].full_version())
     held = PoseConfig(pba={"hold_principal_point": True})
     assert config_data(held)["pba"]["hold_principal_point"] is True
+
+
+@pytest.mark.parametrize("path, field", [(p, f) for p, f in FIELDS if KEY_NEUTRAL in
+                                         (f.json_schema_extra or {})])
+def test_every_key_neutral_setting_is_left_out_at_its_value(path, field):
+    """A marker where config_data does not look (inside a list of models, say) would
+    leave the setting in every key without a word."""
+    *parents, name = path.split(".")
+    data = PipelineConfig().model_dump(mode="json")
+    node = data
+    for part in parents:
+        node = node[part]
+    node[name] = field.json_schema_extra[KEY_NEUTRAL]
+    keyed = config_data(PipelineConfig.model_validate(data))
+    for part in parents:
+        keyed = keyed[part]
+    assert name not in keyed
 
 
 def test_until_runs_a_prefix_of_the_graph():
