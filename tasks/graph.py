@@ -82,7 +82,8 @@ def stages_until(until: str) -> list[Stage]:
 def stage_key(stage: Stage | str, inputs: dict[str, str], config: BaseModel | dict | None,
               params: dict | None = None) -> str:
     """The artifact key of a stage run: its inputs' keys, its settings, its version and its
-    per-keyframe parameters."""
+    per-keyframe parameters. Give the settings as their model, as the flows do: a mapping is
+    hashed as given, key-neutral settings included."""
     if isinstance(stage, str):
         if stage not in BY_NAME:
             raise ValueError(f"unknown stage {stage!r}")

@@ -50,13 +50,13 @@ def seed_poses_and_coarse(store_url: str, video: Path, capture: Path, config: Pi
                           tmp: Path) -> set[str]:
     """The capture's ground-truth poses and coarse mesh, stored under the keys the capture
     flow computes for ``video`` with ``config``; returns the seeded keys."""
-    from facecap.tasks.graph import stage_key
+    from facecap.tasks.graph import config_data, stage_key
     from tests.test_flows import seed_upstream
 
     gt = seed_upstream(store_url, capture, tmp)  # the files, under keys of their own
     store = open_store(store_url)
-    section = {name: getattr(config, name).model_dump(mode="json")
-               for name in ("keyframes", "poses", "landmarks", "coarse")}
+    # The settings models, as the flow passes them (their keys leave key-neutral settings out).
+    section = {name: getattr(config, name) for name in ("keyframes", "poses", "landmarks", "coarse")}
     video_key = gt["video"]  # the same bytes as ``video``
     keyframes = stage_key("keyframes", {"video": video_key}, section["keyframes"])
     poses = stage_key("poses", {"video": video_key, "keyframes": keyframes}, section["poses"])
@@ -67,7 +67,8 @@ def seed_poses_and_coarse(store_url: str, video: Path, capture: Path, config: Pi
                                ("coarse", coarse, {"landmarks": landmarks, "poses": poses})]:
         folder = store.get(gt[stage])
         store.put(key, {p.name: p for p in folder.iterdir() if p.name != "manifest.json"},
-                  stage=stage, inputs=inputs, config=section[stage], version="ground truth")
+                  stage=stage, inputs=inputs, config=config_data(section[stage]),
+                  version="ground truth")
     return {poses, coarse}
 
 
