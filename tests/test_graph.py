@@ -178,8 +178,9 @@ def test_a_setting_added_at_its_neutral_value_keeps_the_keys():
 @pytest.mark.parametrize("path, field", [(p, f) for p, f in FIELDS if KEY_NEUTRAL in
                                          (f.json_schema_extra or {})])
 def test_every_key_neutral_setting_is_left_out_at_its_value(path, field):
-    """A marker where config_data does not look (inside a list of models, say) would
-    leave the setting in every key without a word."""
+    """Every marked setting of the pipeline's settings is left out at its value (a marker
+    on a setting of a nested list of models would not be found here nor by config_data:
+    there are none)."""
     *parents, name = path.split(".")
     data = PipelineConfig().model_dump(mode="json")
     node = data

@@ -35,7 +35,8 @@ def artifact_key(
     The key is ``f"{stage}-{digest[:32]}"`` where ``digest`` is the sha256 of the canonical
     JSON (sorted keys, no whitespace) of ``{stage, version, inputs, config}`` and, for a
     stage run once per item (one depth map per keyframe), its ``params``. A pydantic config
-    and a mapping holding the same values give the same key.
+    and a mapping holding the same values give the same key; a stage's key is
+    ``facecap.tasks.graph.stage_key``'s, which leaves key-neutral settings out first.
     """
     check_stage(stage)
     description = {
