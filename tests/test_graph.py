@@ -108,6 +108,17 @@ def section_of(path: str) -> str | None:
 FIELDS = list(leaf_fields(PipelineConfig))
 
 
+def with_field(path: str, value) -> PipelineConfig:
+    """The default pipeline settings with the field at the dotted ``path`` set to ``value``."""
+    *parents, name = path.split(".")
+    data = PipelineConfig().model_dump(mode="json")
+    node = data
+    for part in parents:
+        node = node[part]
+    node[name] = value
+    return PipelineConfig.model_validate(data)
+
+
 def test_every_config_field_is_read_by_one_stage_or_changes_no_result():
     unread = [path for path, _ in FIELDS if section_of(path) is None]
     assert unread == ["mvs.workers"]  # how many depth maps run at once
@@ -119,12 +130,7 @@ def test_a_changed_field_recomputes_exactly_what_depends_on_it(path, field):
     *parents, name = path.split(".")
     model = section_model(".".join(parents)) if parents else PipelineConfig
     value = other_value(model, name, field)
-    data = PipelineConfig().model_dump(mode="json")
-    node = data
-    for part in parents:
-        node = node[part]
-    node[name] = value
-    changed_cfg = PipelineConfig.model_validate(data)
+    changed_cfg = with_field(path, value)
     before, after = plan(PipelineConfig()), plan(changed_cfg)
     changed = {row.split("_")[0] if row.startswith("depth_") else row
                for row in before if before[row] != after[row]}
@@ -182,12 +188,7 @@ def test_every_key_neutral_setting_is_left_out_at_its_value(path, field):
     on a setting of a nested list of models would not be found here nor by config_data:
     there are none)."""
     *parents, name = path.split(".")
-    data = PipelineConfig().model_dump(mode="json")
-    node = data
-    for part in parents:
-        node = node[part]
-    node[name] = field.json_schema_extra[KEY_NEUTRAL]
-    keyed = config_data(PipelineConfig.model_validate(data))
+    keyed = config_data(with_field(path, field.json_schema_extra[KEY_NEUTRAL]))
     for part in parents:
         keyed = keyed[part]
     assert name not in keyed
