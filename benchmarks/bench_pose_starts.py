@@ -1,8 +1,8 @@
 """Where photometric bundle adjustment ends worse than its start: captures × SfM seeds ×
-threads, with and without the principal point's prior.
+threads, PBA's variants side by side.
 
     python benchmarks/bench_pose_starts.py [--out out/bench_pose_starts] [--seeds 0 1 2]
-        [--threads 1 2] [--captures NAME ...]
+        [--threads 1 2] [--captures NAME ...] [--variants pba_prior ...] [--rescore]
 
     # the principal point at 720p, 1080p and 4K (one start each):
     python benchmarks/bench_pose_starts.py --seeds 0 --threads 2 --captures
@@ -10,14 +10,20 @@ threads, with and without the principal point's prior.
 
 Per capture (rendered once into OUT/captures/, exact cameras in gt/), per start (the SfM
 random seed and the thread count of SfM and of the numba kernels): the keyframes, SfM, the
-geometric refinement with a fifth of the LK tracks held out, then PBA from it with the
-principal point free (``principal_point_prior_pct`` 0, the earlier default) and with its
-prior (the default). Errors after a similarity alignment to the truth: rotation (median °),
-principal point (px), focal length (%). "Worse" is the ground truth's verdict: PBA's
-rotations more than 0.01° worse than the geometric start's. Beside it an internal criterion
-that needs no truth: the held-out tracks' median reprojection error after triangulating
-them with each solution's cameras (smaller: the cameras agree better with tracks that
-neither solve saw); the table says how often its verdict matches the truth's.
+geometric refinement with a fifth of the LK tracks held out, then PBA from it in each of
+``VARIANTS`` (the principal point free, with its prior (the default), held; photometric
+residuals only). Every solution's cameras are saved in OUT/work/CAPTURE/SEED-THREADS/;
+``--rescore`` computes the truth's errors again from them.
+
+Two verdicts of the truth on whether PBA ended worse than its start: its rotations (median °,
+more than ``WORSE_DEG`` worse, after a similarity alignment of the camera centres) and the
+surface (``facecap_core.pose.evaluate.surface_error``: the true head triangulated from
+perfect matches with the solution's cameras, aligned by a similarity; more than
+``WORSE_SURFACE`` worse). The second is what depth maps see: a principal point shifted
+against a tilt of every camera costs rotation error and hardly any surface. Beside them an
+internal criterion that needs no truth: the held-out tracks' median reprojection error after
+triangulating them with each solution's cameras (smaller: the cameras agree better with
+tracks that neither solve saw); the table says how often its verdict matches the surface's.
 
 The captures are evaluation identities and render settings (ICT identities 1, 2 and 11;
 PBA's settings were calibrated on identities 4, 5 and 6, docs/poses.md); the prior's width
@@ -34,13 +40,15 @@ import json
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from facecap.synthetic import load_gt_cameras, synthesize
 from facecap.synthetic.config import SynthConfig
 from facecap_core.assets import default_ict_model
+from facecap_core.camera import Intrinsics
 from facecap_core.keyframes import KeyframeConfig, select_keyframes
 from facecap_core.pose.colmap_sfm import run_sfm
-from facecap_core.pose.evaluate import pose_errors
+from facecap_core.pose.evaluate import pose_errors, surface_error
 from facecap_core.pose.geometric import refine_with_tracks, triangulate
 from facecap_core.pose.stage import PoseConfig, photometric_refinement
 from facecap_core.video import read_frames
@@ -73,11 +81,21 @@ CAPTURES = {
 DEFAULT_CAPTURES = list(CAPTURES)[:4]
 VARIANTS = {"pba_free": {"principal_point_prior_pct": 0.0},
             "pba_prior": {"principal_point_prior_pct": 1.0},
-            "pba_held": {"hold_principal_point": True}}
+            "pba_held": {"hold_principal_point": True},
+            "pba_photometric": {"track_weight": 0.0},
+            "pba_photometric_centres": {"track_weight": 0.0, "centre_prior_pct": 0.05},
+            "pba_weak_tracks": {"track_weight": 3.0}}
 """PBA's settings compared from each start: the principal point free, with its prior
-around the image centre (the default), held where the geometric refinement put it."""
+around the image centre (the default), held where the geometric refinement put it; the
+photometric residuals alone (no tracks, so the intrinsics stay the geometric step's)."""
 WORSE_DEG = 0.01
 """PBA's rotations count as worse than its start beyond this (the figures' rounding)."""
+WORSE_SURFACE = 0.02
+"""PBA's surface error counts as worse than its start's beyond this fraction of it."""
+LABELS = {"pba_free": "PBA, pp free", "pba_prior": "PBA, pp prior (default)",
+          "pba_held": "PBA, pp held", "pba_photometric": "PBA, photometric only",
+          "pba_photometric_centres": "PBA, photometric, centres held 0.05 %",
+          "pba_weak_tracks": "PBA, tracks weighed 3"}
 HELD_OUT = 5
 """One track in this many is held out of both solves (by its id)."""
 
@@ -106,11 +124,18 @@ def held_out_error(observations: np.ndarray, poses) -> float:
     return float(np.median(errors)) if errors else float("nan")
 
 
-def run_start(folder: Path, keyframes, seed: int, threads: int, work: Path) -> dict:
+def true_surface(folder: Path, most: int = 5000) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and normals of the rendered head (at most ``most``, evenly picked)."""
+    mesh = trimesh.load(folder / "gt" / "mesh.ply", process=False)
+    pick = np.linspace(0, len(mesh.vertices) - 1, min(most, len(mesh.vertices))).astype(int)
+    return np.asarray(mesh.vertices)[pick], np.asarray(mesh.vertex_normals)[pick]
+
+
+def run_start(folder: Path, keyframes, seed: int, threads: int, work: Path,
+              variants: list[str]) -> dict:
     import numba
 
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-    intr_gt, gt = load_gt_cameras(folder / "gt" / "cameras.json")
     video = folder / "video.mp4"
     config = PoseConfig()
     images = read_frames(video, keyframes.indices, width=config.sfm_width)
@@ -125,57 +150,92 @@ def run_start(folder: Path, keyframes, seed: int, threads: int, work: Path) -> d
     greys = read_frames(video, geo.frame_indices, width=config.pba.max_width, grey=True)
     grey_list = [greys[i] for i in geo.frame_indices]
     solutions = {"sfm": sfm, "geometric": geo}
-    for name, update in VARIANTS.items():
+    for name in variants:
+        update = VARIANTS[name]
         variant = config.model_copy(update={"pba": config.pba.model_copy(update=update)})
         solutions[name] = photometric_refinement(geo, grey_list, variant, keyframes=keyframes)
     row = {"seed": seed, "threads": threads}
     for name, poses in solutions.items():
-        idx = poses.frame_indices
-        err = pose_errors(poses.R, poses.t, poses.intrinsics, [gt[i]["R"] for i in idx],
-                          [gt[i]["t"] for i in idx], intr_gt)
-        err["held_out_px"] = held_out_error(held_rows, poses)
+        np.savez(work / f"{name}.npz", R=np.asarray(poses.R), t=np.asarray(poses.t),
+                 frame_indices=np.asarray(poses.frame_indices), **poses.intrinsics.to_dict())
+        row[name] = {"held_out_px": held_out_error(held_rows, poses)}
+    return score(folder, work, row)
+
+
+def score(folder: Path, work: Path, row: dict) -> dict:
+    """``row`` with the truth's errors of each solution saved in ``work`` (its held-out
+    error kept)."""
+    intr_gt, gt = load_gt_cameras(folder / "gt" / "cameras.json")
+    surface = true_surface(folder)
+    for name in [k for k in row if isinstance(row[k], dict)]:
+        saved = np.load(work / f"{name}.npz")
+        intr = Intrinsics.from_dict({k: saved[k].item() for k in saved.files
+                                     if k not in ("R", "t", "frame_indices")})
+        idx = saved["frame_indices"]
+        truth = [gt[i]["R"] for i in idx], [gt[i]["t"] for i in idx], intr_gt
+        err = pose_errors(saved["R"], saved["t"], intr, *truth)
+        err.update(surface_error(saved["R"], saved["t"], intr, *truth, *surface))
+        err["held_out_px"] = row[name]["held_out_px"]
         row[name] = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in err.items()}
     return row
 
 
-def verdicts(row: dict, pba: str) -> tuple[bool, bool]:
-    """(the truth says PBA ended worse, the held-out criterion says so)."""
-    worse = row[pba]["rotation_deg"] > row["geometric"]["rotation_deg"] + WORSE_DEG
-    said = row[pba]["held_out_px"] > row["geometric"]["held_out_px"]
-    return worse, said
+def verdicts(row: dict, pba: str) -> dict[str, bool]:
+    """Whether PBA ended worse than its start: by the truth's rotations, by the truth's
+    surface (as the cameras would reconstruct it from perfect matches) and by the held-out
+    tracks (the internal criterion)."""
+    pba_, geo = row[pba], row["geometric"]
+    return {"rotation": pba_["rotation_deg"] > geo["rotation_deg"] + WORSE_DEG,
+            "surface": ("surface" in pba_
+                        and pba_["surface"] > geo["surface"] * (1 + WORSE_SURFACE)),
+            "held_out": pba_["held_out_px"] > geo["held_out_px"]}
 
 
 def report(results: dict[str, list[dict]]) -> str:
+    every = [r for rows in results.values() for r in rows]
+    shown = [s for s in VARIANTS if any(s in r for r in every)]
     lines = ["# Where PBA ends worse than its start (`benchmarks/bench_pose_starts.py`)", "",
-             "Rotation error (median °) and principal point error (px) after each step; "
-             "*worse*: PBA's rotations more than 0.01° worse than the geometric start's; "
-             "*held-out*: median reprojection error (px) of the tracks neither solve saw.", "",
-             "| capture | seed | threads | geometric ° / pp px / held-out | PBA free ° / pp px / "
-             "held-out | PBA with prior ° / pp px / held-out | PBA, pp held ° / pp px / "
-             "held-out |", "|---|---:|---:|---|---|---|---|"]
+             "Per step: rotation error (median °) / principal point error (px) / the surface "
+             "error (median, % of the head's size: the true surface triangulated from perfect "
+             "matches with the step's cameras, aligned by a similarity) / held-out tracks' "
+             "median reprojection error (px). *worse*: by the rotations (more than "
+             f"{WORSE_DEG}°), *worse surface*: by the surface (more than "
+             f"{WORSE_SURFACE:.0%}), both against the geometric start.", "",
+             "| capture | seed | threads | geometric | " + " | ".join(
+                 LABELS[s] for s in shown) + " |", "|---|---:|---:|---|" + "---|" * len(shown)]
+
+    def cell(r, s):
+        if s not in r:
+            return "–"  # a row from before the variant was measured
+        e = r[s]
+        text = (f"{e['rotation_deg']:.3f} / {e['principal_point_px']:.1f} / "
+                + (f"{e['surface_pct']:.3f} / " if "surface_pct" in e else "– / ")
+                + f"{e['held_out_px']:.3f}")
+        if s != "geometric":
+            v = verdicts(r, s)
+            text += " **worse**" * v["rotation"] + " **worse surface**" * v["surface"]
+        return text
+
     for name, rows in results.items():
         for r in rows:
-            cells = [(f"{r[s]['rotation_deg']:.3f} / {r[s]['principal_point_px']:.1f} / "
-                      f"{r[s]['held_out_px']:.3f}" + (" **worse**" if s != "geometric"
-                                                      and verdicts(r, s)[0] else ""))
-                     if s in r else "–"  # a row from before the variant was measured
-                     for s in ("geometric", *VARIANTS)]
-            lines.append(f"| {name} | {r['seed']} | {r['threads']} | " + " | ".join(cells) + " |")
-    every = [r for rows in results.values() for r in rows]
-    lines += ["", "| PBA | ended worse | held-out criterion agrees with the truth | "
-              "median rotation ° | median pp px | median focal % |", "|---|---:|---:|---:|---:|---:|"]
-    for s, label in (("geometric", "(start: geometric)"), ("pba_free", "principal point free"),
-                     ("pba_prior", "with the prior"), ("pba_held", "principal point held")):
-        if not all(s in r for r in every):
-            continue
-        med = [np.median([r[s][k] for r in every])
-               for k in ("rotation_deg", "principal_point_px", "focal_pct")]
+            lines.append(f"| {name} | {r['seed']} | {r['threads']} | "
+                         + " | ".join(cell(r, s) for s in ("geometric", *shown)) + " |")
+    lines += ["", "| PBA | ended worse (rotations) | ended worse (surface) | held-out agrees "
+              "with the surface | median rotation ° | median pp px | median focal % | median "
+              "surface % |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for s in ("geometric", *shown):
+        rows = [r for r in every if s in r]
+        med = [np.median([r[s][k] for r in rows if k in r[s]] or [np.nan])
+               for k in ("rotation_deg", "principal_point_px", "focal_pct", "surface_pct")]
         if s == "geometric":
-            lines.append(f"| {label} | – | – | " + " | ".join(f"{m:.3f}" for m in med) + " |")
+            lines.append("| (start: geometric) | – | – | – | "
+                         + " | ".join(f"{m:.3f}" for m in med) + " |")
             continue
-        v = [verdicts(r, s) for r in every]
-        lines.append(f"| {label} | {sum(w for w, _ in v)} of {len(v)} | "
-                     f"{sum(w == c for w, c in v)} of {len(v)} | "
+        v = [verdicts(r, s) for r in rows]
+        judged = [x for x, r in zip(v, rows) if "surface" in r[s]]
+        lines.append(f"| {LABELS[s]} | {sum(x['rotation'] for x in v)} of {len(v)} | "
+                     f"{sum(x['surface'] for x in judged)} of {len(judged)} | "
+                     f"{sum(x['surface'] == x['held_out'] for x in judged)} of {len(judged)} | "
                      + " | ".join(f"{m:.3f}" for m in med) + " |")
     return "\n".join(lines) + "\n"
 
@@ -186,6 +246,9 @@ def main() -> None:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     p.add_argument("--captures", nargs="+", default=DEFAULT_CAPTURES, choices=list(CAPTURES))
+    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    p.add_argument("--rescore", action="store_true",
+                   help="recompute the truth's errors of the saved solutions (no solve)")
     args = p.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -193,6 +256,11 @@ def main() -> None:
     results = json.loads(results_path.read_text()) if results_path.is_file() else {}
     for name in args.captures:
         folder = capture_folder(out, name)
+        if args.rescore:
+            results[name] = [score(folder, out / "work" / name / f"{r['seed']}-{r['threads']}",
+                                   r) for r in results.get(name, [])]
+            results_path.write_text(json.dumps(results, indent=1))
+            continue
         keyframes = select_keyframes(folder / "video.mp4", KeyframeConfig())
         done = {(r["seed"], r["threads"]) for r in results.get(name, [])}
         for seed in args.seeds:
@@ -200,7 +268,7 @@ def main() -> None:
                 if (seed, threads) in done:
                     continue
                 row = run_start(folder, keyframes, seed, threads,
-                                out / "work" / name / f"{seed}-{threads}")
+                                out / "work" / name / f"{seed}-{threads}", args.variants)
                 results.setdefault(name, []).append(row)
                 print(name, json.dumps(row), flush=True)
                 results_path.write_text(json.dumps(results, indent=1))
