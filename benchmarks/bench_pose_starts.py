@@ -11,22 +11,26 @@ threads, PBA's variants side by side.
 Per capture (rendered once into OUT/captures/, exact cameras in gt/), per start (the SfM
 random seed and the thread count of SfM and of the numba kernels): the keyframes, SfM, the
 geometric refinement with a fifth of the LK tracks held out, then PBA from it in each of
-``VARIANTS`` (the principal point free, with its prior (the default), held; photometric
-residuals only). Every solution's cameras are saved in OUT/work/CAPTURE/SEED-THREADS/;
-``--rescore`` computes the truth's errors again from them.
+the ``--variants`` (``VARIANTS``; by default the principal point free, with its prior (the
+default setting) and held). With two threads an SfM seed does not fix the start (COLMAP's
+threaded matching), so variants are compared within one run. Every solution's cameras are
+saved in OUT/work/CAPTURE/SEED-THREADS/; ``--rescore`` computes the truth's errors again
+from them.
 
 Two verdicts of the truth on whether PBA ended worse than its start: its rotations (median °,
 more than ``WORSE_DEG`` worse, after a similarity alignment of the camera centres) and the
 surface (``facecap_core.pose.evaluate.surface_error``: the true head triangulated from
 perfect matches with the solution's cameras, aligned by a similarity; more than
-``WORSE_SURFACE`` worse). The second is what depth maps see: a principal point shifted
-against a tilt of every camera costs rotation error and hardly any surface. Beside them an
+``WORSE_SURFACE`` worse). The second is what a reconstruction from perfect matches sees: a
+principal point shifted against a turn of every camera in its own frame costs rotation
+error and hardly any surface. Beside them an
 internal criterion that needs no truth: the held-out tracks' median reprojection error after
 triangulating them with each solution's cameras (smaller: the cameras agree better with
 tracks that neither solve saw); the table says how often its verdict matches the surface's.
 
-The captures are evaluation identities and render settings (ICT identities 1, 2 and 11;
-PBA's settings were calibrated on identities 4, 5 and 6, docs/poses.md); the prior's width
+The default captures are evaluation identities and render settings (ICT identities 1, 2 and
+11); the ``cal_`` ones are identities 4, 5 and 6, on which PBA's settings are chosen
+(docs/poses.md). The prior's width
 is not fitted to them: it is the spread of the principal point of facecap's sensor model
 (1 % of the image size, SynthConfig.principal_point_jitter) and of the one real phone
 calibration at hand (a 240×320 sweep: 0.4 % from the centre).
@@ -40,7 +44,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from facecap.synthetic import load_gt_cameras, synthesize
 from facecap.synthetic.config import SynthConfig
@@ -48,7 +51,7 @@ from facecap_core.assets import default_ict_model
 from facecap_core.camera import Intrinsics
 from facecap_core.keyframes import KeyframeConfig, select_keyframes
 from facecap_core.pose.colmap_sfm import run_sfm
-from facecap_core.pose.evaluate import pose_errors, surface_error
+from facecap_core.pose.evaluate import head_surface, pose_errors, surface_error
 from facecap_core.pose.geometric import refine_with_tracks, triangulate
 from facecap_core.pose.stage import PoseConfig, photometric_refinement
 from facecap_core.video import read_frames
@@ -84,10 +87,15 @@ VARIANTS = {"pba_free": {"principal_point_prior_pct": 0.0},
             "pba_held": {"hold_principal_point": True},
             "pba_photometric": {"track_weight": 0.0},
             "pba_photometric_centres": {"track_weight": 0.0, "centre_prior_pct": 0.05},
-            "pba_weak_tracks": {"track_weight": 3.0}}
+            "pba_weak_tracks": {"track_weight": 3.0},
+            "pba_photometric_anchored": {"track_weight": 3.0, "refine_intrinsics": False}}
 """PBA's settings compared from each start: the principal point free, with its prior
 around the image centre (the default), held where the geometric refinement put it; the
-photometric residuals alone (no tracks, so the intrinsics stay the geometric step's)."""
+photometric residuals alone (no tracks, so the intrinsics stay the geometric step's), the
+same with the camera centres held near the start's; the tracks weighed 3 instead of 30,
+with the intrinsics free or held."""
+DEFAULT_VARIANTS = ["pba_free", "pba_prior", "pba_held"]
+"""Run unless ``--variants`` says otherwise (each variant is one more PBA per start)."""
 WORSE_DEG = 0.01
 """PBA's rotations count as worse than its start beyond this (the figures' rounding)."""
 WORSE_SURFACE = 0.02
@@ -95,7 +103,8 @@ WORSE_SURFACE = 0.02
 LABELS = {"pba_free": "PBA, pp free", "pba_prior": "PBA, pp prior (default)",
           "pba_held": "PBA, pp held", "pba_photometric": "PBA, photometric only",
           "pba_photometric_centres": "PBA, photometric, centres held 0.05 %",
-          "pba_weak_tracks": "PBA, tracks weighed 3"}
+          "pba_weak_tracks": "PBA, tracks weighed 3",
+          "pba_photometric_anchored": "PBA, tracks weighed 3, intrinsics held"}
 HELD_OUT = 5
 """One track in this many is held out of both solves (by its id)."""
 
@@ -122,13 +131,6 @@ def held_out_error(observations: np.ndarray, poses) -> float:
                                      poses.intrinsics)[0][0] - (x, y))
               for p, v, x, y in kept]
     return float(np.median(errors)) if errors else float("nan")
-
-
-def true_surface(folder: Path, most: int = 5000) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and normals of the rendered head (at most ``most``, evenly picked)."""
-    mesh = trimesh.load(folder / "gt" / "mesh.ply", process=False)
-    pick = np.linspace(0, len(mesh.vertices) - 1, min(most, len(mesh.vertices))).astype(int)
-    return np.asarray(mesh.vertices)[pick], np.asarray(mesh.vertex_normals)[pick]
 
 
 def run_start(folder: Path, keyframes, seed: int, threads: int, work: Path,
@@ -166,8 +168,10 @@ def score(folder: Path, work: Path, row: dict) -> dict:
     """``row`` with the truth's errors of each solution saved in ``work`` (its held-out
     error kept)."""
     intr_gt, gt = load_gt_cameras(folder / "gt" / "cameras.json")
-    surface = true_surface(folder)
+    surface = head_surface(folder / "gt" / "mesh.ply")
     for name in [k for k in row if isinstance(row[k], dict)]:
+        if not (work / f"{name}.npz").is_file():
+            continue  # a row from before the cameras were saved: its figures stay
         saved = np.load(work / f"{name}.npz")
         intr = Intrinsics.from_dict({k: saved[k].item() for k in saved.files
                                      if k not in ("R", "t", "frame_indices")})
@@ -246,7 +250,7 @@ def main() -> None:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     p.add_argument("--captures", nargs="+", default=DEFAULT_CAPTURES, choices=list(CAPTURES))
-    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS, choices=list(VARIANTS))
     p.add_argument("--rescore", action="store_true",
                    help="recompute the truth's errors of the saved solutions (no solve)")
     args = p.parse_args()
@@ -255,17 +259,27 @@ def main() -> None:
     results_path = out / "results.json"
     results = json.loads(results_path.read_text()) if results_path.is_file() else {}
     for name in args.captures:
-        folder = capture_folder(out, name)
         if args.rescore:
-            results[name] = [score(folder, out / "work" / name / f"{r['seed']}-{r['threads']}",
-                                   r) for r in results.get(name, [])]
-            results_path.write_text(json.dumps(results, indent=1))
+            if results.get(name):
+                folder = capture_folder(out, name)
+                results[name] = [score(folder, out / "work" / name /
+                                       f"{r['seed']}-{r['threads']}", r) for r in results[name]]
+                results_path.write_text(json.dumps(results, indent=1))
             continue
+        folder = capture_folder(out, name)
         keyframes = select_keyframes(folder / "video.mp4", KeyframeConfig())
         done = {(r["seed"], r["threads"]) for r in results.get(name, [])}
         for seed in args.seeds:
             for threads in args.threads:
                 if (seed, threads) in done:
+                    # With two threads a seed does not fix the start: a variant added
+                    # later would be judged against another start than the row's.
+                    missing = [v for v in args.variants if not any(
+                        v in r for r in results[name]
+                        if (r["seed"], r["threads"]) == (seed, threads))]
+                    if missing:
+                        print(f"{name} seed {seed}, {threads} threads: measured before "
+                              f"without {', '.join(missing)}; use another --out", flush=True)
                     continue
                 row = run_start(folder, keyframes, seed, threads,
                                 out / "work" / name / f"{seed}-{threads}", args.variants)

@@ -23,12 +23,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from facecap.synthetic import load_gt_cameras
 from facecap_core.keyframes import KeyframeConfig, select_keyframes
 from facecap_core.pose.colmap_sfm import run_sfm
-from facecap_core.pose.evaluate import pose_errors, surface_error
+from facecap_core.pose.evaluate import head_surface, pose_errors, surface_error
 from facecap_core.pose.geometric import refine_with_tracks
 from facecap_core.pose.stage import PoseConfig, photometric_refinement
 from facecap_core.video import read_frames
@@ -67,9 +66,7 @@ class Timer:
 def run_capture(capture: Path, work: Path, config: PoseConfig, ablations: bool = True) -> dict:
     video = capture / "video.mp4"
     intr_gt, gt = load_gt_cameras(capture / "gt" / "cameras.json")
-    head = trimesh.load(capture / "gt" / "mesh.ply", process=False)
-    pick = np.linspace(0, len(head.vertices) - 1, min(5000, len(head.vertices))).astype(int)
-    surface = np.asarray(head.vertices)[pick], np.asarray(head.vertex_normals)[pick]
+    surface = head_surface(capture / "gt" / "mesh.ply")
     with Timer() as t_kf:
         keyframes = select_keyframes(video, KeyframeConfig())
     result = {"capture": capture.name, "keyframes": len(keyframes.indices),

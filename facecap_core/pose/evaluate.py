@@ -31,42 +31,69 @@ def pose_errors(R_est, t_est, intr_est: Intrinsics, R_gt, t_gt, intr_gt: Intrins
     }
 
 
+def head_surface(mesh_path, most: int = 5000) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and vertex normals of a ground-truth head mesh, at most ``most`` of them
+    picked evenly through its vertex list: the points :func:`surface_error` rebuilds."""
+    import trimesh
+
+    mesh = trimesh.load(mesh_path, process=False)
+    pick = np.linspace(0, len(mesh.vertices) - 1, min(most, len(mesh.vertices))).astype(int)
+    return np.asarray(mesh.vertices)[pick], np.asarray(mesh.vertex_normals)[pick]
+
+
 def surface_error(R_est, t_est, intr_est: Intrinsics, R_gt, t_gt, intr_gt: Intrinsics,
-                  points: np.ndarray, normals: np.ndarray) -> dict:
-    """The true surface as the estimated cameras would reconstruct it from perfect matches:
-    each of ``points`` (outward ``normals``, the truth's world) seen where the true cameras
-    put it (in front, facing, inside the image; at least two views) is triangulated (linear)
-    with the estimated cameras; then aligned to the truth by the best similarity. Returns the
-    median distance (``surface`` in the truth's units, and as % of the surface's size) and
-    the median reprojection error of the triangulated points (``consistency_px``). What depth
-    maps see of the cameras: a shift of the principal point and a tilt of every camera that
-    reproject alike cost little here and much in :func:`pose_errors`' rotation error."""
-    points = np.asarray(points, float)
+                  points: np.ndarray, normals: np.ndarray, min_angle_deg: float = 2.0) -> dict:
+    """The true surface as the estimated cameras would rebuild it from perfect matches.
+
+    Each of ``points`` (outward ``normals``, in the truth's world) is taken where the true
+    cameras put it, in every view it lies in front of, faces (a back-face test: no
+    occlusion test) and falls inside; seen by two views or more whose rays span
+    ``min_angle_deg``, it is triangulated (linear) with the estimated cameras, and the
+    triangulated points are aligned to the truth by the best similarity. Returns the median
+    distance (``surface``, the truth's units; ``surface_pct``, % of the surface's mean
+    distance from its centroid), the median reprojection error of the triangulated points
+    (``consistency_px``) and how many points were rebuilt (``points``). A shift of the
+    principal point and a turn of every camera in its own frame that reproject alike cost
+    little here and much in :func:`pose_errors`' rotation error."""
+    if (intr_est.width, intr_est.height) != (intr_gt.width, intr_gt.height):
+        raise ValueError(f"the estimated cameras are {intr_est.width}x{intr_est.height}, the "
+                         f"true {intr_gt.width}x{intr_gt.height}: scale them to one size")
+    points, normals = np.asarray(points, float), np.asarray(normals, float)
     n, k = len(points), len(R_est)
     pixels = np.zeros((k, n, 2))
     seen = np.zeros((k, n), bool)
+    rays = np.zeros((k, n, 3))
     for v, (Rg, tg) in enumerate(zip(R_gt, t_gt)):
         uv, z = project(points, Rg, tg, intr_gt)
-        facing = (normals * (camera_center(Rg, tg) - points)).sum(1) > 0
-        seen[v] = ((z > 0) & facing & (uv[:, 0] >= 0) & (uv[:, 0] <= intr_gt.width - 1)
+        to_camera = camera_center(Rg, tg) - points
+        seen[v] = (((normals * to_camera).sum(1) > 0) & (z > 0)
+                   & (uv[:, 0] >= 0) & (uv[:, 0] <= intr_gt.width - 1)
                    & (uv[:, 1] >= 0) & (uv[:, 1] <= intr_gt.height - 1))
-        pixels[v] = uv
-    keep = seen.sum(0) >= 2
+        pixels[v] = np.where(seen[v][:, None], uv, 0.0)
+        rays[v] = to_camera / np.linalg.norm(to_camera, axis=1, keepdims=True)
+    # The rays' spread: twice their largest angle from their mean direction, about.
+    mean = (rays * seen[..., None]).sum(0)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+    off = np.where(seen, np.einsum("knc,nc->kn", rays, mean), 1.0)
+    spread = 2 * np.degrees(np.arccos(np.clip(off.min(0), -1, 1)))
+    keep = (seen.sum(0) >= 2) & (spread >= min_angle_deg)
     pixels, seen, points = pixels[:, keep], seen[:, keep], points[keep]
     xy = undistort(np.column_stack([(pixels[..., 0].ravel() - intr_est.cx) / intr_est.fx,
                                     (pixels[..., 1].ravel() - intr_est.cy) / intr_est.fy]),
                    intr_est.k1, intr_est.k2).reshape(k, -1, 2)
-    # Linear triangulation: the least eigenvector of sum over the views of a a^T, a the rows
-    # x P_3 - P_1 and y P_3 - P_2 of each view that sees the point.
+    # Linear triangulation: the least eigenvector of the sum over the views that see a point
+    # of a a^T, a the rows x P_3 - P_1 and y P_3 - P_2.
     M = np.zeros((len(points), 4, 4))
     for v, (Re, te) in enumerate(zip(R_est, t_est)):
         P = np.column_stack([Re, te])
-        w = seen[v][:, None]
         for row in (xy[v, :, :1] * P[2] - P[0], xy[v, :, 1:] * P[2] - P[1]):
-            row = row * w
+            row = np.where(seen[v][:, None], row, 0.0)
             M += row[:, :, None] * row[:, None, :]
     X = np.linalg.eigh(M)[1][:, :, 0]
     X = X[:, :3] / X[:, 3:]
+    if len(X) < 3 or not np.all(np.isfinite(X)):
+        raise ValueError(f"{len(X)} surface points could be rebuilt with the estimated "
+                         "cameras (need 3, all finite)")
     reprojection = []
     for v, (Re, te) in enumerate(zip(R_est, t_est)):
         uv, _ = project(X[seen[v]], Re, te, intr_est)
@@ -76,4 +103,5 @@ def surface_error(R_est, t_est, intr_est: Intrinsics, R_gt, t_gt, intr_gt: Intri
     size = np.linalg.norm(points - points.mean(0), axis=1).mean()
     return {"surface": float(np.median(distance)),
             "surface_pct": float(np.median(distance) / size * 100),
-            "consistency_px": float(np.median(np.concatenate(reprojection)))}
+            "consistency_px": float(np.median(np.concatenate(reprojection))),
+            "points": int(len(X))}
