@@ -272,14 +272,15 @@ def main() -> None:
         for seed in args.seeds:
             for threads in args.threads:
                 if (seed, threads) in done:
-                    # With two threads a seed does not fix the start: a variant added
-                    # later would be judged against another start than the row's.
+                    # Variants are not added to a measured row: with two threads a seed
+                    # does not fix the start, so they would meet another start than its.
                     missing = [v for v in args.variants if not any(
                         v in r for r in results[name]
                         if (r["seed"], r["threads"]) == (seed, threads))]
                     if missing:
                         print(f"{name} seed {seed}, {threads} threads: measured before "
-                              f"without {', '.join(missing)}; use another --out", flush=True)
+                              f"without {', '.join(missing)}, which are not added to it; "
+                              "use another --out", flush=True)
                     continue
                 row = run_start(folder, keyframes, seed, threads,
                                 out / "work" / name / f"{seed}-{threads}", args.variants)

@@ -50,11 +50,13 @@ def surface_error(R_est, t_est, intr_est: Intrinsics, R_gt, t_gt, intr_gt: Intri
     occlusion test) and falls inside; seen by two views or more whose rays span
     ``min_angle_deg``, it is triangulated (linear) with the estimated cameras, and the
     triangulated points are aligned to the truth by the best similarity. Returns the median
-    distance (``surface``, the truth's units; ``surface_pct``, % of the surface's mean
-    distance from its centroid), the median reprojection error of the triangulated points
+    distance (``surface``, the truth's units; ``surface_pct``, % of the rebuilt points' mean
+    distance from their centroid), the median reprojection error of the triangulated points
     (``consistency_px``) and how many points were rebuilt (``points``). A shift of the
     principal point and a turn of every camera in its own frame that reproject alike cost
     little here and much in :func:`pose_errors`' rotation error."""
+    if len(R_est) != len(R_gt):
+        raise ValueError(f"{len(R_est)} estimated cameras against {len(R_gt)} true ones")
     if (intr_est.width, intr_est.height) != (intr_gt.width, intr_gt.height):
         raise ValueError(f"the estimated cameras are {intr_est.width}x{intr_est.height}, the "
                          f"true {intr_gt.width}x{intr_gt.height}: scale them to one size")
@@ -71,11 +73,12 @@ def surface_error(R_est, t_est, intr_est: Intrinsics, R_gt, t_gt, intr_gt: Intri
                    & (uv[:, 1] >= 0) & (uv[:, 1] <= intr_gt.height - 1))
         pixels[v] = np.where(seen[v][:, None], uv, 0.0)
         rays[v] = to_camera / np.linalg.norm(to_camera, axis=1, keepdims=True)
-    # The rays' spread: twice their largest angle from their mean direction, about.
+    # The rays' spread, from below: the largest angle to the ray farthest from their mean.
     mean = (rays * seen[..., None]).sum(0)
     mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
-    off = np.where(seen, np.einsum("knc,nc->kn", rays, mean), 1.0)
-    spread = 2 * np.degrees(np.arccos(np.clip(off.min(0), -1, 1)))
+    far = np.argmin(np.where(seen, np.einsum("knc,nc->kn", rays, mean), 2.0), axis=0)
+    to_far = np.einsum("knc,nc->kn", rays, rays[far, np.arange(n)])
+    spread = np.degrees(np.arccos(np.clip(np.where(seen, to_far, 1.0).min(0), -1, 1)))
     keep = (seen.sum(0) >= 2) & (spread >= min_angle_deg)
     pixels, seen, points = pixels[:, keep], seen[:, keep], points[keep]
     xy = undistort(np.column_stack([(pixels[..., 0].ravel() - intr_est.cx) / intr_est.fx,

@@ -167,7 +167,7 @@ def test_pose_stage_calibrates_every_keyframe(capture, tmp_path):
                                    [gt[i]["R"] for i in kf.indices],
                                    [gt[i]["t"] for i in kf.indices], intr_gt,
                                    *head_surface(capture.gt_mesh))["surface_pct"]
-               for name, poses in steps.items()}
+               for name, poses in steps.items() if name != "sfm"}
     assert surface["pba"] < 1.05 * surface["geometric"], surface
 
     # The stage's outputs.
