@@ -4,6 +4,7 @@ as the surface they would reconstruct."""
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 
 from facecap_core.camera import Intrinsics, camera_center, project, rotation_angle_deg, undistort
 from facecap_core.geometry import umeyama
@@ -34,8 +35,6 @@ def pose_errors(R_est, t_est, intr_est: Intrinsics, R_gt, t_gt, intr_gt: Intrins
 def head_surface(mesh_path, most: int = 5000) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and vertex normals of a ground-truth head mesh, at most ``most`` of them
     picked evenly through its vertex list: the points :func:`surface_error` rebuilds."""
-    import trimesh
-
     mesh = trimesh.load(mesh_path, process=False)
     pick = np.linspace(0, len(mesh.vertices) - 1, min(most, len(mesh.vertices))).astype(int)
     return np.asarray(mesh.vertices)[pick], np.asarray(mesh.vertex_normals)[pick]
