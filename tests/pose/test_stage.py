@@ -163,10 +163,10 @@ def test_pose_stage_calibrates_every_keyframe(capture, tmp_path):
     # on two threads, three runs; docs/poses.md) went 0.200-0.225 % -> 0.163-0.166 % of the
     # head's size, 18-26 % better, while their rotations got 34-46 % worse: PBA must not
     # rebuild a worse head than its start (5 %: the benchmark's verdict, 2 %, with room).
-    surface = {name: surface_error(poses.R, poses.t, poses.intrinsics,
-                                   [gt[i]["R"] for i in kf.indices],
-                                   [gt[i]["t"] for i in kf.indices], intr_gt,
-                                   *head_surface(capture.gt_mesh))["surface_pct"]
+    head = head_surface(capture.gt_mesh)
+    truth = [gt[i]["R"] for i in kf.indices], [gt[i]["t"] for i in kf.indices], intr_gt
+    surface = {name: surface_error(poses.R, poses.t, poses.intrinsics, *truth,
+                                   *head)["surface_pct"]
                for name, poses in steps.items() if name != "sfm"}
     assert surface["pba"] < 1.05 * surface["geometric"], surface
 
