@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
+import tempfile
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -55,16 +57,28 @@ def evaluate(args) -> int:
     from facecap_core.meshio import load_mesh
 
     protocols = ev.PROTOCOLS if args.protocol == "both" else (args.protocol,)
+    inputs = (args.mesh, args.scan, args.scan_landmarks, args.mesh_landmarks)
+    heatmaps = _heatmap_paths(args.heatmap, protocols, inputs) if args.heatmap else {}
     scores = ev.evaluate(args.mesh, args.scan, args.scan_landmarks, args.mesh_landmarks,
                          protocols=protocols)
-    if args.heatmap:
+    if heatmaps:
+        from facecap.tasks.outputs import ResultWriter
+        from facecap.tasks.scratch import process_scratch
+
         mesh = load_mesh(args.mesh)
-        for name, sc in scores.items():
-            out = Path(args.heatmap)
-            out = out.with_name(f"{out.stem}_{name}{out.suffix or '.png'}")
-            ev.error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces,
-                             sc.accuracy_per_vertex, out)
-            print(f"heat map: {out}", file=sys.stderr)
+        folder = Path(args.heatmap).parent
+        # Rendered into this process's scratch, then written as the reconstruction writes its
+        # results: never through a link, never over an input.
+        with (tempfile.TemporaryDirectory(dir=process_scratch()) as scratch,
+              ResultWriter(folder, inputs) as writer):
+            for name, sc in scores.items():
+                drawn = ev.error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces,
+                                         sc.accuracy_per_vertex,
+                                         Path(scratch) / heatmaps[name].name)
+                writer.add(heatmaps[name].name, source=drawn)
+            writer.commit()
+        for name in scores:
+            print(f"heat map: {heatmaps[name]}", file=sys.stderr)
     if args.json:
         records = {p: ev.score_json(s) for p, s in scores.items()}
         print(json.dumps(records[protocols[0]] if len(protocols) == 1 else records))
@@ -81,6 +95,51 @@ def evaluate(args) -> int:
               f"{s.ears.accuracy.under_1mm:.1%}, completion under 1 mm "
               f"{s.ears.completion.under_1mm:.1%}")
     return 0
+
+
+def _heatmap_paths(heatmap: str, protocols: tuple[str, ...], inputs: tuple) -> dict[str, Path]:
+    """The heat map of each protocol, ``STEM_<protocol>SUFFIX`` beside ``heatmap``; refused
+    before any scoring where they cannot be written: a suffix OpenCV writes no image for, a
+    folder facecap keeps for itself, a name that is one of the inputs."""
+    import cv2
+
+    from facecap.tasks.outputs import check_output_place
+    from facecap.tasks.runner import default_store_url
+
+    given = Path(heatmap)
+    paths = {p: given.with_name(f"{given.stem}_{p}{given.suffix or '.png'}") for p in protocols}
+    suffix = next(iter(paths.values())).suffix
+    if not cv2.haveImageWriter(f"heatmap{suffix}"):
+        raise InputError(f"--heatmap {heatmap}: no image can be written with the suffix "
+                         f"{suffix}; give a path ending in .png")
+    _check_folder_path(given.parent, f"--heatmap {heatmap}")
+    check_output_place(given.parent, default_store_url(), option="--heatmap")
+    for path in paths.values():
+        for source in inputs:
+            if source is not None and _same_file(path, Path(source)):
+                raise InputError(f"the heat map {path} would replace the input {source}; "
+                                 "give another --heatmap")
+    return paths
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether the entry ``a`` (not what a link there points to: a link is replaced, not
+    followed) is the file ``b`` or a hard link to it."""
+    try:
+        found, source = os.lstat(a), os.stat(b)
+    except OSError:
+        return False
+    return (found.st_dev, found.st_ino) == (source.st_dev, source.st_ino)
+
+
+def _check_folder_path(folder: Path, option: str) -> None:
+    """The nearest existing folder on the way to ``folder`` is a folder, not a file."""
+    for above in (folder, *folder.parents):
+        if above.exists():
+            if not above.is_dir():
+                raise InputError(f"{option}: {above} is a file, not a folder; give a path in "
+                                 "a folder")
+            return
 
 
 def print_removal(removal, dry_run: bool) -> None:

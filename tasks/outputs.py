@@ -303,18 +303,20 @@ def _inside(path: Path, folder: Path) -> bool:
 
 
 def check_output_place(out: str | os.PathLike, store: str | None,
-                       inputs: Iterable[str | os.PathLike | None] = ()) -> None:
+                       inputs: Iterable[str | os.PathLike | None] = (),
+                       option: str = "--out") -> None:
     """Refuse an output folder that lies in the artifact store or in facecap's own folders
-    (results would replace committed files), or that is an input folder (a photo folder)."""
+    (results would replace committed files), or that is an input folder (a photo folder);
+    ``option`` is what the user gave it as."""
 
     try:
         target = Path(out).resolve()
     except RuntimeError:  # pathlib's word for a link that leads back to itself
         raise InputError(f"the output folder {out} is a link that leads back to itself; give "
-                         "the path of a folder (--out)") from None
+                         f"the path of a folder ({option})") from None
     except OSError as exc:
         raise InputError(f"the output folder {out} cannot be looked up ({exc.strerror}); give "
-                         "the path of a folder (--out)") from None
+                         f"the path of a folder ({option})") from None
     home = settings().home.resolve()
     own = [home / "store", home / "store-cache", cache_root().resolve(), home / "work",
            home / "scratch", home / "assets", home / "locks", home / "logs"]
@@ -326,8 +328,8 @@ def check_output_place(out: str | os.PathLike, store: str | None,
         if _inside(target, folder):
             raise InputError(f"the output folder {out} lies inside {folder}, which facecap "
                              "keeps for itself (the artifact store or its own files); give "
-                             "another --out")
+                             f"another {option}")
     for path in inputs:
         if path is not None and Path(path).is_dir() and Path(path).resolve() == target:
             raise InputError(f"the output folder {out} is the input folder {path}, whose files "
-                             "results could replace; give another --out")
+                             f"results could replace; give another {option}")

@@ -67,6 +67,32 @@ def test_evaluate_one_protocol_prints_one_object(scan, tmp_path):
     assert (tmp_path / "h_metric.png").stat().st_size > 1000
 
 
+def test_a_heat_map_is_never_written_through_a_link_nor_over_an_input(scan, tmp_path, capfd):
+    """A link planted at a derived name (``s_metric.png`` of ``--heatmap s.png``) pointing at
+    the scan being scored: the heat map replaces the link, the scan is unchanged. A hard link
+    to an input at that name is refused before any scoring."""
+    shown = tmp_path / "shown"
+    shown.mkdir()
+    copy = tmp_path / "scan.ply"
+    copy.write_bytes((scan / "scan.ply").read_bytes())
+    before = copy.read_bytes()
+    (shown / "s_metric.png").symlink_to(copy)
+    code, out, err = facecap_here(capfd, "evaluate", copy, "--scan", copy, "--scan-landmarks",
+                                  scan / "scan_landmarks.json", "--protocol", "metric",
+                                  "--json", "--heatmap", shown / "s.png")
+    assert code == 0, err
+    assert copy.read_bytes() == before
+    assert not (shown / "s_metric.png").is_symlink()
+    assert (shown / "s_metric.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    (shown / "s_metric.png").unlink()
+    (shown / "s_metric.png").hardlink_to(copy)
+    code, out, err = facecap_here(capfd, "evaluate", copy, "--scan", copy, "--scan-landmarks",
+                                  scan / "scan_landmarks.json", "--protocol", "metric",
+                                  "--heatmap", shown / "s.png")
+    assert_one_clear_line(code, out, err, f"would replace the input {copy}")
+    assert copy.read_bytes() == before
+
+
 BAD = {
     "missing mesh": (["evaluate", "{d}/nope.ply", "--scan", "{s}/scan.ply",
                       "--scan-landmarks", "{s}/scan_landmarks.json"], "not found"),
@@ -83,6 +109,9 @@ BAD = {
     "heat map of an unknown image type": (["evaluate", "{s}/scan.ply", "--scan", "{s}/scan.ply",
                                            "--scan-landmarks", "{s}/scan_landmarks.json",
                                            "--heatmap", "{d}/h.jpgx"], ".png"),
+    "heat map under a file": (["evaluate", "{s}/scan.ply", "--scan", "{s}/scan.ply",
+                               "--scan-landmarks", "{s}/scan_landmarks.json",
+                               "--heatmap", "{d}/notes.txt/h.png"], "notes.txt is a file"),
     "a vertex 1e30 mm away": (["evaluate", "{d}/huge.ply", "--scan", "{s}/scan.ply",
                                 "--scan-landmarks", "{s}/scan_landmarks.json"],
                                "coordinate of 1e+30, beyond"),
