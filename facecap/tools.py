@@ -45,7 +45,7 @@ def synth(args) -> int:
     from facecap.synthetic import synthesize
 
     config = synth_config(args)
-    capture = synthesize(config, args.out, progress=not args.quiet)
+    capture = synthesize(config, args.out, progress=not args.quiet, inputs=(args.config,))
     print(f"wrote {capture.video} ({capture.frames} frames, {capture.seconds:.1f} s, "
           f"{capture.seconds / capture.frames:.2f} s/frame) and ground truth in "
           f"{capture.folder / 'gt'}")

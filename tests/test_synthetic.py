@@ -287,3 +287,48 @@ def test_sensor_image_models_a_phone_sensor():
     sharp = sensor_image(flat, noisy.model_copy(update={"sharpen": 1.0}),
                          np.random.default_rng(1)).astype(float)
     assert np.all(sharp.std(axis=(0, 1)) > 1.3 * plain.std(axis=(0, 1)))  # per channel
+
+
+# -- the output folder ------------------------------------------------------------------
+
+
+def test_synth_writes_no_result_through_a_link_nor_over_its_input(tmp_path, ict_model,
+                                                                 monkeypatch, capfd):
+    """Links planted in ``--out`` at the results' names are replaced, not written through;
+    a capture's own ground truth given back as its subject, and a store artifact's folder as
+    ``--out``, are refused before anything is rendered, with one line."""
+    from facecap.cli import main
+    from facecap.tasks.store import artifact_key, open_store
+    from tests.test_bad_inputs import assert_one_line_error
+
+    monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
+    out, secret = tmp_path / "out", tmp_path / "secret.txt"
+    secret.write_text("the user's own file")
+    (out / "gt").mkdir(parents=True)
+    for name in ("video.mp4", "gt/mesh.ply", "gt/cameras.json", "gt/landmarks.json"):
+        (out / name).symlink_to(secret)
+    cap = synthesize(_small(ict_model, duration_s=0.1), out, progress=False)
+    assert secret.read_text() == "the user's own file"
+    for path in (cap.video, cap.gt_mesh, cap.gt_cameras, cap.gt_landmarks):
+        assert path.is_file() and not path.is_symlink(), path
+    assert load_mesh(cap.gt_mesh).vertices.shape[1] == 3
+
+    mesh = cap.gt_mesh.read_bytes()
+    code = main(["synth", "--out", str(out), "--subject", str(cap.gt_mesh),
+                 "--subject-landmarks", str(cap.gt_landmarks), "--width", "128", "--height",
+                 "72", "--seconds", "0.1", "--quiet"])
+    assert_one_line_error(code, capfd.readouterr().err,
+                          [f"would replace the input {cap.gt_mesh}", "another --out"])
+    assert cap.gt_mesh.read_bytes() == mesh
+
+    store = open_store(tmp_path / "home" / "store")
+    key = artifact_key("ingest", {}, {"name": "video.mp4"}, "1")
+    store.put(key, {"video.mp4": b"a stored capture"}, stage="ingest", inputs={},
+              config={"name": "video.mp4"}, version="1")
+    folder = tmp_path / "home" / "store" / "artifacts" / key
+    assert (folder / "video.mp4").read_bytes() == b"a stored capture"
+    code = main(["synth", "--out", str(folder), "--ict-model", str(ict_model), "--width",
+                 "128", "--height", "72", "--seconds", "0.1", "--quiet"])
+    assert_one_line_error(code, capfd.readouterr().err, ["keeps for itself", "another --out"])
+    assert (folder / "video.mp4").read_bytes() == b"a stored capture"
+    store.verify(key)  # the store still vouches for it

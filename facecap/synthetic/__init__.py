@@ -39,6 +39,11 @@ Output folder::
     gt/subject.json      what the subject is (ICT coefficients, texture, ...)
     gt/config.yaml       the exact SynthConfig used
     gt/render.json       every drawn quantity (focal, distortion, lights, ...)
+    .facecap-results.json  what facecap wrote there (its results writer's record)
+
+The files are written as the reconstruction writes its results: all at once, never through
+a link in the folder, never over the subject's own mesh or landmarks; a folder of the
+artifact store or of facecap's own is refused before anything is rendered.
 """
 
 from facecap.synthetic.capture import (

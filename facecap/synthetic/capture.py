@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -183,27 +184,89 @@ def prepare(config: SynthConfig) -> Shot:
     return shot
 
 
-def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True) -> Capture:
-    """Render a capture of ``config`` into ``out_dir`` (see the module docstring)."""
+SYNTH_OUTPUTS = ("video.mp4", "gt/mesh.ply", "gt/landmarks.json", "gt/cameras.json",
+                 "gt/subject.json", "gt/config.yaml", "gt/render.json")
+"""What :func:`synthesize` writes into its output folder."""
+
+
+def synth_inputs(config: SynthConfig) -> list[Path]:
+    """The files a capture of ``config`` is rendered from (a mesh subject, its landmarks,
+    the ICT model): no result may replace them."""
+    named = [config.subject_landmarks, config.ict_model]
+    if not (config.subject.startswith("ict:") or config.subject == "james"):
+        named.append(Path(config.subject))
+    return [Path(p) for p in named if p is not None]
+
+
+def check_synth_output(out: Path, inputs: list[str | os.PathLike]) -> None:
+    """Refuse, before any frame is rendered, an output folder that lies in the artifact
+    store or facecap's own folders, or where a result would replace an input or a link
+    stands for the ``gt`` folder."""
+    from facecap.tasks.outputs import check_output_place
+    from facecap.tasks.runner import default_store_url
+
+    check_output_place(out, default_store_url(), [p for p in inputs if Path(p).is_dir()])
+    if out.exists() and not out.is_dir():
+        raise InputError(f"the output folder {out} is a file; give the path of a folder (--out)")
+    gt = out / "gt"
+    if gt.is_symlink() or (gt.exists() and not gt.is_dir()):
+        raise InputError(f"{gt} is a link or a file where facecap writes the ground truth "
+                         "folder; remove it or give another --out")
+    for name in SYNTH_OUTPUTS:
+        try:
+            found = os.lstat(out / name)
+        except OSError:
+            continue
+        for source in inputs:
+            try:
+                same = os.path.samestat(found, os.stat(source))
+            except OSError:
+                continue
+            if same:
+                raise InputError(f"the result {out / name} would replace the input {source}; "
+                                 "give another --out")
+
+
+def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True,
+               inputs: tuple[str | os.PathLike | None, ...] = ()) -> Capture:
+    """Render a capture of ``config`` into ``out_dir`` (see the module docstring).
+
+    The files are rendered in this process's scratch folder and written into ``out_dir``
+    as the reconstruction writes its results (:class:`facecap.tasks.outputs.ResultWriter`):
+    all at once when every one is made, never through a link, never over an input (the
+    subject's mesh and landmarks, the ICT model, ``inputs`` such as a config file)."""
+    from facecap.tasks.outputs import ResultWriter
+    from facecap.tasks.scratch import process_scratch
 
     start = time.perf_counter()
     out = Path(out_dir)
-    gt_dir = out / "gt"
-    try:
-        gt_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create output folder {out}: {exc.strerror}") from None
     if config.width % 2 or config.height % 2:
         raise InputError(f"video size {config.width}x{config.height}: H.264 needs even sizes")
+    sources = [*synth_inputs(config), *(Path(p) for p in inputs if p is not None)]
+    check_synth_output(out, sources)
+    with tempfile.TemporaryDirectory(dir=process_scratch()) as scratch:
+        frames, seconds = _render(config, Path(scratch), start, progress)
+        with ResultWriter(out, sources) as writer:
+            for name in SYNTH_OUTPUTS:
+                writer.add(name, source=Path(scratch) / name)
+            writer.commit()
+    gt_dir = out / "gt"
+    return Capture(out, out / "video.mp4", gt_dir / "mesh.ply", gt_dir / "landmarks.json",
+                   gt_dir / "cameras.json", frames, seconds)
+
+
+def _render(config: SynthConfig, out: Path, start: float, progress: bool) -> tuple[int, float]:
+    """Every file of :data:`SYNTH_OUTPUTS` into the empty folder ``out``; returns the frame
+    count and the seconds taken."""
+    gt_dir = out / "gt"
+    gt_dir.mkdir()
     shot = prepare(config)
     subject, intr = shot.subject, shot.intrinsics
     noise_rng = np.random.default_rng([config.seed, 5])
     seen = np.zeros(len(subject.faces), bool)
     frames_meta = []
-    video_path = out / "video.mp4"
-    tmp_video = out / ".video.mp4.part"
-    container, stream = _encode(tmp_video, config.width, config.height, config.fps, config.crf,
-                                config.codec, config.display_rotation_deg)
+    container, stream = _encode(out / "video.mp4", config.width, config.height, config.fps,
+                                config.crf, config.codec, config.display_rotation_deg)
     try:
         for i in tqdm(range(shot.frames), desc="render", unit="frame", disable=not progress):
             f = shot.frame(i)
@@ -226,7 +289,6 @@ def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True) 
             container.mux(packet)
     finally:
         container.close()
-    os.replace(tmp_video, video_path)
 
     gt_faces = subject.gt_faces | (subject.optional_faces & seen)
     gt = trimesh.Trimesh(subject.vertices, subject.faces[gt_faces], process=False)
@@ -242,16 +304,16 @@ def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True) 
     (gt_dir / "subject.json").write_text(json.dumps({"name": subject.name, **subject.info},
                                                     indent=1))
     dump_yaml(config, gt_dir / "config.yaml")
+    seconds = time.perf_counter() - start
     render_info = {"intrinsics": intr.to_dict(), "horizontal_fov_deg": intr.horizontal_fov_deg,
                    "lights": [{"direction": d.round(6).tolist(), "intensity": round(s, 6)}
                               for d, s in shot.lights],
                    "ambient": config.ambient, "specular": config.specular,
                    "exposure_s": shot.exposure, "frames": shot.frames,
                    "look_at_target": shot.target.tolist(),
-                   "render_seconds": round(time.perf_counter() - start, 3)}
+                   "render_seconds": round(seconds, 3)}
     (gt_dir / "render.json").write_text(json.dumps(render_info, indent=1))
-    return Capture(out, video_path, gt_dir / "mesh.ply", gt_dir / "landmarks.json",
-                   gt_dir / "cameras.json", shot.frames, time.perf_counter() - start)
+    return shot.frames, seconds
 
 
 def _conditions_doc(config: SynthConfig) -> dict:
