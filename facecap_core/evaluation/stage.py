@@ -19,8 +19,16 @@ from facecap_core.template import Template
 
 EVALUATION_JSON = "evaluation.json"
 ACCURACY_NPY = "accuracy_{protocol}.npy"
-"""Each mesh vertex's distance to the scan (mm; nan outside the scored region), per protocol:
-the heat map on the mesh of the capture's page."""
+"""Each mesh vertex's distance to the scan (mm; nan outside the scored regions: the face
+sphere and the ear region), per protocol: the heat map on the mesh of the capture's page."""
+
+
+def scored_per_vertex(sc) -> np.ndarray:
+    """Each mesh vertex's distance to the scan (mm) where the evaluation scores it, the face
+    sphere's or the ear region's (the two are disjoint), nan elsewhere: what the heat maps
+    show (``sc`` a :class:`~facecap_core.evaluation.scoring.Score`)."""
+    face = np.asarray(sc.accuracy_per_vertex, float)
+    return np.where(np.isfinite(face), face, np.asarray(sc.ears.accuracy_per_vertex, float))
 
 
 def find_file(folder: str | Path, suffixes: Sequence[str], what: str) -> Path:
@@ -57,10 +65,10 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
     scores = evaluate(mesh_path, scan_path, lm_path, mesh_lm if mesh_lm.is_file() else None,
                       config=config)
     for name, sc in scores.items():
-        error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces, sc.accuracy_per_vertex,
+        scored = scored_per_vertex(sc)
+        error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces, scored,
                       out / f"heatmap_{name}.png")
-        np.save(out / ACCURACY_NPY.format(protocol=name),
-                np.asarray(sc.accuracy_per_vertex, np.float32))
+        np.save(out / ACCURACY_NPY.format(protocol=name), scored.astype(np.float32))
     path = out / EVALUATION_JSON
     path.write_text(json.dumps({p: score_json(s) for p, s in scores.items()}, indent=1))
     return path
@@ -78,7 +86,7 @@ def run(inputs: Folders, out: Path, config: None, params: dict) -> None:
 
 HEATMAPS = tuple(f"heatmap_{p}.png" for p in PROTOCOLS)
 
-STAGE = Stage("evaluation", step="evaluation", version="3", inputs=("mesh", "scan"),
+STAGE = Stage("evaluation", step="evaluation", version="4", inputs=("mesh", "scan"),
               section=None, run=run, outputs=(EVALUATION_JSON, *HEATMAPS),
               exported=(EVALUATION_JSON, *HEATMAPS), optional=("scan_landmarks",),
               figures=figures)

@@ -505,3 +505,27 @@ def test_a_mesh_of_degenerate_triangles_is_refused_not_scored(what, head_files, 
     trimesh.Trimesh(head.vertices, np.vstack([head.faces, [[0, 0, 0], [1, 1, 2]]]),
                     process=False).export(some)
     assert evaluate(some, scan, scan_lm, protocols=("metric",))["metric"].accuracy.mean < 1e-6
+
+
+def test_the_stage_writes_the_distance_of_each_scored_vertex_face_and_ears(ict_mean, tmp_path):
+    """The evaluation stage's per-vertex accuracy (the capture page's heat map) holds the ear
+    region's distances beside the face sphere's: ears pushed 1 mm out read about 1 mm, not
+    'not scored'."""
+    from facecap_core.evaluation.stage import ACCURACY_NPY, main
+
+    v, f, lm = ict_mean.vertices, ict_mean.faces, ict_mean.landmark_points
+    ears = ict_mean.regions["ears"]
+    for folder in ("mesh", "scan", "scan_landmarks"):
+        (tmp_path / folder).mkdir()
+    trimesh.Trimesh(v + 1.0 * ears[:, None] * vertex_normals(v, f), f,
+                    process=False).export(tmp_path / "mesh" / "mesh.ply")
+    save_landmarks(tmp_path / "mesh" / "mesh_landmarks.json", lm)
+    trimesh.Trimesh(v, f, process=False).export(tmp_path / "scan" / "scan.ply")
+    save_landmarks(tmp_path / "scan_landmarks" / "scan_landmarks.json", lm)
+    main(tmp_path / "mesh", tmp_path / "scan", tmp_path / "out", tmp_path / "scan_landmarks")
+    per_vertex = np.load(tmp_path / "out" / ACCURACY_NPY.format(protocol="metric"))
+    in_ears, in_face = ear_region(v, lm), face_region(v, lm)
+    assert np.isfinite(per_vertex[in_ears | in_face]).all()
+    assert np.isnan(per_vertex[~(in_ears | in_face)]).all()
+    assert np.median(per_vertex[ears & in_ears]) > 0.95  # the pushed ears, coloured
+    assert np.nanmax(per_vertex[in_face]) < 1e-3
