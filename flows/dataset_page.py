@@ -13,6 +13,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 from urllib.parse import quote
@@ -29,9 +30,10 @@ THUMB_WIDTH = 160
 
 
 def _thumbnail(preview: Path) -> str:
-    """The capture's preview, its front view cut out and shrunk, as a data URI ('' without)."""
+    """The capture's preview, its front view cut out and shrunk, as a data URI ('' without,
+    or where a link stands for it: the page shows only what lies in OUT)."""
 
-    if not preview.is_file():  # a failed capture has none (and OpenCV would warn)
+    if preview.is_symlink() or not preview.is_file():  # a failed capture has none
         return ""
     image = cv2.imread(str(preview), cv2.IMREAD_COLOR)
     if image is None:
@@ -51,16 +53,47 @@ def _history(out: Path) -> tuple[dict[str, list[float]], set[str]]:
     files = sorted((out / "evaluations").glob("*.json"))
     for i, path in enumerate(files):
         try:
-            doc = json.loads(path.read_text())
-            captures = doc.get("captures") or {}
-            for name, score in captures.items():
-                median = float(score["accuracy"]["median"])
-                series.setdefault(name, []).append(median)
-            if i == len(files) - 1:
-                regressed = {f["capture"] for f in doc.get("regressions") or []}
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            doc = _mapping(json.loads(path.read_text()))
+        except (OSError, ValueError):
             continue  # check_history refuses a damaged history before a run: not this page's
+        for name, score in _mapping(doc.get("captures")).items():
+            median = _number(_mapping(_mapping(score).get("accuracy")).get("median"))
+            if median is not None:
+                series.setdefault(name, []).append(median)
+        if i == len(files) - 1:
+            rows = doc.get("regressions") if isinstance(doc.get("regressions"), list) else []
+            regressed = {row["capture"] for row in rows
+                         if isinstance(row, dict) and isinstance(row.get("capture"), str)}
     return series, regressed
+
+
+def _mapping(value) -> dict:
+    """``value`` if it is a JSON object, else an empty one: what a results folder holds is
+    anyone's to write, so every value read from it is checked before use."""
+    return value if isinstance(value, dict) else {}
+
+
+def _number(value) -> float | None:
+    """``value`` if it is a finite number (not a boolean), else None."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        value = float(value)
+    except OverflowError:  # an integer past the floats
+        return None
+    return value if math.isfinite(value) else None
+
+
+def _count(value) -> int | None:
+    """``value`` if it is a whole number of things (not a boolean), else None."""
+    return value if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else None
+
+
+def _plain_name(name: object) -> bool:
+    """A folder name of OUT as the dataset runs make them: no separator, not ``.``/``..``,
+    not hidden."""
+    return (isinstance(name, str) and bool(name) and "/" not in name and "\x00" not in name
+            and not name.startswith("."))
 
 
 def _sparkline(values: list[float]) -> str:
@@ -96,44 +129,52 @@ def _relative_link(out: Path, subject: str, capture: str, report: dict
 def build_dataset_page(out: Path, captures: list[tuple[str, str]],
                        failed: dict[str, str] | None = None,
                        link: Callable[[Path, str, str, dict], tuple[str | None, bool]]
-                       = _relative_link) -> bytes:
+                       = _relative_link, leave_out: str | None = None) -> bytes:
     """The page of the results folder ``out`` for the dataset's ``captures`` (subject,
     capture); ``failed`` maps ``subject/capture`` to why it failed; ``link(out, subject,
     capture, report)`` says the address of a capture's page (None: it has none; by default
-    relative to ``out``) and whether its row may show the face (its thumbnail)."""
+    relative to ``out``) and whether its row may show the face (its thumbnail); the
+    regressions of the subject ``leave_out`` are not counted (it is being forgotten)."""
     failed = failed or {}
     series, regressed = _history(out)
+    if leave_out is not None:
+        regressed = {name for name in regressed if name.split("/", 1)[0] != leave_out}
     rows = []
     for subject, capture in sorted(captures):
         name = f"{subject}/{capture}"
         folder = out / subject / capture
         try:
-            report = json.loads((folder / "report.json").read_text())
+            report = ({} if (folder / "report.json").is_symlink()
+                      else _mapping(json.loads((folder / "report.json").read_text())))
         except (OSError, ValueError):
             report = {}
-        fig = report.get("figures", {}) if isinstance(report, dict) else {}
+        fig = _mapping(report.get("figures"))
         if name in failed:
-            status, order = f"failed: {html.escape(failed[name])}", 0
+            status, order = f"failed: {html.escape(str(failed[name]))}", 0
         elif name in regressed:
             status, order = "regressed", 1
         elif report:
             status, order = "done", 2
         else:
             status, order = "not run", 3
-        href, face = link(out, subject, capture, report if isinstance(report, dict) else {})
+        href, face = link(out, subject, capture, report)
         thumb = _thumbnail(folder / "preview.png") if face else ""
         image = f'<img src="{thumb}" width="{THUMB_WIDTH}" alt="">' if thumb else ""
         picture = f'<a href="{html.escape(href)}">{image}</a>' if href and thumb else image
-        accuracy = (fig.get("evaluation") or {}).get("similarity", {}).get("accuracy", {})
-        median = accuracy.get("median", (series.get(name) or [None])[-1])
-        rough = (fig.get("roughness") or {}).get("bent_share_pct")
-        scale = fig.get("metric_scale")
+        accuracy = _mapping(_mapping(_mapping(fig.get("evaluation")).get("similarity"))
+                            .get("accuracy"))
+        median = _number(accuracy.get("median"))
+        if median is None:
+            median = (series.get(name) or [None])[-1]
+        rough = _number(_mapping(fig.get("roughness")).get("bent_share_pct"))
+        scale = _number(fig.get("metric_scale"))
+        keyframes = _count(fig.get("keyframes"))
         cells = [
             _cell(picture),
             _cell(f'<a href="{html.escape(href)}">{html.escape(name)}</a>' if href
                   else html.escape(name), name),
             _cell(status, order),
-            _cell(str(fig.get("keyframes", "–")), fig.get("keyframes")),
+            _cell(str(keyframes) if keyframes is not None else "–", keyframes),
             _cell(f"{scale:.4g}" if scale is not None else "–", scale),
             _cell(f"{rough:.1f} %" if rough is not None else "–", rough),
             _cell(f"{median:.3f} mm" if median is not None else "–", median),
@@ -151,16 +192,30 @@ def _dataset_contents(out: Path) -> tuple[list[tuple[str, str]], dict[str, str]]
 
     captures = sorted((subject.name, capture.name) for subject in out.iterdir()
                       if subject.is_dir() and not subject.is_symlink()
-                      and subject.name not in SUMMARY_NAMES and not subject.name.startswith(".")
-                      for capture in subject.iterdir() if (capture / "report.json").is_file())
+                      and subject.name not in SUMMARY_NAMES and _plain_name(subject.name)
+                      for capture in subject.iterdir()
+                      if _plain_name(capture.name) and not capture.is_symlink()
+                      and (capture / "report.json").is_file())
     try:
-        failed = json.loads((out / "dataset.json").read_text()).get("failed") or {}
-    except (OSError, ValueError, AttributeError):
+        failed = _mapping(_mapping(json.loads((out / "dataset.json").read_text())).get("failed"))
+    except (OSError, ValueError):
         failed = {}
-    failed = failed if isinstance(failed, dict) else {}
-    captures += sorted({tuple(name.split("/", 1)) for name in failed if "/" in name}
-                       - set(captures))
+    # Only names of a capture's folder in OUT, with a reason in words: a name such as
+    # '../x' would have the page show what lies outside OUT.
+    failed = {name: why for name, why in failed.items()
+              if name.count("/") == 1 and all(map(_plain_name, name.split("/")))
+              and name.split("/")[0] not in SUMMARY_NAMES and isinstance(why, str)}
+    captures += sorted({tuple(name.split("/")) for name in failed} - set(captures))
     return captures, failed
+
+
+def dataset_page_without(out: Path, subject: str) -> bytes:
+    """``OUT/index.html`` as it will be once ``subject`` is forgotten: without its rows,
+    failures and regressions."""
+    captures, failed = _dataset_contents(out)
+    return build_dataset_page(out, [c for c in captures if c[0] != subject],
+                              {k: v for k, v in failed.items() if k.split("/", 1)[0] != subject},
+                              leave_out=subject)
 
 
 def rewrite_dataset_page(out: Path) -> None:

@@ -133,3 +133,39 @@ def test_scale_error_is_the_meshs_size_against_the_scans():
     record = score_json(score(1.02 * scan.vertices, scan.faces, scan.vertices, scan.faces,
                               landmarks, 1.02 * landmarks, protocol="similarity"))
     assert scale_error_pct(record) == pytest.approx(2.0, abs=0.01)
+
+
+def test_the_dataset_page_checks_and_escapes_what_out_holds(tmp_path):
+    """What a results folder holds is anyone's to write: a figure that is markup is shown as
+    text, a figure of the wrong type as none, a ``failed`` entry naming a folder outside OUT
+    (``../x``) or a link out of OUT neither adds a row nor shows a picture from there; the
+    page is written all the same."""
+    import cv2
+
+    from facecap.flows.dataset_page import rewrite_dataset_page
+
+    out, outside = tmp_path / "out", tmp_path / "x"
+    picture = cv2.imencode(".png", np.full((40, 120, 3), 200, np.uint8))[1].tobytes()
+    _touch(outside / "preview.png", picture)
+    _touch(outside / "report.json", b'{"figures": {"keyframes": 7}}')
+    attack = '<img src=x onerror=alert(1)>'
+    _touch(out / "anna" / "take1" / "report.json", json.dumps(
+        {"figures": {"keyframes": attack, "metric_scale": attack, "roughness": [attack],
+                     "evaluation": {"similarity": {"accuracy": {"median": "1e308"}}}}}).encode())
+    _touch(out / "bob" / "take1" / "report.json", b'{"figures": "damaged"}')
+    _touch(out / "carl" / "take1" / "report.json", b"[1, 2]")
+    (out / "carl" / "linked").symlink_to(outside, target_is_directory=True)
+    (out / "evaluations").mkdir()
+    (out / "evaluations" / "20260101T000000000000Z.json").write_text(json.dumps(
+        {"captures": {"anna/take1": {"accuracy": {"median": "high"}}},
+         "regressions": [{"capture": ["anna/take1"]}, "bob/take1"]}))
+    (out / "dataset.json").write_text(json.dumps(
+        {"failed": {"../x": "no face", "anna/take2": attack, "bob/take2": {"a": 1},
+                    "./x": "?", "evaluations/x": "?"}}))
+    rewrite_dataset_page(out)
+    page = (out / "index.html").read_text()
+    assert "<img src=x" not in page
+    assert "&lt;img src=x onerror=alert(1)&gt;" in page  # anna/take2's reason, as text
+    rows = sorted(part.split('"', 1)[0] for part in page.split('data-capture="')[1:])
+    assert rows == ["anna/take1", "anna/take2", "bob/take1", "carl/take1"]
+    assert "data:image/png" not in page  # no picture from outside OUT
