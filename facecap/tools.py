@@ -148,6 +148,13 @@ def print_removal(removal, dry_run: bool) -> None:
           f"folders and {removal.history_entries} evaluation-history entries")
     for folder in removal.folders:
         print(f"  {folder}")
+    if removal.kept:
+        count = len(removal.kept)
+        print(f"kept {count} entr{'ies' if count > 1 else 'y'} of the results folders that "
+              "facecap did not write (or that changed since); look at them and remove them "
+              "yourself if they hold the subject's data:")
+        for path in removal.kept:
+            print(f"  {path}")
     if removal.in_use:
         count = len(removal.in_use)
         print(f"kept {count} artifact{'s' if count > 1 else ''} that a run in progress uses; "
@@ -163,16 +170,23 @@ def forget(args) -> int:
     store = check_store(args.store or default_store_url())
     root, out = (Path(args.root) if args.root else None), (Path(args.out) if args.out else None)
     planned = lifecycle.plan_forget(store, args.subject, root, out)
-    if not args.dry_run and planned.captures:
+    pages = {}
+    if out is not None and not args.dry_run and (out / "index.html").is_file():
+        from facecap.flows.dataset_page import dataset_page_without
+
+        # Its thumbnails show the faces: made now, without the subject's rows, so that a
+        # results folder whose page cannot be made stops the forget before anything goes.
+        pages["index.html"] = dataset_page_without(out, args.subject)
+
+    def ui_pages() -> None:
         # The UI pages first (the preview shows the face): a server that cannot be reached
         # then leaves everything in place for another try.
-        print(f"removed {_forget_ui(planned.captures)} UI artifacts of "
-              f"{', '.join(planned.captures)}")
-    removal = lifecycle.remove(store, planned, args.subject, out, dry_run=args.dry_run)
-    if out is not None and not args.dry_run and (out / "index.html").is_file():
-        from facecap.flows.dataset_page import rewrite_dataset_page
+        if planned.captures:
+            print(f"removed {_forget_ui(planned.captures)} UI artifacts of "
+                  f"{', '.join(planned.captures)}")
 
-        rewrite_dataset_page(out)  # its thumbnails show the faces: the subject's go
+    removal = lifecycle.remove(store, planned, args.subject, out, dry_run=args.dry_run,
+                               results=pages, first=ui_pages)
     print_removal(removal, args.dry_run)
     return 0
 

@@ -9,14 +9,14 @@ their face or numbers measured on it.
 
 from __future__ import annotations
 
+import contextlib
 import json
-import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
-from facecap.tasks.outputs import write_results
+from facecap.tasks.outputs import ResultWriter, check_output_place, remove_results
 from facecap.tasks.runner import key_lock, unleased
 from facecap.tasks.store import ArtifactStore, CorruptArtifactError, input_key
 from facecap.tasks.store.base import redact
@@ -39,6 +39,11 @@ class Removal:
     damaged: dict[str, str] = field(default_factory=dict)
     """Artifacts a prune kept because their manifest cannot be read (so neither can their
     age): their key and the one-line problem, which says what to do."""
+    files: list[Path] = field(default_factory=list)
+    """The files of the results folders removed: those a results record there names with
+    the content facecap wrote (:func:`facecap.tasks.outputs.remove_results`)."""
+    kept: list[Path] = field(default_factory=list)
+    """What the results folders hold that facecap cannot prove it wrote: it stays."""
 
 
 def _made_from(manifests: dict) -> dict[str, set[str]]:
@@ -163,11 +168,13 @@ def _capture_labels(subject: str, root: Path | None, results: Path | None) -> li
     return sorted(f"{subject}/{name}" for name in names)
 
 
-def _run_reports(folder: Path) -> Iterator[dict]:
-    """The run reports under a results folder: each ``report.json`` facecap wrote, whose
-    ``stages`` name each stage's artifact key. Other files of that name are passed over (a
-    forgotten subject's folder is removed all the same)."""
-    for path in folder.rglob("report.json"):
+def _run_reports(folder: Path, paths: Iterable[Path] | None = None) -> Iterator[dict]:
+    """The run reports under a results folder (or among ``paths``): each ``report.json``
+    whose ``stages`` name each stage's artifact key. Other files of that name are passed
+    over."""
+    for path in folder.rglob("report.json") if paths is None else paths:
+        if path.name != "report.json":
+            continue
         try:
             doc = json.loads(path.read_text())
             keys = [row["key"] for row in doc["stages"].values()]
@@ -189,11 +196,13 @@ def report_keys(doc: dict) -> tuple[str | None, list[str]]:
     return key(doc.get("page")), [k for k in map(key, stages.values()) if k]
 
 
-def _reported_keys(folder: Path) -> tuple[set[str], set[str], set[str]]:
-    """The artifact keys named by the run reports under a results folder, the stores the
-    reports say the runs used and the runs' ``subject/capture`` labels (their UI pages)."""
+def _reported_keys(folder: Path, paths: Iterable[Path] | None = None
+                   ) -> tuple[set[str], set[str], set[str]]:
+    """The artifact keys named by the run reports under a results folder (or among
+    ``paths``), the stores the reports say the runs used and the runs' ``subject/capture``
+    labels (their UI pages)."""
     keys, stores, labels = set(), set(), set()
-    for doc in _run_reports(folder):
+    for doc in _run_reports(folder, paths):
         page, stages = report_keys(doc)
         keys |= {*stages, *([page] if page else [])}
         if doc.get("store"):
@@ -207,10 +216,6 @@ def _same_store(a: str, b: str) -> bool:
     if "://" in a or "://" in b:
         return a.rstrip("/") == b.rstrip("/")
     return Path(a).expanduser().resolve() == Path(b).expanduser().resolve()
-
-
-def _rewrite(path: Path, doc) -> None:
-    write_results(path.parent, {path.name: json.dumps(doc, indent=1).encode()})
 
 
 def _of(subject: str, name: object) -> bool:
@@ -242,10 +247,11 @@ def _without(subject: str, doc):
     return doc
 
 
-def _forget_summaries(out: Path, subject: str, dry_run: bool) -> int:
-    """Drop the subject's captures from the nightly evaluation history and from the dataset
-    summaries; returns how many history entries went."""
-    removed = 0
+def _forget_summaries(out: Path, subject: str) -> tuple[dict[str, bytes], int]:
+    """The evaluation history and the dataset summaries without the subject's captures
+    (each changed file's name relative to ``out`` and its new content), and how many history
+    entries go."""
+    removed, rewritten = 0, {}
     history = sorted((out / "evaluations").glob("*.json"))
     for path in [*history, out / "dataset.json", out / "consistency.json"]:
         try:
@@ -257,9 +263,32 @@ def _forget_summaries(out: Path, subject: str, dry_run: bool) -> int:
             continue
         if path in history and isinstance(doc, dict) and isinstance(doc.get("captures"), dict):
             removed += len(doc["captures"]) - len(kept["captures"])
-        if not dry_run:
-            _rewrite(path, kept)
-    return removed
+        rewritten[path.relative_to(out).as_posix()] = json.dumps(kept, indent=1).encode()
+    return rewritten, removed
+
+
+def _check_places(out: Path, root: Path | None, subject: str, store: ArtifactStore) -> None:
+    """Refuse a results folder that cannot be one: the file system's root, the dataset
+    folder, a folder in the store or facecap's own, one whose subject folder is in the
+    dataset folder or holds it."""
+    try:
+        target = Path(out).resolve()
+        dataset = Path(root).resolve() if root is not None else None
+    except (OSError, RuntimeError):
+        raise InputError(f"the results folder {out} cannot be looked up (a link that leads "
+                         "back to itself?); give the folder the runs wrote (--out)") from None
+    if target == Path(target.anchor):
+        raise InputError(f"--out {out} is the root of the file system, not a results folder; "
+                         "give the folder the runs wrote (--out); nothing was removed")
+    url = str(store.url)
+    check_output_place(out, None if "://" in url and not url.startswith("file://") else url,
+                       (root,))
+    if dataset is not None:
+        results = target / subject
+        if results == dataset or dataset in results.parents or results in dataset.parents:
+            raise InputError(f"{Path(out) / subject} is in the dataset folder {root} or holds "
+                             "it: its captures are no results; give the folder the runs wrote "
+                             "(--out); nothing was removed")
 
 
 def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
@@ -283,6 +312,8 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
         if not Path(root).is_dir():
             raise InputError(f"dataset folder not found: {root}; check the path (--root)")
         seeds |= _subject_inputs(Path(root), subject)
+    if out is not None:
+        _check_places(Path(out), root, subject, store)
     results = Path(out) / subject if out is not None else None
     labels: set[str] = set()
     if results is not None and (results.exists() or results.is_symlink()):
@@ -292,7 +323,9 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
         if not results.is_dir():
             raise InputError(f"{results} is a file, not a subject's results folder; check the "
                              "name and --out")
-        reported, stores, labels = _reported_keys(results)
+        # Only what facecap can prove it wrote there: the files its records name, as written.
+        removal.files, removal.kept = remove_results(results, dry_run=True)
+        reported, stores, labels = _reported_keys(results, removal.files)
         others = [u for u in stores if not _same_store(u, str(store.url))]
         if reported and not reported & set(made_from) and others:
             raise InputError(
@@ -301,8 +334,8 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
                 f"{', '.join(redact(u) for u in sorted(others))}: give that "
                 "store (--store); nothing was removed")
         seeds |= _up(made_from, reported)  # the video and scan they were made from
-        seeds |= {input_key(mesh) for mesh in results.rglob("mesh.ply")
-                  if mesh.is_file() and not mesh.is_symlink()}  # the nightly's copies
+        seeds |= {input_key(mesh) for mesh in removal.files
+                  if mesh.name == "mesh.ply"}  # the nightly's copies
         removal.folders.append(results)
     if not seeds and not removal.folders:
         raise InputError(f"nothing of subject {subject!r} was found (no {subject}/ in the "
@@ -320,15 +353,33 @@ def forget(store: ArtifactStore, subject: str, root: Path | None, out: Path | No
 
 
 def remove(store: ArtifactStore, removal: Removal, subject: str, out: Path | None,
-           dry_run: bool = False) -> Removal:
-    """Carry out a :func:`plan_forget`, and drop the subject's entries from the evaluation
-    history and the dataset summaries. The UI pages are the caller's (they live on the
-    Prefect server): remove them first, so that a server that cannot be reached leaves
-    everything in place to try again."""
-    if not dry_run:
+           dry_run: bool = False, results: dict[str, bytes] | None = None,
+           first: Callable[[], None] | None = None) -> Removal:
+    """Carry out a :func:`plan_forget`: the subject's entries dropped from the evaluation
+    history and the dataset summaries, ``results`` (more files of ``out`` to write, such as
+    the dataset page without the subject), then ``first`` (the UI's pages, which live on the
+    Prefect server), the artifacts and what facecap wrote in the results folders.
+
+    Everything that can fail is done before anything is removed: the rewritten files are
+    made and staged in ``out`` first (a damaged summary, a folder that cannot be written
+    stop the forget there), and put in place once the subject's data is gone."""
+    rewritten, removal.history_entries = (_forget_summaries(Path(out), subject)
+                                          if out is not None else ({}, 0))
+    if dry_run:
+        return removal
+    rewritten.update(results or {})
+    with contextlib.ExitStack() as stack:
+        writer = stack.enter_context(ResultWriter(out)) if rewritten else None
+        for name, data in rewritten.items():
+            writer.add(name, data)
+        if first is not None:
+            first()
         _delete(store, removal)
+        removal.files, removal.kept = [], []
         for folder in removal.folders:
-            shutil.rmtree(folder)
-    if out is not None:  # last: a failure above leaves the summaries to name what remains
-        removal.history_entries = _forget_summaries(Path(out), subject, dry_run)
+            files, kept = remove_results(folder)
+            removal.files += files
+            removal.kept += kept
+        if writer is not None:
+            writer.commit()
     return removal

@@ -205,21 +205,7 @@ class ResultWriter:
     def _read_record(self) -> dict[str, str] | None:
         """The folder's record; None where it has none (a folder an earlier version wrote,
         or a new one)."""
-        fd = self._dir_fd(PurePosixPath("."))
-        try:
-            handle = os.open(RECORD_NAME, os.O_RDONLY | os.O_NOFOLLOW, dir_fd=fd)
-        except FileNotFoundError:
-            return None
-        except OSError:
-            return {}
-        try:
-            with os.fdopen(handle, "rb") as source:
-                record = json.loads(source.read(MAX_RECORD_BYTES))
-        except (OSError, ValueError):
-            return {}
-        if not isinstance(record, dict):
-            return {}
-        return {k: v for k, v in record.items() if isinstance(k, str) and isinstance(v, str)}
+        return _read_record_at(self._dir_fd(PurePosixPath(".")))
 
     def _write_record(self, record: dict[str, str]) -> None:
         fd = self._dir_fd(PurePosixPath("."))
@@ -251,6 +237,109 @@ class ResultWriter:
         if self._staged:
             self.abort()
         self.close()
+
+
+def _read_record_at(fd: int) -> dict[str, str] | None:
+    """The record in the folder open as ``fd``; None where it has none, empty where it
+    cannot be read or is not facecap's (nothing it names is then removed)."""
+    try:
+        handle = os.open(RECORD_NAME, os.O_RDONLY | os.O_NOFOLLOW, dir_fd=fd)
+    except FileNotFoundError:
+        return None
+    except OSError:
+        return {}
+    try:
+        with os.fdopen(handle, "rb") as source:
+            record = json.loads(source.read(MAX_RECORD_BYTES))
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(record, dict):
+        return {}
+    return {k: v for k, v in record.items() if isinstance(k, str) and isinstance(v, str)}
+
+
+def recorded_files(folder: str | os.PathLike) -> dict[PurePosixPath, str | None]:
+    """Every file under ``folder`` (never through a link) that a results record there names,
+    relative to ``folder``, with the sha256 the record gives; the records themselves with
+    None. Only what the records name: what facecap can prove it wrote."""
+    found: dict[PurePosixPath, str | None] = {}
+    for root, _, files, fd in os.fwalk(folder, follow_symlinks=False):
+        if RECORD_NAME not in files:
+            continue
+        here = PurePosixPath(Path(root).relative_to(folder).as_posix())
+        for name, digest in (_read_record_at(fd) or {}).items():
+            try:
+                found[here / _relative(name)] = digest
+            except ValueError:
+                continue  # not a name facecap writes: the record is not trusted for it
+        found[here / RECORD_NAME] = None
+    return found
+
+
+def _ours_at(fd: int, name: PurePosixPath, recorded: dict[PurePosixPath, str | None]) -> bool:
+    """Whether ``name`` (in the folder open as ``fd``) is a plain file facecap wrote and
+    nobody changed since: a record names it with its very content (or it is a record, or a
+    file a killed writer staged)."""
+    if name not in recorded and not _TEMPORARY.match(name.name):
+        return False
+    try:
+        found = os.stat(name.name, dir_fd=fd, follow_symlinks=False)
+        if not stat.S_ISREG(found.st_mode):
+            return False
+        digest = recorded.get(name)
+        return digest is None or _sha256_at(fd, name.name) == digest
+    except OSError:
+        return False
+
+
+def remove_results(folder: str | os.PathLike, dry_run: bool = False
+                   ) -> tuple[list[Path], list[Path]]:
+    """Remove what facecap wrote under ``folder`` (a subject's results folder): the files
+    its records name that still hold what was recorded, the records, what a killed writer
+    staged, and the folders that leaves empty, ``folder`` too. Nothing else: a file of the
+    user's, a file changed since, a link (never followed) stay. Returns the files removed
+    (with ``dry_run``: that would be) and the entries kept."""
+    folder = Path(folder)
+    recorded = recorded_files(folder)
+    removed: list[Path] = []
+    kept: list[Path] = []
+    holding: set[PurePosixPath] = set()  # folders that keep something
+
+    def keep(name: PurePosixPath) -> None:
+        kept.append(folder / name)
+        holding.update(name.parents)
+
+    for root, dirs, files, fd in os.fwalk(folder, topdown=False, follow_symlinks=False):
+        here = PurePosixPath(Path(root).relative_to(folder).as_posix())
+        for file in sorted(files):
+            name = here / file
+            if not _ours_at(fd, name, recorded):
+                keep(name)
+                continue
+            removed.append(folder / name)
+            if not dry_run:
+                try:
+                    os.unlink(file, dir_fd=fd)
+                except FileNotFoundError:
+                    pass
+        for sub in sorted(dirs):
+            name = here / sub
+            if name in holding:
+                continue
+            if os.path.islink(folder / name):
+                keep(name)
+                continue
+            if not dry_run:
+                try:
+                    os.rmdir(sub, dir_fd=fd)
+                except OSError:  # something appeared in it meanwhile: it stays
+                    keep(name)
+    if PurePosixPath(".") not in holding and not dry_run:
+        try:
+            os.rmdir(folder)
+        except OSError:
+            kept.append(folder)
+    return removed, sorted(kept)
 
 
 def _sha256_at(fd: int, name: str) -> str:

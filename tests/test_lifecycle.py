@@ -14,6 +14,7 @@ from facecap.cli import main
 from facecap.flows.page import store_page
 from facecap.tasks.graph import stage_key
 from facecap.tasks.lifecycle import derived, forget, prune, prune_unreferenced
+from facecap.tasks.outputs import write_results
 from facecap.tasks.runner import ingest
 from facecap.tasks.store import open_store
 from facecap_core.errors import InputError
@@ -49,8 +50,9 @@ def world(tmp_path):
         # The run's page, kept in the store for the UI's link, and named by the report.
         keys[subject]["page"] = store_page(open_store(store_url), report,
                                            f"the page of {subject}".encode())
-        (out / subject / "take1" / "report.json").write_text(json.dumps(
-            {**report, "page": {"key": keys[subject]["page"]}}))
+        # Written as a run writes it: through the results writer, which records it.
+        write_results(out / subject / "take1", {"report.json": json.dumps(
+            {**report, "page": {"key": keys[subject]["page"]}}).encode()})
     (out / "evaluations").mkdir()
     (out / "evaluations" / "20261101T020000000000Z.json").write_text(json.dumps(
         {"captures": {"alice/take1": {}, "bob/take1": {}},
@@ -108,7 +110,7 @@ def test_forget_with_the_results_alone_removes_the_inputs_they_were_made_from(wo
     video they were made from; the mesh the nightly evaluation stored goes too."""
     store = open_store(world["store"])
     mesh = world["out"] / "alice" / "take1" / "mesh.ply"
-    mesh.write_bytes(b"alice's fitted mesh")
+    write_results(mesh.parent, {"mesh.ply": b"alice's fitted mesh"})
     copy = ingest(world["store"], mesh, "mesh.ply")
     (world["out"] / "dataset.json").write_text(json.dumps(
         {"captures": 2, "done": ["alice/take1", "bob/take1"], "failed": {},
@@ -271,9 +273,8 @@ def test_a_page_goes_with_its_face(world, tmp_path):
     report = json.loads((world["out"] / "alice" / "take1" / "report.json").read_text())
     earlier = store_page(store, report, b"the page of alice's earlier run")
     # A result from before pages were kept, and one whose artifacts this store lacks.
-    (world["out"] / "alice" / "take0").mkdir()
-    (world["out"] / "alice" / "take0" / "report.json").write_text(json.dumps(
-        {k: v for k, v in report.items() if k != "page"}))
+    write_results(world["out"] / "alice" / "take0", {"report.json": json.dumps(
+        {k: v for k, v in report.items() if k != "page"}).encode()})
     (world["out"] / "carol" / "take1").mkdir(parents=True)
     (world["out"] / "carol" / "take1" / "report.json").write_text(json.dumps(
         {"stages": {"poses": {"key": "poses-" + "0" * 32}}, "page": {"key": "../../x"}}))
@@ -287,3 +288,93 @@ def test_a_page_goes_with_its_face(world, tmp_path):
     assert set(removal.artifacts) == {earlier, dataset}
     removal = forget(store, "alice", world["root"], world["out"])
     assert set(removal.artifacts) == {*alice.values(), earlier, dataset}
+
+
+def test_forget_removes_only_what_facecap_wrote(world, tmp_path, capsys):
+    """``OUT/SUBJECT`` may hold what facecap did not write: the user's notes, a result the
+    user edited since, a link planted there. Only the files a results record names with the
+    content facecap wrote go; the rest stays, listed; a link is never followed. A subject
+    folder of notes alone loses nothing, and a planted report names no artifact to remove."""
+    out, secret = world["out"], tmp_path / "secret.txt"
+    secret.write_text("the user's own file")
+    alice = out / "alice"
+    (alice / "notes.txt").write_text("the user's notes about alice")
+    write_results(alice / "take1", {"mesh.ply": b"a mesh facecap wrote",
+                                    "preview.png": b"a preview facecap wrote"})
+    (alice / "take1" / "preview.png").write_bytes(b"edited by the user since")
+    (alice / "take1" / "linked.txt").symlink_to(secret)
+    (alice / "take2").symlink_to(tmp_path, target_is_directory=True)
+    # A report nobody recorded, naming bob's artifacts: it must not make them alice's.
+    (alice / "take3").mkdir()
+    (alice / "take3" / "report.json").write_text(json.dumps(
+        {"stages": {k: {"key": v} for k, v in world["keys"]["bob"].items()}}))
+    (out / "carol").mkdir()
+    (out / "carol" / "notes.txt").write_text("carol's notes, no facecap result")
+    code = main(["forget", "alice", "--out", str(out), "--store", world["store"]])
+    printed = capsys.readouterr().out
+    assert code == 0, printed
+    store = open_store(world["store"])
+    assert set(store.keys()) == set(world["keys"]["bob"].values())
+    assert not (alice / "take1" / "mesh.ply").exists()
+    assert not (alice / "take1" / "report.json").exists()
+    assert (alice / "notes.txt").read_text() == "the user's notes about alice"
+    assert (alice / "take1" / "preview.png").read_bytes() == b"edited by the user since"
+    assert (alice / "take1" / "linked.txt").is_symlink() and (alice / "take2").is_symlink()
+    assert (alice / "take3" / "report.json").is_file()
+    assert secret.read_text() == "the user's own file" and (tmp_path / "secret.txt").is_file()
+    assert "kept 5 entries" in printed and str(alice / "notes.txt") in printed
+    main(["forget", "carol", "--out", str(out), "--store", world["store"]])
+    assert (out / "carol" / "notes.txt").read_text() == "carol's notes, no facecap result"
+    assert set(store.keys()) == set(world["keys"]["bob"].values())
+
+
+@pytest.mark.parametrize("dry_run", [[], ["--dry-run"]], ids=["", "dry run"])
+def test_forget_refuses_an_out_that_is_no_results_folder(dry_run, world, capfd):
+    """``--out`` the dataset folder (the subject's raw captures would go), ``/`` (``/etc``
+    was planned) or a folder in the store: one line, nothing removed. The dataset folder
+    given as ``--out`` alone holds nothing facecap wrote: the captures stay."""
+    from tests.test_bad_inputs import assert_one_line_error, facecap
+
+    root, store = world["root"], world["store"]
+    before = sorted(open_store(store).keys())
+    for out, words in ((root, ["is the input folder"]), ("/", ["root of the file system"]),
+                       (Path(store) / "artifacts", ["keeps for itself"])):
+        code, _, err = facecap(capfd, "forget", "alice", "--root", root, "--out", out,
+                               "--store", store, *dry_run)
+        assert_one_line_error(code, err, words)
+    code, printed, err = facecap(capfd, "forget", "alice", "--out", root, "--store", store,
+                                 *dry_run)
+    assert code == 0, err
+    assert (root / "alice" / "take1.mp4").read_bytes() == b"the face of alice"
+    assert (root / "alice" / "scan.ply").is_file() and "kept 2 entries" in printed
+    assert sorted(open_store(store).keys()) == before
+
+
+def test_forget_makes_every_rewrite_before_it_removes_anything(world, tmp_path, capfd):
+    """A damaged report.json elsewhere under OUT no longer stops the dataset page from being
+    written again without the subject; a summary that cannot be rewritten (the evaluation
+    history a link out of OUT) stops the forget before anything is removed."""
+    from facecap.flows.dataset_page import rewrite_dataset_page
+    from tests.test_bad_inputs import assert_one_line_error, facecap
+
+    out, store = world["out"], world["store"]
+    write_results(out / "bob" / "take2", {"report.json": json.dumps(
+        {"figures": {"keyframes": {"a": 1}, "metric_scale": "big", "roughness": [1]},
+         "stages": []}).encode()})
+    rewrite_dataset_page(out)
+    assert "alice/take1" in (out / "index.html").read_text()
+    history = tmp_path / "history"
+    (out / "evaluations").rename(history)
+    (out / "evaluations").symlink_to(history, target_is_directory=True)
+    before = sorted(open_store(store).keys())
+    code, _, err = facecap(capfd, "forget", "alice", "--out", out, "--store", store)
+    assert_one_line_error(code, err, ["evaluations is a link"])
+    assert sorted(open_store(store).keys()) == before
+    assert (out / "alice" / "take1" / "report.json").is_file()
+    (out / "evaluations").unlink()
+    (out / "evaluations").mkdir()
+    code, _, err = facecap(capfd, "forget", "alice", "--out", out, "--store", store)
+    assert code == 0, err
+    page = (out / "index.html").read_text()
+    assert "alice/take1" not in page and "bob/take2" in page
+    assert not (out / "alice").exists()
