@@ -244,6 +244,19 @@ def _usage_error(message: str, command: str) -> UsageError:
     return UsageError(f"{' '.join(message.split())}; see '{command} --help'")
 
 
+def _port(text: str) -> int:
+    """A TCP port number, 0 to 65535, as argparse's type of a port option."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number; give a whole "
+                                         "number from 0 to 65535") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port} is not a port number; give a whole number "
+                                         "from 0 to 65535")
+    return port
+
+
 def build_parser() -> argparse.ArgumentParser:
     # Long on purpose: a declaration, every command and option in the order --help shows them.
     from facecap.tasks.graph import STEPS, UNTIL_ALIASES
@@ -333,7 +346,7 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--pages-host", default="127.0.0.1",
                     help="address the results pages of a local store are served on (default "
                          "127.0.0.1: this machine only)")
-    sv.add_argument("--pages-port", type=int, default=4280,
+    sv.add_argument("--pages-port", type=_port, default=4280,
                     help="port of the results pages (default 4280; 0: serve none)")
     sv.set_defaults(func=_cmd_serve)
 
@@ -362,7 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
                                       "the links in the Prefect UI")
     pg.add_argument("--host", default="127.0.0.1",
                     help="address to listen on (default 127.0.0.1: this machine only)")
-    pg.add_argument("--port", type=int, default=4280, help="port (default 4280)")
+    pg.add_argument("--port", type=_port, default=4280,
+                    help="port (default 4280; 0: one the system picks)")
     pg.add_argument("--store", help="artifact store (see reconstruct)")
     pg.set_defaults(func=tools.pages)
 

@@ -289,6 +289,13 @@ USAGE_ERRORS = {
     "no command": ([], "the following arguments are required: command", "facecap"),
     "store without its command": (["store"], "the following arguments are required: "
                                   "store_command", "facecap store"),
+    "a port past 65535": (["pages", "--port", "70000"], "argument --port: 70000 is not a "
+                          "port number; give a whole number from 0 to 65535", "facecap pages"),
+    "a negative port": (["pages", "--port", "-1"], "argument --port: -1 is not a port number",
+                        "facecap pages"),
+    "a pages port past 65535": (["serve", "--root", "r", "--out", "o", "--pages-port", "70000"],
+                                "argument --pages-port: 70000 is not a port number",
+                                "facecap serve"),
 }
 
 
