@@ -37,6 +37,11 @@ def default_home() -> Path:
     return Path.home() / ".cache" / "facecap"
 
 
+MAX_TIMEOUT_S = 30 * 24 * 3600.0
+"""The longest time limit a run takes (30 days): the clocks and Prefect's timers that keep
+a limit work with seconds of that order, not with 1e308."""
+
+
 class FacecapSettings(BaseSettings):
     """The ``FACECAP_*`` environment of this process, validated."""
 
@@ -85,17 +90,17 @@ class FacecapSettings(BaseSettings):
     max_side_px: int = Field(8192, ge=120, le=65536)
     """Longest image side a run accepts, in pixels; the keyframes are kept at full
     resolution. Default 8192 (8K)."""
-    capture_timeout_s: float = Field(21600.0, gt=0)
+    capture_timeout_s: float = Field(21600.0, gt=0, le=MAX_TIMEOUT_S)
     """The longest a capture flow run may take, in seconds, before it ends Failed: its
     stages keep it, and Prefect's own limit on the run follows a minute later. Default
     21600 (6 hours)."""
-    stage_timeout_s: float = Field(7200.0, gt=0)
+    stage_timeout_s: float = Field(7200.0, gt=0, le=MAX_TIMEOUT_S)
     """The longest one stage may take, in seconds, before the run ends Failed; the depth
     maps together count as one stage. Default 7200 (2 hours)."""
     alert_webhook: str | None = None
     """Webhook URL ``facecap alerts`` sends the service's alerts to (regressions, failed
     runs; ``deploy/alerts.py``). Default unset: ``facecap alerts`` needs ``--webhook``."""
-    evaluation_timeout_s: float = Field(21600.0, gt=0)
+    evaluation_timeout_s: float = Field(21600.0, gt=0, le=MAX_TIMEOUT_S)
     """The longest a dataset evaluation run (the nightly one) may take, in seconds, before
     it ends Failed: a hung night must not make the later ones skip. Default 21600 (6 hours)."""
     pages_url: str | None = None

@@ -146,6 +146,22 @@ def test_the_timeouts_have_their_defaults_and_read_the_environment(monkeypatch):
     assert (settings().capture_timeout_s, settings().stage_timeout_s) == (90.5, 30)
 
 
+@pytest.mark.parametrize("variable", ["FACECAP_CAPTURE_TIMEOUT_S", "FACECAP_STAGE_TIMEOUT_S",
+                                      "FACECAP_EVALUATION_TIMEOUT_S"])
+def test_a_time_limit_is_one_the_clocks_can_keep(variable, monkeypatch, capfd):
+    """1e308 s is a finite number no timer can wait for: refused at the edge, naming its
+    variable, as one line of the command that reads it."""
+    from facecap.cli import main
+
+    monkeypatch.setenv(variable, "1e308")
+    with pytest.raises(InputError, match=f"invalid {variable}='1e308'.*less than or equal "
+                                         "to 2592000"):
+        settings()
+    assert main(["store", "prune", "--older-than-days", "1", "--dry-run"]) == 2
+    err = capfd.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"facecap: error: invalid {variable}")
+
+
 INVALID = {
     "FACECAP_MAX_FRAMES": ("many", "valid integer"),
     "FACECAP_MAX_FILE_MB": ("-1", "greater than 0"),
