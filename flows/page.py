@@ -156,6 +156,30 @@ def _cloud(cloud_ply: Path, seed: int = 0) -> dict:
     return {"positions": _b64(points), "colours": _b64(colours), "count": int(len(points))}
 
 
+COVERAGE_WARN_DEG = 120.0
+"""Views spanning less yaw than this round the head get a warning: a full sweep spans about
+180°, and under this the sides of the head and the ears are seen by few views or none."""
+
+
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}{'' if n == 1 else 's'}"
+
+
+def _sanity_counts(sanity: dict) -> str:
+    """``314 self-intersecting triangle pairs, 2 flipped triangles`` (what is wrong only)."""
+    parts = [_count(sanity.get(key) or 0, what) for key, what in (
+        ("self_intersecting_pairs", "self-intersecting triangle pair"),
+        ("flipped", "flipped triangle"), ("stretched_edges", "stretched edge"))
+        if sanity.get(key)]
+    return ", ".join(parts) or "no count given"
+
+
+def _scores(sc: dict) -> str:
+    a, c = sc["accuracy"], sc["completion"]
+    return (f"mean {a['mean']:.3f} mm, median {a['median']:.3f} mm; completion mean "
+            f"{c['mean']:.3f} mm, median {c['median']:.3f} mm")
+
+
 def figure_rows(report: dict) -> list[tuple[str, str, str]]:
     """(key, label, text) of the figures that matter, in words, rounded, with their units:
     what the page and the Prefect UI's summary show."""
@@ -169,22 +193,74 @@ def figure_rows(report: dict) -> list[tuple[str, str, str]]:
     if parts:
         rows.append(("metric_scale", "Metric scale", ", ".join(parts)))
     if fig.get("keyframes") is not None:
-        rows.append(("keyframes", "Keyframes", str(fig["keyframes"])))
+        dropped = fig.get("dropped_keyframes") or []
+        rows.append(("keyframes", "Keyframes", str(fig["keyframes"]) if not dropped else
+                     f"{fig['keyframes']} registered, {len(dropped)} left out (frames "
+                     f"{', '.join(str(d.get('frame_index')) for d in dropped)})"))
     if fig.get("focal_px") is not None:
         rows.append(("focal_px", "Focal length", f"{fig['focal_px']:.1f} px"))
+    coverage = fig.get("coverage") or {}
+    if coverage.get("yaw_span_deg") is not None:
+        rows.append(("coverage", "Coverage", f"yaw {coverage['yaw_min_deg']:+.0f}° to "
+                     f"{coverage['yaw_max_deg']:+.0f}° round the head "
+                     f"({coverage['yaw_span_deg']:.0f}°; a full sweep spans about 180°)"))
     if fig.get("ears"):
         rows.append(("ears", "Ears", ears_summary(fig["ears"])))
+    elif fig.get("metric_scale") is not None:  # the coarse stage ran, and said nothing
+        rows.append(("ears", "Ears", "nothing is known about the ears: this run's report "
+                     "has no ear checks"))
+    sanity = fig.get("mesh_sanity") or {}
+    if "ok" in sanity:
+        rows.append(("mesh_sanity", "Mesh check", "passed: no flipped triangle, stretched "
+                     "edge or self-intersection" if sanity["ok"] else
+                     f"failed: {_sanity_counts(sanity)}"))
+    noise = fig.get("cloud_noise") or {}
+    if noise.get("noise_mm") is not None:
+        expected = (f"; the fit expects {noise['reference_mm']:g} mm"
+                    if noise.get("reference_mm") is not None else "")
+        rows.append(("cloud_noise", "Cloud noise", f"{noise['noise_mm']:.3f} mm (the fused "
+                     f"points' median standard error over the face{expected})"))
     rough = fig.get("roughness") or {}
     if rough.get("bent_share_pct") is not None:
         rows.append(("roughness", "Surface", f"{rough['bent_share_pct']:.1f} % of the face's "
                      f"edges bent over {rough['bent_deg']:g}°, median bend "
                      f"{rough['median_bend_deg']:.1f}° (smooth skin: under 7 % and 3°)"))
     for protocol, sc in (fig.get("evaluation") or {}).items():
-        a, c = sc["accuracy"], sc["completion"]
-        rows.append((f"evaluation_{protocol}", f"Accuracy ({protocol})",
-                     f"mean {a['mean']:.3f} mm, median {a['median']:.3f} mm; completion mean "
-                     f"{c['mean']:.3f} mm, median {c['median']:.3f} mm"))
+        rows.append((f"evaluation_{protocol}", f"Accuracy ({protocol})", _scores(sc)))
+        ears = sc.get("ears") or {}
+        if (ears.get("accuracy") or {}).get("median") is not None and \
+                (ears.get("completion") or {}).get("median") is not None:
+            rows.append((f"ears_{protocol}", f"Ears accuracy ({protocol})", _scores(ears)))
     return rows
+
+
+def warnings(report: dict) -> list[tuple[str, str]]:
+    """(key, text) of what in ``report`` a user must know before trusting the mesh: a mesh
+    that fails its checks, keyframes left out, a narrow sweep, a noisy cloud."""
+    fig, found = report.get("figures", {}), []
+    sanity = fig.get("mesh_sanity") or {}
+    if sanity.get("ok") is False:
+        found.append(("mesh_sanity", f"The mesh fails its checks: {_sanity_counts(sanity)} "
+                      "after the fit relaxed what it could; the surface is wrong there."))
+    dropped = fig.get("dropped_keyframes") or []
+    if dropped:
+        reasons = sorted({str(d.get("reason", "no reason given")) for d in dropped})
+        total = (fig.get("keyframes") or 0) + len(dropped)
+        found.append(("dropped_keyframes", f"{len(dropped)} of {total} keyframes were left "
+                      f"out ({'; '.join(reasons)}): frames "
+                      f"{', '.join(str(d.get('frame_index')) for d in dropped)}."))
+    span = (fig.get("coverage") or {}).get("yaw_span_deg")
+    if span is not None and span < COVERAGE_WARN_DEG:
+        found.append(("coverage", f"The views span only {span:.0f}° of yaw round the head "
+                      "(a full sweep about 180°): the sides of the head and the ears are "
+                      "seen by few views or none."))
+    noise = fig.get("cloud_noise") or {}
+    if noise.get("noise_mm") is not None and noise.get("reference_mm") is not None and \
+            noise["noise_mm"] > noise["reference_mm"]:
+        found.append(("cloud_noise", f"The fused cloud is noisy: {noise['noise_mm']:.3f} mm "
+                      f"against the {noise['reference_mm']:g} mm the fit expects; the fit "
+                      "trusted it less and smoothed the face more."))
+    return found
 
 
 def run_summary(report: dict) -> str:
@@ -195,37 +271,54 @@ def run_summary(report: dict) -> str:
 
 
 def _stage_rows(report: dict) -> str:
+    """The stage table's rows: each stage computed by this run with its seconds, or reused
+    (with the seconds it took when it was computed, which this run did not spend)."""
     rows, depth = [], []
     for name, info in report.get("stages", {}).items():
         if is_keyframe_row(name):
             depth.append(info)
             continue
-        state = "reused" if info.get("cached") else "computed"
-        rows.append(f"<tr><td>{html.escape(name)}</td><td>{state}</td>"
-                    f"<td>{(info.get('seconds') or 0):.1f} s</td></tr>")
+        seconds = info.get("seconds") or 0
+        if info.get("cached"):
+            cells = ("reused", f'<span class="muted">({seconds:.1f} s when computed)</span>')
+        else:
+            cells = ("computed", f"{seconds:.1f} s")
+        rows.append(f'<tr data-stage="{html.escape(name)}"><td>{html.escape(name)}</td>'
+                    f"<td>{cells[0]}</td><td>{cells[1]}</td></tr>")
     if depth:
-        seconds = sum(i.get("seconds") or 0 for i in depth)
-        computed = sum(not i.get("cached") for i in depth)
-        rows.append(f"<tr><td>depth</td><td>{computed} of {len(depth)} maps computed</td>"
-                    f"<td>{seconds:.1f} s</td></tr>")
+        computed = [i for i in depth if not i.get("cached")]
+        seconds = sum(i.get("seconds") or 0 for i in computed)
+        time = (f"{seconds:.1f} s summed over the maps (made side by side)" if computed
+                else '<span class="muted">reused</span>')
+        rows.append(f'<tr data-stage="depth"><td>depth</td><td>{len(computed)} of '
+                    f"{len(depth)} maps computed</td><td>{time}</td></tr>")
     return "\n".join(rows)
+
+
+def _ticks() -> str:
+    """The colour bar's labels: every mm from 0 to :data:`HEAT_MAX_MM`, the last one "and
+    more", each at its place on the bar."""
+    count = int(HEAT_MAX_MM)
+    return "".join(f'<span style="left: {100 * k / count:g}%">'
+                   f"{f'≥ {k} mm' if k == count else k}</span>" for k in range(count + 1))
 
 
 def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
                accuracy_mm: np.ndarray | None = None, frames: Path | None = None) -> bytes:
     """The page of one capture run: ``report`` (as in ``report.json``), ``results`` (name ->
     this run's file: cameras.json, cloud.ply, ...), the mesh's glTF bytes (None without a
-    mesh), the per-vertex accuracy in mm (nan outside the scored region) if scored, and the
-    frames stage's folder (the keyframe images) if there is one."""
+    mesh), the per-vertex accuracy in mm (metric protocol; nan outside the scored regions)
+    if scored, and the frames stage's folder (the keyframe images) if there is one. Without
+    a mesh the page has no 3D view: it says where the run stopped and what it made."""
     data: dict = {"mesh_glb": base64.b64encode(glb).decode("ascii") if glb else None}
     centre = None
     if glb:
         centre = np.asarray(trimesh.load(results["mesh.ply"], process=False,
                                          force="mesh").bounding_box.centroid)
-    if accuracy_mm is not None:
+    if glb and accuracy_mm is not None:
         data["accuracy"] = {"colours": _b64(turbo(accuracy_mm, HEAT_MAX_MM)),
                             "max_mm": HEAT_MAX_MM}
-    if "cloud.ply" in results:
+    if glb and "cloud.ply" in results:
         data["cloud"] = _cloud(results["cloud.ply"])
     if "cameras.json" in results and centre is not None:
         data["cameras"], data["view_direction"], data["view_up"] = _cameras(
@@ -233,21 +326,38 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
     title = f"{report.get('subject', '')} / {report.get('capture', '')}"
     figures = "\n".join(f'<dt>{html.escape(label)}</dt><dd data-figure="{key}">'
                         f"{html.escape(text)}</dd>" for key, label, text in figure_rows(report))
-    buttons = ['<button data-mode="colour">Colour</button>',
-               '<button data-mode="plain">Plain</button>']
-    if accuracy_mm is not None:
-        buttons.append('<button data-mode="accuracy">Accuracy</button>')
-    for name, label in (("cloud", "Cloud"), ("cameras", "Cameras")):
-        if name in data:
-            buttons.append(f'<button data-toggle="{name}" aria-pressed="false">{label}</button>')
+    warned = warnings(report)
+    warning_list = ('<ul id="warnings">' + "".join(
+        f'<li data-warning="{key}">{html.escape(text)}</li>' for key, text in warned)
+        + "</ul>") if warned else ""
     viewer = resources.files("facecap.flows") / "viewer"
+    if glb:
+        buttons = ['<button data-mode="colour">Colour</button>',
+                   '<button data-mode="plain">Plain</button>']
+        if "accuracy" in data:
+            buttons.append('<button data-mode="accuracy">Accuracy</button>')
+        for name, label in (("cloud", "Cloud"), ("cameras", "Cameras")):
+            if name in data:
+                buttons.append(f'<button data-toggle="{name}" aria-pressed="false">{label}'
+                               "</button>")
+        view = VIEW.format(buttons="\n".join(buttons), ticks=_ticks())
+        no_mesh = ""
+    else:
+        until = str(report.get("until", ""))
+        made = [name for name in report.get("stages", {}) if not is_keyframe_row(name)]
+        if any(is_keyframe_row(name) for name in report.get("stages", {})):
+            made.append("depth")
+        view = ""
+        no_mesh = ('<p class="note" id="no-mesh">This run made no mesh: it stopped after '
+                   f"{html.escape(until)} (<code>--until {html.escape(until)}</code>), so there "
+                   "is no face to turn. It made: "
+                   f"{html.escape(', '.join(made)) if made else 'nothing'} (below). Run it "
+                   "again without <code>--until</code> for the mesh: what it made is "
+                   "reused.</p>")
     page = TEMPLATE.format(
-        title=html.escape(title),
-        summary=html.escape(run_summary(report)),
-        no_mesh="" if glb else '<p class="note">This run made no mesh (it stopped at '
-                               f'{html.escape(str(report.get("until", "")))}).</p>',
-        buttons="\n".join(buttons), bar=_colour_bar(), max_mm=f"{HEAT_MAX_MM:g}",
-        figures=figures, stages=_stage_rows(report),
+        title=html.escape(title), view=view, main_class="" if glb else ' class="no-view"',
+        summary=html.escape(run_summary(report)), no_mesh=no_mesh, warnings=warning_list,
+        bar=_colour_bar(), figures=figures, stages=_stage_rows(report),
         three=(viewer / "three.bundle.min.js").read_text() if glb else "",
         data=json.dumps(data).replace("</", "<\\/"),
         viewer=((viewer / "viewer.js").read_text() if glb
@@ -266,26 +376,69 @@ PAGE_HEAD = """<!doctype html>
 """The start of facecap's pages (a format string of ``title``): a phone's width, and no
 request for an icon that is not there."""
 
+VIEW = """<div id="view">
+  <canvas id="canvas"></canvas>
+  <div id="controls">
+{buttons}
+  </div>
+  <figure id="keyframe" hidden><img alt=""><figcaption></figcaption></figure>
+  <div id="colourbar" hidden>
+    <div>Accuracy, metric protocol: each vertex's distance to the scan, in the mesh's own
+      millimetres</div>
+    <div class="ramp"></div>
+    <div class="ticks">{ticks}</div>
+    <div><i class="grey"></i> not scored (outside the face and the ears)</div>
+  </div>
+</div>"""
+"""The 3D view of a page with a mesh: the canvas, the mode and toggle buttons, the keyframe a
+click on a camera opens and the heat map's colour bar."""
+
 TEMPLATE = PAGE_HEAD + """<style>
   body {{ margin: 0; font: 15px/1.45 system-ui, sans-serif; color: #222; background: #fff; }}
-  main {{ display: flex; flex-wrap: wrap; min-height: 100vh; }}
-  #view {{ position: relative; flex: 1 1 480px; min-height: 60vh; }}
+  main {{ display: flex; min-height: 100vh; }}
+  /* The view keeps the screen's height and stays on it while the figures beside it scroll:
+     its colour bar is always in sight, and the wheel over it zooms the face, as in any 3D
+     viewer, without taking the page's scrolling away from anything. */
+  #view {{ position: sticky; top: 0; align-self: flex-start; flex: 1 1 auto; min-width: 0;
+           height: 100vh; }}
   #canvas {{ width: 100%; height: 100%; display: block; touch-action: none; }}
   #controls {{ position: absolute; top: 8px; left: 8px; display: flex; flex-wrap: wrap;
                gap: 6px; }}
   button {{ font: inherit; padding: 6px 12px; border: 1px solid #999; border-radius: 6px;
             background: #fff; cursor: pointer; }}
   button[aria-pressed="true"] {{ background: #2060c0; color: #fff; border-color: #2060c0; }}
-  #colourbar {{ position: absolute; bottom: 12px; left: 12px; right: 12px; max-width: 360px; }}
-  #colourbar div {{ height: 12px; border-radius: 3px; background: linear-gradient(to right, {bar}); }}
-  #colourbar span {{ font-size: 13px; }}
-  aside {{ flex: 0 1 380px; padding: 12px 20px; overflow-wrap: anywhere; }}
+  #colourbar {{ position: absolute; bottom: 10px; left: 10px; right: 10px; max-width: 400px;
+                padding: 6px 10px 4px; font-size: 13px; line-height: 1.3;
+                background: rgba(255, 255, 255, 0.88); border-radius: 6px; }}
+  #colourbar .ramp {{ height: 12px; margin: 4px 0 0; border-radius: 3px;
+                      background: linear-gradient(to right, {bar}); }}
+  #colourbar .ticks {{ position: relative; height: 18px; }}
+  #colourbar .ticks span {{ position: absolute; transform: translateX(-50%);
+                            white-space: nowrap; }}
+  #colourbar .ticks span:first-child {{ transform: none; }}
+  #colourbar .ticks span:last-child {{ transform: translateX(-100%); }}
+  #colourbar i.grey {{ display: inline-block; width: 12px; height: 12px; border-radius: 2px;
+                       background: rgb(170, 170, 170); vertical-align: -1px; }}
+  aside {{ flex: 0 0 420px; box-sizing: border-box; padding: 12px 20px;
+           overflow-wrap: anywhere; }}
+  main.no-view aside {{ flex: 1 1 auto; max-width: 760px; }}
+  @media (max-width: 899px) {{
+    /* A narrow screen: the view above the figures. */
+    main {{ flex-direction: column; }}
+    #view {{ position: relative; align-self: stretch; flex: none; height: 70vh; }}
+    aside {{ flex: none; }}
+  }}
   h1 {{ font-size: 20px; margin: 4px 0 8px; }}
   dt {{ font-weight: 600; margin-top: 8px; }}
   dd {{ margin: 0; }}
   table {{ border-collapse: collapse; margin-top: 12px; font-size: 14px; }}
-  td {{ padding: 2px 10px 2px 0; }}
+  th {{ text-align: left; border-bottom: 1px solid #999; }}
+  th, td {{ padding: 2px 10px 2px 0; }}
+  td:first-child {{ overflow-wrap: normal; }}
+  .muted {{ color: #777; }}
   .note {{ color: #a04000; }}
+  #warnings {{ margin: 8px 0; padding: 8px 12px 8px 28px; background: #fff0e0;
+               border: 1px solid #e0a060; border-radius: 6px; color: #7a3000; }}
   #keyframe {{ position: absolute; right: 8px; top: 52px; margin: 0; max-width: 45%;
                background: #fff; padding: 6px; border: 1px solid #999; border-radius: 6px;
                cursor: pointer; }}
@@ -294,25 +447,21 @@ TEMPLATE = PAGE_HEAD + """<style>
 </style>
 </head>
 <body>
-<main>
-<div id="view">
-  <canvas id="canvas"></canvas>
-  <div id="controls">
-{buttons}
-  </div>
-  <figure id="keyframe" hidden><img alt=""><figcaption></figcaption></figure>
-  <div id="colourbar" hidden><div></div><span>0 mm</span>
-    <span style="float: right">{max_mm} mm and more (grey: not scored)</span></div>
-</div>
+<main{main_class}>
+{view}
 <aside>
   <h1>{title}</h1>
   <p>{summary}</p>
   {no_mesh}
+  {warnings}
   <dl>
 {figures}
   </dl>
-  <table>
+  <table id="stages">
+  <thead><tr><th>stage</th><th>this run</th><th>time</th></tr></thead>
+  <tbody>
 {stages}
+  </tbody>
   </table>
 </aside>
 </main>

@@ -36,6 +36,7 @@ EXPECTED = {
     "metric_scale": "90.9 mm per camera unit, ±4.0 % (1σ) from landmarks + iris; ears "
                     "dropped (too few points)",
     "keyframes": "8", "focal_px": "503.8 px",
+    "ears": "nothing is known about the ears: this run's report has no ear checks",
     "evaluation_metric": "mean 0.281 mm, median 0.163 mm; completion mean 0.970 mm, median "
                          "0.407 mm",
 }
@@ -206,3 +207,209 @@ def test_the_dataset_page_loses_a_forgotten_subject(results, tmp_path):
     assert 'data-capture="anna/take1"' not in text
     assert 'data-capture="carl/take1"' in text and 'data-capture="bob/take1"' in text
     assert text.count("data:image/png") == 1  # carl's thumbnail alone
+
+
+def _full_report() -> dict:
+    """A report as a full run writes it: every stage (so that the figures and the stage table
+    make the column beside the view taller than a laptop's screen), 40 depth maps."""
+    stages = {name: {"cached": False, "seconds": 10.0 + i} for i, name in enumerate(
+        ("video", "frames", "keyframes", "poses", "landmarks", "coarse", "views", "fusion",
+         "fitting", "scan", "scan_landmarks", "evaluation"))}
+    stages |= {f"depth_{k:05d}": {"cached": False, "seconds": 3.0} for k in range(40)}
+    score = {**REPORT["figures"]["evaluation"]["metric"],
+             "ears": {"accuracy": {"mean": 1.2, "median": 0.9},
+                      "completion": {"mean": 2.5, "median": 1.7}}}
+    figures = {**REPORT["figures"], "coverage": {"yaw_min_deg": -86.0, "yaw_max_deg": 88.5,
+                                                 "yaw_span_deg": 174.5},
+               "roughness": {"bent_share_pct": 2.7, "bent_deg": 20, "median_bend_deg": 1.4},
+               "ears": {"left": {"used": True, "points": 20}, "right": {"used": True,
+                                                                       "points": 18}},
+               "mesh_sanity": {"flipped": 0, "stretched_edges": 0,
+                               "self_intersecting_pairs": 0, "ok": True},
+               "cloud_noise": {"noise_mm": 0.09, "reference_mm": 0.12},
+               "evaluation": {"similarity": score, "metric": score}}
+    return {**REPORT, "stages": stages, "figures": figures}
+
+
+def _opened(browser, page_file: Path, width: int = 1100, height: int = 700):
+    """``page_file`` open in a page of that size, its viewer ready."""
+    page = browser.new_page(viewport={"width": width, "height": height})
+    page.goto(page_file.as_uri())
+    page.wait_for_function("window.facecap && window.facecap.ready", timeout=60_000)
+    return page
+
+
+def _in_sight(page, selector: str) -> bool:
+    """Whether the element is shown and wholly inside the window, as the page is scrolled."""
+    box = page.evaluate(f"(() => {{ const e = document.querySelector({json.dumps(selector)}); "
+                        "if (!e || e.hidden) return null; const r = e.getBoundingClientRect(); "
+                        "return [r.top, r.bottom, r.left, r.right, innerHeight, innerWidth]; })()")
+    return box is not None and box[0] >= 0 and box[1] <= box[4] and box[2] >= 0 \
+        and box[3] <= box[5] and box[1] > box[0]
+
+
+@pytest.mark.parametrize("size", [(1280, 800), (1366, 768)])
+def test_the_colour_bar_is_in_sight_on_a_laptop_whatever_the_wheel_does(results, tmp_path,
+                                                                         size):
+    """At a laptop's size, the heat map's colour bar is on the screen as the page opens,
+    after the wheel zoomed over the view, and after the page scrolled to its last figures."""
+    from tests.browser import chromium
+
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(_full_report(), results, mesh_glb(results["mesh.ply"]),
+                                     _accuracy(results), results["frames"]))
+    with chromium() as browser:
+        page = _opened(browser, page_file, *size)
+        assert page.evaluate("document.documentElement.scrollHeight") > size[1]  # it scrolls
+        page.click("[data-mode=accuracy]")
+        assert _in_sight(page, "#colourbar")
+        view = page.locator("#canvas").bounding_box()
+        page.mouse.move(view["x"] + view["width"] / 2, view["y"] + view["height"] / 2)
+        for _ in range(5):
+            page.mouse.wheel(0, 300)
+            page.wait_for_timeout(50)
+        assert _in_sight(page, "#colourbar")
+        page.mouse.move(size[0] - 100, size[1] / 2)  # over the figures
+        page.mouse.wheel(0, 5000)
+        page.wait_for_timeout(300)
+        assert page.evaluate("scrollY") > 0  # the page scrolled to its last rows
+        assert _in_sight(page, "#colourbar")
+        assert _in_sight(page, "[data-stage=depth]")
+        page.screenshot(path=str(SHOTS / f"colour-bar-{size[0]}x{size[1]}.png"))
+
+
+def test_the_colour_bar_names_its_protocol_and_each_mm(results, tmp_path):
+    from tests.browser import chromium
+
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(REPORT, results, mesh_glb(results["mesh.ply"]),
+                                     _accuracy(results)))
+    with chromium() as browser:
+        page = _opened(browser, page_file)
+        page.click("[data-mode=accuracy]")
+        text = page.inner_text("#colourbar")
+        assert "metric protocol" in text and "not scored" in text
+        ticks = page.query_selector_all("#colourbar .ticks span")
+        assert [t.inner_text() for t in ticks] == ["0", "1", "2", "3", "4", "≥ 5 mm"]
+        ramp = page.locator("#colourbar .ramp").bounding_box()
+        for k, tick in enumerate(ticks):  # each label sits under its place on the ramp
+            box = tick.bounding_box()  # the ends' labels aligned with the ends
+            at = box["x"] + box["width"] * (0 if k == 0 else 1 if k == 5 else 0.5)
+            assert abs(at - (ramp["x"] + ramp["width"] * k / 5)) < 2, (k, box, ramp)
+
+
+def test_plain_is_grey(results, tmp_path):
+    from tests.browser import _pixels, chromium
+
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(REPORT, results, mesh_glb(results["mesh.ply"])))
+    with chromium() as browser:
+        page = _opened(browser, page_file)
+        page.click("[data-mode=plain]")
+        page.wait_for_timeout(400)
+        shot = _pixels(page.locator("#canvas").screenshot())
+        h, w = shot.shape[:2]
+        middle = shot[h // 3: 2 * h // 3, w // 3: 2 * w // 3].reshape(-1, 3)
+        drawn = middle[np.abs(middle - 244).sum(axis=1) > 30]
+        assert len(drawn) > 0.5 * len(middle)
+        assert np.median(drawn.max(axis=1) - drawn.min(axis=1)) < 4  # no hue, just shading
+
+
+WARNED = {
+    "mesh_sanity": {"triangles": 20000, "flipped": 2, "degenerate": 0, "stretched_edges": 0,
+                    "max_edge_stretch": 1.9, "self_intersecting_pairs": 314, "ok": False},
+    "dropped_keyframes": [{"frame_index": 12, "reason": "not registered by structure from "
+                           "motion"}, {"frame_index": 40, "reason": "not registered by "
+                                       "structure from motion"}],
+    "coverage": {"yaw_min_deg": -10.0, "yaw_max_deg": 65.0, "yaw_span_deg": 75.0},
+    "cloud_noise": {"noise_mm": 0.31, "reference_mm": 0.12, "weight": 0.15},
+}
+
+
+def test_the_report_s_warnings_are_on_the_page(results, tmp_path):
+    """A mesh that fails its checks, keyframes left out, a narrow sweep and a noisy cloud
+    are each said in words above the figures; a report without ear checks says that nothing
+    is known of the ears; the ears' scores are shown where they were scored."""
+    from tests.browser import chromium
+
+    figures = {**REPORT["figures"], **WARNED}
+    figures["evaluation"] = {"metric": {
+        **REPORT["figures"]["evaluation"]["metric"],
+        "ears": {"accuracy": {"mean": 1.234, "median": 0.987},
+                 "completion": {"mean": 2.5, "median": 1.75}}}}
+    warned, clean = tmp_path / "warned.html", tmp_path / "clean.html"
+    warned.write_bytes(build_page({**REPORT, "figures": figures}, results,
+                                  mesh_glb(results["mesh.ply"])))
+    clean_figures = {**_full_report()["figures"], "mesh_sanity": {**WARNED["mesh_sanity"],
+                     "flipped": 0, "self_intersecting_pairs": 0, "ok": True},
+                     "dropped_keyframes": [], "cloud_noise": {"noise_mm": 0.09,
+                                                              "reference_mm": 0.12}}
+    clean.write_bytes(build_page({**REPORT, "figures": clean_figures}, results,
+                                 mesh_glb(results["mesh.ply"])))
+    with chromium() as browser:
+        page = _opened(browser, warned)
+        shown = {li.get_attribute("data-warning"): li.inner_text()
+                 for li in page.query_selector_all("#warnings li")}
+        assert set(shown) == {"mesh_sanity", "dropped_keyframes", "coverage", "cloud_noise"}
+        assert all(_in_sight(page, f"[data-warning={key}]") for key in shown)  # no scrolling
+        assert "314 self-intersecting triangle pairs, 2 flipped triangles" in \
+            shown["mesh_sanity"]
+        assert "2 of 10 keyframes" in shown["dropped_keyframes"] and "12, 40" in \
+            shown["dropped_keyframes"]
+        assert "75°" in shown["coverage"]
+        assert "0.310 mm" in shown["cloud_noise"] and "0.12 mm" in shown["cloud_noise"]
+        figure = lambda key: page.inner_text(f"[data-figure={key}]")  # noqa: E731
+        assert figure("ears").startswith("nothing is known about the ears")
+        assert figure("ears_metric") == ("mean 1.234 mm, median 0.987 mm; completion mean "
+                                         "2.500 mm, median 1.750 mm")
+        assert figure("mesh_sanity").startswith("failed: 314 self-intersecting")
+        assert figure("keyframes") == "8 registered, 2 left out (frames 12, 40)"
+        page = _opened(browser, clean)
+        assert page.query_selector("#warnings") is None
+        assert page.inner_text("[data-figure=ears]") == "left 20 points; right 18 points"
+        assert page.inner_text("[data-figure=mesh_sanity]").startswith("passed")
+
+
+def test_a_run_stopped_early_says_what_it_made_and_offers_no_dead_view(results, tmp_path):
+    """``--until keyframes``: no mesh, so no view and no buttons that would do nothing; the
+    page says where the run stopped and what it made."""
+    from tests.browser import chromium
+
+    report = {**REPORT, "until": "keyframes", "figures": {},
+              "stages": {"video": {"cached": True, "seconds": 0.2},
+                         "frames": {"cached": False, "seconds": 4.1},
+                         "keyframes": {"cached": False, "seconds": 3.9}}}
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(report, results, None))
+    with chromium() as browser:
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        errors = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(page_file.as_uri())
+        assert page.query_selector_all("button, canvas") == []
+        said = page.inner_text("#no-mesh")
+        assert "stopped after keyframes" in said and "--until keyframes" in said
+        assert "video, frames, keyframes" in said
+        assert [r.get_attribute("data-stage") for r in
+                page.query_selector_all("#stages tbody tr")] == ["video", "frames", "keyframes"]
+        assert _in_sight(page, "#no-mesh")
+    assert errors == []
+
+
+def test_the_stage_table_has_a_header_and_says_a_reused_stage_took_no_time(results, tmp_path):
+    from tests.browser import chromium
+
+    report = {**REPORT, "stages": {**REPORT["stages"],
+                                   "depth_00003": {"cached": True, "seconds": 50.0}}}
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(report, results, mesh_glb(results["mesh.ply"])))
+    with chromium() as browser:
+        page = _opened(browser, page_file)
+        assert [th.inner_text() for th in page.query_selector_all("#stages thead th")] == \
+            ["stage", "this run", "time"]
+        cells = lambda stage: [td.inner_text() for td in  # noqa: E731
+                               page.query_selector_all(f"[data-stage={stage}] td")]
+        assert cells("keyframes") == ["keyframes", "reused", "(3.9 s when computed)"]
+        # The reused map's old seconds are not this run's: 2.0 + 2.5 s over the two made.
+        assert cells("depth") == ["depth", "2 of 3 maps computed",
+                                  "4.5 s summed over the maps (made side by side)"]

@@ -46,7 +46,7 @@
   let mesh = null, colours = null;
   const materials = {
     colour: new THREE.MeshStandardMaterial({vertexColors: true, roughness: 0.8}),
-    plain: new THREE.MeshStandardMaterial({color: 0xd9c4b0, roughness: 0.7}),
+    plain: new THREE.MeshStandardMaterial({color: 0xb8b8b8, roughness: 0.7}),  // grey: the shape alone
     accuracy: new THREE.MeshStandardMaterial({vertexColors: true, roughness: 0.9}),
   };
   const extras = {};
