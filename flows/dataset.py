@@ -120,7 +120,10 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
         create_table_artifact(rows, key="cross-capture-consistency",
                               description="same subject, two captures: vertex-to-vertex mm")
     summary = {"captures": len(entries), "done": [f"{s}/{c}" for s, c in done],
-               "failed": failed, "consistency": rows, "captures_at_once": at_once}
+               "with_mesh": [f"{s}/{c}" for (s, c), folder in done.items()
+                             if (folder / "mesh.ply").is_file()],
+               "until": until, "failed": failed, "consistency": rows,
+               "captures_at_once": at_once}
     write_results(out_root, {"dataset.json": json.dumps(summary, indent=1).encode()})
 
     rewrite_dataset_page(out_root)  # from what OUT holds now, dataset.json's failures too
@@ -130,6 +133,21 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
         raise FacecapError(f"{len(failed)} of {len(entries)} captures failed: "
                            + "; ".join(f"{k}: {v}" for k, v in failed.items()))
     return summary
+
+
+def summary_line(summary: dict, out: str | Path) -> str:
+    """What a dataset run made, in one line for the command line, and where its page is:
+    ``3 of 3 captures reconstructed into OUT; their page: OUT/index.html``; captures run
+    with ``until`` a stage before the mesh are said to have stopped there, not to be
+    reconstructed."""
+    done, meshes = len(summary["done"]), len(summary.get("with_mesh", summary["done"]))
+    page = Path(out) / "index.html"
+    if meshes == done:
+        made = f"{done} of {summary['captures']} captures reconstructed into {out}"
+    else:
+        made = (f"{done} of {summary['captures']} captures run into {out}, "
+                f"{done - meshes} of them stopped after {summary.get('until')} with no mesh")
+    return f"{made}; their page: {page}"
 
 
 def _capture_parameters(entry: CaptureEntry, out_root: Path, config: ConfigParameter,

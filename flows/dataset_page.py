@@ -153,10 +153,14 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
             status, order = f"failed: {html.escape(str(failed[name]))}", 0
         elif name in regressed:
             status, order = "regressed", 1
+        elif report and not (folder / "mesh.ply").is_file():
+            # A run stopped before the mesh (--until): what it made is not a result.
+            until = html.escape(str(report.get("until") or "an earlier stage"))
+            status, order = f"stopped after {until}: no mesh", 3
         elif report:
             status, order = "done", 2
         else:
-            status, order = "not run", 3
+            status, order = "not run", 4
         href, face = link(out, subject, capture, report)
         thumb = _thumbnail(folder / "preview.png") if face else ""
         image = f'<img src="{thumb}" width="{THUMB_WIDTH}" alt="">' if thumb else ""

@@ -169,3 +169,20 @@ def test_the_dataset_page_checks_and_escapes_what_out_holds(tmp_path):
     rows = sorted(part.split('"', 1)[0] for part in page.split('data-capture="')[1:])
     assert rows == ["anna/take1", "anna/take2", "bob/take1", "carl/take1"]
     assert "data:image/png" not in page  # no picture from outside OUT
+
+
+def test_the_dataset_run_s_last_line_says_what_it_made_and_names_its_page(tmp_path):
+    """``facecap dataset``'s closing line: reconstructed only where there is a mesh; a run
+    stopped before it (``--until keyframes``) says so; the dataset page is named."""
+    from facecap.flows.dataset import summary_line
+
+    out = tmp_path / "out"
+    done = ["anna/take1", "anna/take2", "bob/take1"]
+    full = {"captures": 3, "done": done, "with_mesh": done, "until": "evaluation"}
+    assert summary_line(full, out) == (f"3 of 3 captures reconstructed into {out}; their "
+                                       f"page: {out / 'index.html'}")
+    early = {**full, "with_mesh": [], "until": "keyframes"}
+    line = summary_line(early, out)
+    assert "reconstructed" not in line
+    assert "stopped after keyframes with no mesh" in line and line.endswith(
+        f"their page: {out / 'index.html'}")

@@ -413,3 +413,27 @@ def test_the_stage_table_has_a_header_and_says_a_reused_stage_took_no_time(resul
         # The reused map's old seconds are not this run's: 2.0 + 2.5 s over the two made.
         assert cells("depth") == ["depth", "2 of 3 maps computed",
                                   "4.5 s summed over the maps (made side by side)"]
+
+
+def test_the_dataset_page_says_a_capture_stopped_before_its_mesh(results, tmp_path):
+    """A capture run with ``--until keyframes`` is neither done nor failed: its row says
+    where it stopped."""
+    from facecap.flows.dataset_page import build_dataset_page
+    from tests.browser import chromium
+
+    out = tmp_path / "results"
+    _dataset_results(out, results)
+    folder = out / "carl" / "take1"
+    folder.mkdir(parents=True)
+    (folder / "report.json").write_text(json.dumps(
+        {**REPORT, "until": "keyframes", "figures": {},
+         "stages": {"keyframes": {"cached": False, "seconds": 3.9}}}))
+    page_file = out / "index.html"
+    page_file.write_bytes(build_dataset_page(out, [("anna", "take1"), ("carl", "take1")]))
+    with chromium() as browser:
+        page = browser.new_page()
+        page.goto(page_file.as_uri())
+        status = lambda name: page.inner_text(  # noqa: E731
+            f"tr[data-capture='{name}'] td:nth-child(3)")
+        assert status("carl/take1") == "stopped after keyframes: no mesh"
+        assert status("anna/take1") == "regressed"
