@@ -409,10 +409,16 @@ def check_output_place(out: str | os.PathLike, store: str | None,
     home = settings().home.resolve()
     own = [home / "store", home / "store-cache", cache_root().resolve(), home / "work",
            home / "scratch", home / "assets", home / "locks", home / "logs"]
-    if store and "://" not in store:
-        own.append(Path(store).expanduser().resolve())
-    elif store and store.startswith("file://"):
-        own.append(Path(store.removeprefix("file://")).resolve())
+    if store and ("://" not in store or store.startswith("file://")):
+        folder = Path(store.removeprefix("file://")).expanduser()
+        try:
+            own.append(folder.resolve())
+        except (RuntimeError, OSError):  # a link loop: the store says what it is
+            from facecap.tasks.store import open_store
+
+            open_store(store)
+            raise InputError(f"the store {store} cannot be looked up; give the path of a "
+                             "folder (--store or FACECAP_STORE)") from None
     for folder in own:
         if _inside(target, folder):
             raise InputError(f"the output folder {out} lies inside {folder}, which facecap "

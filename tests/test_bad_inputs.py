@@ -289,6 +289,16 @@ def _a_file(tmp: Path) -> Path:
     return tmp / "store.tar"
 
 
+def _a_link_loop(tmp: Path) -> Path:
+    (tmp / "store.loop").symlink_to(tmp / "store.loop")
+    return tmp / "store.loop"
+
+
+def _a_dangling_link(tmp: Path) -> Path:
+    (tmp / "nowhere").symlink_to(tmp / "gone")
+    return tmp / "nowhere"
+
+
 def _dataset_with_a_subject_named(tmp: Path, subject: str, video: Path) -> Path:
     _copy(video, tmp / "dataset" / subject / "take.mp4")
     return tmp / "dataset"
@@ -463,6 +473,12 @@ CORPUS = {
     "store: a folder inside a file": (lambda m, t, k: ["reconstruct", m["orbit"], "--store",
                                                        _a_file(t) / "artifacts"],
                                       ["artifacts is not a folder", "store.tar is a file"]),
+    "store: a link that leads back to itself": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--store", _a_link_loop(t)],
+        ["store.loop is not a folder", "a link that leads back to itself", "--store"]),
+    "store: a link to nothing": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--store", _a_dangling_link(t) / "store"],
+        ["nowhere is a link to nothing", "--store"]),
     "store: an unknown protocol": (lambda m, t, k: ["reconstruct", m["orbit"], "--store",
                                                     "foo://bucket/x"],
                                    ["protocol 'foo'", "give a folder or an s3://"]),

@@ -3,6 +3,7 @@ renamed into place in one atomic step."""
 
 from __future__ import annotations
 
+import errno
 import shutil
 import uuid
 from collections.abc import Mapping
@@ -36,6 +37,19 @@ class LocalStore(ArtifactStore):
 
     def __init__(self, url) -> None:
         super().__init__(url)
+        for path in (Path(self._root), *Path(self._root).parents):
+            if path.is_symlink() and not path.exists():  # a loop, or a link to nothing
+                try:
+                    path.resolve(strict=True)
+                except RuntimeError:
+                    why = "a link that leads back to itself"
+                except OSError as exc:
+                    why = ("a link that leads back to itself" if exc.errno == errno.ELOOP
+                           else "a link to nothing")
+                else:  # pragma: no cover - exists() said otherwise a moment ago
+                    continue
+                raise InputError(f"the store {url} is not a folder ({path} is {why}); give the "
+                                 "path of a folder (--store or FACECAP_STORE)")
         existing = next((p for p in (Path(self._root), *Path(self._root).parents)
                          if p.exists()), None)
         if existing is not None and not existing.is_dir():
