@@ -98,12 +98,11 @@ def _cmd_dataset(args) -> int:
     check_output_folder(Path(args.out))
     _check_store(args)
     console.prefect_env()
-    from facecap.flows.dataset import reconstruct_dataset
+    from facecap.flows.dataset import reconstruct_dataset, summary_line
 
     summary = reconstruct_dataset(args.root, args.out, config=args.config, store=args.store,
                                   until=args.until)
-    print(f"{len(summary['done'])} of {summary['captures']} captures reconstructed into "
-          f"{args.out}")
+    print(summary_line(summary, args.out))
     for row in summary["consistency"]:
         print(f"  {row['subject']}: {row['capture_a']} vs {row['capture_b']}: median "
               f"{row['median_mm']} mm, p95 {row['p95_mm']} mm")
