@@ -15,7 +15,10 @@ Generated inputs, each handed to ``facecap`` in this process as a user would:
   name, sub-folders, links out of the folder and dangling links, under names that include
   results' (``preview.png``, ``report.json``) and hidden ones;
 * output folders around a photo folder: the store, a folder inside it, the photo folder
-  itself, links to the store, to a file, dangling and looping.
+  itself, links to the store, to a file, dangling and looping;
+* the other commands that write: ``evaluate --heatmap`` under a file, in the store, with a
+  link to the scan at a heat map's name; ``synth --out`` in the store and over its own
+  subject mesh; ``forget --out`` the file system's root, the dataset folder, the store.
 
 Every run must end either in success or in exit code 2 with exactly one stderr line
 ``facecap: error: ...`` and no traceback; never an internal error. The reconstruct runs are
@@ -267,6 +270,45 @@ def _out_place(place: str, world, scratch: Path) -> Path:
     return link
 
 
+WRITERS = {
+    # name: (argv with {scan}, {landmarks}, {home}, {store}, {scratch}; words of the refusal,
+    # None where the command succeeds)
+    "heat map under a file": (["evaluate", "{scan}", "--scan", "{scan}", "--scan-landmarks",
+                               "{landmarks}", "--heatmap", "{file}/h.png"], "is a file"),
+    "heat map in the store": (["evaluate", "{scan}", "--scan", "{scan}", "--scan-landmarks",
+                               "{landmarks}", "--heatmap", "{home}/store/h.png"],
+                              "keeps for itself"),
+    "heat map over a link to the scan": (["evaluate", "{scan}", "--scan", "{scan}",
+                                          "--scan-landmarks", "{landmarks}", "--protocol",
+                                          "metric", "--json", "--heatmap", "{scratch}/h.png"],
+                                         None),
+    "synth into the store": (["synth", "--out", "{home}/store/artifacts/x"], "keeps for itself"),
+    "synth over its own subject": (["synth", "--out", "{scratch}", "--subject",
+                                    "{scratch}/gt/mesh.ply", "--subject-landmarks",
+                                    "{scratch}/gt/landmarks.json"], "would replace the input"),
+    "forget with --out /": (["forget", "anna", "--out", "/", "--store", "{store}", "--dry-run"],
+                            "root of the file system"),
+    "forget with --out the dataset": (["forget", "anna", "--root", "{scratch}", "--out",
+                                       "{scratch}", "--store", "{store}"], "is the input folder"),
+    "forget with --out the store": (["forget", "anna", "--out", "{store}", "--store",
+                                     "{store}"], "keeps for itself"),
+}
+"""The commands other than reconstruct that write, each given a place it must not write."""
+
+
+def _writer_scratch(case: str, world, scratch: Path) -> None:
+    """What a :data:`WRITERS` case finds in its scratch folder."""
+    if case == "heat map over a link to the scan":
+        (scratch / "h_metric.png").symlink_to(world["scan"])
+    elif case == "synth over its own subject":
+        (scratch / "gt").mkdir()
+        shutil.copyfile(world["scan"], scratch / "gt" / "mesh.ply")
+        shutil.copyfile(world["scan_landmarks"], scratch / "gt" / "landmarks.json")
+    elif case == "forget with --out the dataset":
+        (scratch / "anna").mkdir()
+        (scratch / "anna" / "take.mp4").write_bytes(b"anna's capture")
+
+
 # --------------------------------------------------------------------------- the property
 
 
@@ -301,8 +343,18 @@ def _cases(world):
         lambda place: ("out", place, ["reconstruct", "{photos}", "--out", "{out}", "--store",
                                       store]),
         st.sampled_from(sorted(OUT_PLACES)))
+    writer_argv = st.builds(lambda case: ("writer", case, WRITERS[case][0]),
+                            st.sampled_from(sorted(WRITERS)))
     return st.one_of(video_argv, config_argv, store_argv, mesh_argv, landmark_argv,
-                     photos_argv, out_argv)
+                     photos_argv, out_argv, writer_argv)
+
+
+def _field(arg: str, fill: dict) -> tuple[str, str]:
+    """The placeholder in ``arg`` and what it stands for ('' for none)."""
+    for key, value in fill.items():
+        if key in arg and value is not None:
+            return key, str(value)
+    return "\x00", ""
 
 
 OUTCOMES: dict[str, int] = {}
@@ -322,6 +374,7 @@ def test_no_input_ends_in_a_traceback(world, tmp_path_factory, capfd, monkeypatc
     monkeypatch.setenv("FACECAP_HOME", str(world["home"]))
     s3fs.S3FileSystem.clear_instance_cache()
     before = snapshot(world["store"])
+    scan_before = world["scan"].read_bytes()
 
     @settings(max_examples=EXAMPLES, deadline=None, database=None,
               suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
@@ -336,13 +389,17 @@ def test_no_input_ends_in_a_traceback(world, tmp_path_factory, capfd, monkeypatc
         elif kind == "out":
             _make_photo_folder(photos, GOOD_PHOTOS, world["file"])
             out = _out_place(made, world, scratch)
+        elif kind == "writer":
+            _writer_scratch(made, world, scratch)
         elif made is not None:
             suffix, data = made
             path = scratch / f"input{suffix}"
             path.write_bytes(data)
         photos_before = snapshot(photos) if photos.is_dir() else {}
-        fill = {"{input}": path, "{photos}": photos, "{out}": out}
-        argv = [str(fill[a]) if a in fill else str(a) for a in argv]
+        fill = {"{input}": path, "{photos}": photos, "{out}": out, "{scan}": world["scan"],
+                "{landmarks}": world["scan_landmarks"], "{home}": world["home"],
+                "{store}": world["store"], "{scratch}": scratch, "{file}": world["file"]}
+        argv = [str(a).replace(k, str(v)) for a in argv for k, v in [_field(str(a), fill)]]
         code = main(argv)
         _, err = capfd.readouterr()
         assert "Traceback" not in err, (argv, err)
@@ -354,6 +411,12 @@ def test_no_input_ends_in_a_traceback(world, tmp_path_factory, capfd, monkeypatc
             assert code == 2, (argv, err)  # no reconstruct case may start a flow
         if kind == "out":
             assert OUT_PLACES[made] in err, (made, err)
+        if kind == "writer":
+            words = WRITERS[made][1]
+            assert (code == 0) if words is None else (code == 2 and words in err), (made, err)
+            assert world["scan"].read_bytes() == scan_before, made
+            if made == "forget with --out the dataset":
+                assert (scratch / "anna" / "take.mp4").read_bytes() == b"anna's capture"
         OUTCOMES[f"{kind} {'refused' if code else 'accepted'}"] = \
             OUTCOMES.get(f"{kind} {'refused' if code else 'accepted'}", 0) + 1
         assert (snapshot(photos) if photos.is_dir() else {}) == photos_before, argv
