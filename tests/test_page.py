@@ -437,3 +437,51 @@ def test_the_dataset_page_says_a_capture_stopped_before_its_mesh(results, tmp_pa
             f"tr[data-capture='{name}'] td:nth-child(3)")
         assert status("carl/take1") == "stopped after keyframes: no mesh"
         assert status("anna/take1") == "regressed"
+
+
+def _shot(page) -> np.ndarray:
+    from tests.browser import _pixels
+
+    page.wait_for_timeout(400)  # the damped controls settle
+    return _pixels(page.locator("#canvas").screenshot())
+
+
+def test_the_inside_of_an_open_mesh_is_drawn(tmp_path):
+    """A bowl opening towards the viewer (as the fitted mesh is open at the neck): its inside,
+    the triangles' back, is drawn, not a hole."""
+    from tests.browser import BACKGROUND, chromium
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=80.0)
+    keep = (sphere.vertices[sphere.faces][:, :, 2] < 10.0).all(axis=1)
+    bowl = trimesh.Trimesh(sphere.vertices, sphere.faces[keep], process=False)
+    bowl.remove_unreferenced_vertices()
+    bowl.visual.vertex_colors = np.tile([[200, 150, 120, 255]], (len(bowl.vertices), 1))
+    bowl.export(tmp_path / "mesh.ply")
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(REPORT, {"mesh.ply": tmp_path / "mesh.ply"},
+                                     mesh_glb(tmp_path / "mesh.ply")))
+    with chromium() as browser:
+        page = _opened(browser, page_file)  # looking along -z, into the bowl
+        for mode in ("colour", "plain"):
+            page.click(f"[data-mode={mode}]")
+            shot = _shot(page)
+            h, w = shot.shape[:2]
+            middle = shot[h // 3: 2 * h // 3, w // 3: 2 * w // 3]
+            assert (np.abs(middle - BACKGROUND).sum(axis=2) > 30).mean() > 0.9, mode
+
+
+def test_hiding_the_cameras_brings_the_view_back(results, tmp_path):
+    """Showing the cameras steps the view back to see them; hiding them again steps it
+    forwards to where it was."""
+    from tests.browser import chromium
+
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(REPORT, results, mesh_glb(results["mesh.ply"]),
+                                     frames=results["frames"]))
+    with chromium() as browser:
+        page = _opened(browser, page_file)
+        before = _shot(page)
+        page.click("[data-toggle=cameras]")
+        assert np.abs(_shot(page) - before).mean() > 5.0  # stepped back: a smaller head
+        page.click("[data-toggle=cameras]")
+        assert np.abs(_shot(page) - before).mean() < 0.5

@@ -44,10 +44,15 @@
   }
 
   let mesh = null, colours = null;
+  // Both sides drawn: the fitted mesh is open (the neck, behind the ears), and its inside,
+  // seen through an opening or from behind, is part of what a user turns to look at.
   const materials = {
-    colour: new THREE.MeshStandardMaterial({vertexColors: true, roughness: 0.8}),
-    plain: new THREE.MeshStandardMaterial({color: 0xb8b8b8, roughness: 0.7}),  // grey: the shape alone
-    accuracy: new THREE.MeshStandardMaterial({vertexColors: true, roughness: 0.9}),
+    colour: new THREE.MeshStandardMaterial({vertexColors: true, roughness: 0.8,
+                                            side: THREE.DoubleSide}),
+    plain: new THREE.MeshStandardMaterial({color: 0xb8b8b8, roughness: 0.7,  // grey: the shape
+                                           side: THREE.DoubleSide}),
+    accuracy: new THREE.MeshStandardMaterial({vertexColors: true, roughness: 0.9,
+                                              side: THREE.DoubleSide}),
   };
   const extras = {};
 
@@ -102,13 +107,21 @@
     e.currentTarget.hidden = true;
   });
 
+  const stepBack = {distance: null};  // the view's distance before the cameras were shown
   function toggle(name) {
     if (!(name in extras)) return false;
     extras[name].visible = !extras[name].visible;
-    if (name === "cameras" && extras.cameras.visible) {
-      // Step back far enough to see the cameras around the head.
+    if (name === "cameras") {
+      // Step back far enough to see the cameras around the head, and forwards again to
+      // where the view was when they are hidden (whichever way it was turned meanwhile).
       const offset = camera.position.clone().sub(controls.target);
-      offset.setLength(Math.max(offset.length(), 1.8 * data.cameras.distance));
+      if (extras.cameras.visible) {
+        stepBack.distance = offset.length();
+        offset.setLength(Math.max(offset.length(), 1.8 * data.cameras.distance));
+      } else if (stepBack.distance !== null) {
+        offset.setLength(stepBack.distance);
+        stepBack.distance = null;
+      }
       camera.position.copy(controls.target).add(offset);
     }
     document.querySelector(`[data-toggle="${name}"]`)
