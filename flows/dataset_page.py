@@ -25,6 +25,7 @@ from facecap.flows.page import PAGE_HEAD, PAGE_NAME, keep_page, stored_link
 from facecap.tasks.lifecycle import report_keys
 from facecap.tasks.outputs import write_results
 from facecap_core.dataset import SUMMARY_NAMES
+from facecap_core.evaluation import COLORBAR_HEIGHT
 
 THUMB_WIDTH = 160
 
@@ -38,7 +39,14 @@ def _thumbnail(preview: Path) -> str:
     image = cv2.imread(str(preview), cv2.IMREAD_COLOR)
     if image is None:
         return ""
-    front = image[:, : image.shape[0]] if image.shape[1] >= 3 * image.shape[0] else image
+    h, w = image.shape[:2]
+    side = h - COLORBAR_HEIGHT
+    if side > 0 and w % side == 0 and w // side >= 2:
+        front = image[:side, :side]  # a heat map: square views over its colour bar
+    elif w >= 3 * h:
+        front = image[:, :h]  # the mesh's views side by side
+    else:
+        front = image
     h = int(round(front.shape[0] * THUMB_WIDTH / front.shape[1]))
     ok, png = cv2.imencode(".png", cv2.resize(front, (THUMB_WIDTH, h),
                                               interpolation=cv2.INTER_AREA))

@@ -485,3 +485,28 @@ def test_hiding_the_cameras_brings_the_view_back(results, tmp_path):
         assert np.abs(_shot(page) - before).mean() > 5.0  # stepped back: a smaller head
         page.click("[data-toggle=cameras]")
         assert np.abs(_shot(page) - before).mean() < 0.5
+
+
+def test_a_scored_capture_s_thumbnail_is_its_front_view(results, tmp_path):
+    """The preview of a scored capture is the heat map (three square views over a colour
+    bar): its row shows the front view, square, not the whole strip shrunk."""
+    import cv2
+
+    from facecap.flows.dataset_page import THUMB_WIDTH, build_dataset_page
+    from facecap_core.evaluation import COLORBAR_HEIGHT
+    from tests.browser import chromium
+
+    out = tmp_path / "results"
+    _dataset_results(out, results)
+    heat_map = np.full((480 + COLORBAR_HEIGHT, 3 * 480, 3), 255, np.uint8)
+    heat_map[:480, :480] = (200, 60, 40)  # the front view
+    cv2.imwrite(str(out / "anna" / "take1" / "preview.png"), heat_map)
+    page_file = out / "index.html"
+    page_file.write_bytes(build_dataset_page(out, [("anna", "take1")]))
+    with chromium() as browser:
+        page = browser.new_page()
+        page.goto(page_file.as_uri())
+        size = page.evaluate("(() => { const i = document.querySelector("
+                             "\"tr[data-capture='anna/take1'] img\"); "
+                             "return [i.naturalWidth, i.naturalHeight]; })()")
+        assert size == [THUMB_WIDTH, THUMB_WIDTH]
