@@ -340,6 +340,8 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
             if name in data:
                 buttons.append(f'<button data-toggle="{name}" aria-pressed="false">{label}'
                                "</button>")
+        if "cloud" in data:  # off, the cloud is seen alone
+            buttons.append('<button data-toggle="mesh" aria-pressed="true">Mesh</button>')
         view = VIEW.format(buttons="\n".join(buttons), ticks=_ticks())
         no_mesh = ""
     else:

@@ -510,3 +510,34 @@ def test_a_scored_capture_s_thumbnail_is_its_front_view(results, tmp_path):
                              "\"tr[data-capture='anna/take1'] img\"); "
                              "return [i.naturalWidth, i.naturalHeight]; })()")
         assert size == [THUMB_WIDTH, THUMB_WIDTH]
+
+
+def test_the_cloud_can_be_seen_alone(results, tmp_path):
+    """With the cloud shown, the Mesh switch hides the mesh: the cloud's grey points alone,
+    none of the sphere's red or blue; on again, the mesh is back."""
+    from tests.browser import chromium
+
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(REPORT, results, mesh_glb(results["mesh.ply"])))
+
+    def coloured(shot: np.ndarray) -> float:
+        """The share of the view's middle (under no button) in the sphere's colours."""
+        h, w = shot.shape[:2]
+        middle = shot[h // 4: 3 * h // 4, w // 4: 3 * w // 4]
+        return float(((middle.max(axis=2) - middle.min(axis=2)) > 60).mean())
+
+    with chromium() as browser:
+        page = _opened(browser, page_file)
+        page.click("[data-toggle=cloud]")
+        both = _shot(page)
+        assert coloured(both) > 0.1
+        page.click("[data-toggle=mesh]")
+        assert page.get_attribute("[data-toggle=mesh]", "aria-pressed") == "false"
+        alone = _shot(page)
+        h, w = alone.shape[:2]
+        middle = alone[h // 4: 3 * h // 4, w // 4: 3 * w // 4]
+        assert coloured(alone) < 0.001
+        drawn = np.abs(middle - 244).sum(axis=2) > 30  # the cloud's grey points
+        assert 0.02 < drawn.mean() < 0.9, drawn.mean()
+        page.click("[data-toggle=mesh]")
+        assert np.abs(_shot(page) - both).mean() < 0.5

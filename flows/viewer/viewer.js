@@ -179,6 +179,7 @@
     mesh.scale.set(1, 1, 1);
     scene.add(mesh);
     addExtras();
+    extras.mesh = mesh;  // shown; hidden, the cloud is seen alone (the Mesh switch)
     setMode("colour");
     resize();
     frame(geometry);
