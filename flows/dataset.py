@@ -120,8 +120,6 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
         create_table_artifact(rows, key="cross-capture-consistency",
                               description="same subject, two captures: vertex-to-vertex mm")
     summary = {"captures": len(entries), "done": [f"{s}/{c}" for s, c in done],
-               "with_mesh": [f"{s}/{c}" for (s, c), folder in done.items()
-                             if (folder / "mesh.ply").is_file()],
                "until": until, "failed": failed, "consistency": rows,
                "captures_at_once": at_once}
     write_results(out_root, {"dataset.json": json.dumps(summary, indent=1).encode()})
@@ -137,10 +135,11 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
 
 def summary_line(summary: dict, out: str | Path) -> str:
     """What a dataset run made, in one line for the command line, and where its page is:
-    ``3 of 3 captures reconstructed into OUT; their page: OUT/index.html``; captures run
-    with ``until`` a stage before the mesh are said to have stopped there, not to be
-    reconstructed."""
-    done, meshes = len(summary["done"]), len(summary.get("with_mesh", summary["done"]))
+    ``3 of 3 captures reconstructed into OUT; their page: OUT/index.html``; captures without
+    a mesh in OUT (run with ``until`` a stage before it) are said to have stopped there, not
+    to be reconstructed."""
+    done = len(summary["done"])
+    meshes = sum((Path(out) / name / "mesh.ply").is_file() for name in summary["done"])
     page = Path(out) / "index.html"
     if meshes == done:
         made = f"{done} of {summary['captures']} captures reconstructed into {out}"

@@ -178,10 +178,15 @@ def test_the_dataset_run_s_last_line_says_what_it_made_and_names_its_page(tmp_pa
 
     out = tmp_path / "out"
     done = ["anna/take1", "anna/take2", "bob/take1"]
-    full = {"captures": 3, "done": done, "with_mesh": done, "until": "evaluation"}
+    for name in done:
+        (out / name).mkdir(parents=True)
+        (out / name / "mesh.ply").write_text("ply")
+    full = {"captures": 3, "done": done, "until": "evaluation"}
     assert summary_line(full, out) == (f"3 of 3 captures reconstructed into {out}; their "
                                        f"page: {out / 'index.html'}")
-    early = {**full, "with_mesh": [], "until": "keyframes"}
+    for name in done:  # what a run that stopped at the keyframes leaves
+        (out / name / "mesh.ply").unlink()
+    early = {**full, "until": "keyframes"}
     line = summary_line(early, out)
     assert "reconstructed" not in line
     assert "stopped after keyframes with no mesh" in line and line.endswith(
