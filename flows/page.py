@@ -16,6 +16,7 @@ import hashlib
 import html
 import json
 import logging
+import math
 from importlib import resources
 from pathlib import Path
 
@@ -225,6 +226,8 @@ def figure_rows(report: dict) -> list[tuple[str, str, str]]:
         rows.append(("roughness", "Surface", f"{rough['bent_share_pct']:.1f} % of the face's "
                      f"edges bent over {rough['bent_deg']:g}°, median bend "
                      f"{rough['median_bend_deg']:.1f}° (smooth skin: under 7 % and 3°)"))
+    if fig.get("parts"):
+        rows.append(("parts", "Support by part", parts_summary(fig["parts"])))
     for protocol, sc in (fig.get("evaluation") or {}).items():
         rows.append((f"evaluation_{protocol}", f"Accuracy ({protocol})", _scores(sc)))
         ears = sc.get("ears") or {}
@@ -232,6 +235,45 @@ def figure_rows(report: dict) -> list[tuple[str, str, str]]:
                 (ears.get("completion") or {}).get("median") is not None:
             rows.append((f"ears_{protocol}", f"Ears accuracy ({protocol})", _scores(ears)))
     return rows
+
+
+def parts_summary(parts: dict) -> str:
+    """Each part of the face in words (``report.json`` ``figures.parts``, see
+    :mod:`facecap_core.fitting.quality`): the mesh's distance from its own cloud, the cloud
+    under it and its noise, its landmarks' distance from the cloud; the parts the cloud does
+    not support last."""
+    said, unsupported = [], []
+    for name, p in parts.items():
+        if not isinstance(p, dict):
+            continue
+        if not p.get("supported"):
+            unsupported.append(f"{name} ({_pct(p.get('supported_share'))} under cloud)")
+            continue
+        words = [f"mesh {_mm(p.get('mesh_to_cloud_mm'), signed=True)} from its cloud "
+                 f"(typically {_mm(p.get('mesh_to_cloud_abs_mm'))})",
+                 f"{_pct(p.get('supported_share'))} under cloud",
+                 f"cloud noise {_mm(p.get('cloud_noise_mm'))}"]
+        if p.get("landmark_to_cloud_mm") is not None:
+            words.append(f"landmarks {_mm(p['landmark_to_cloud_mm'])} off the cloud")
+        said.append(f"{name}: " + ", ".join(words))
+    if unsupported:
+        said.append("shaped by the template, not the capture (too little cloud): "
+                    + ", ".join(unsupported))
+    return "; ".join(said)
+
+
+def _mm(value, signed: bool = False) -> str:
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or \
+            not math.isfinite(value):
+        return "–"
+    return f"{value:+.2f} mm" if signed else f"{value:.2f} mm"
+
+
+def _pct(share) -> str:
+    if not isinstance(share, (int, float)) or isinstance(share, bool) or \
+            not math.isfinite(share):
+        return "–"
+    return f"{100 * share:.0f} %"
 
 
 def warnings(report: dict) -> list[tuple[str, str]]:

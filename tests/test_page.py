@@ -541,3 +541,24 @@ def test_the_cloud_can_be_seen_alone(results, tmp_path):
         assert 0.02 < drawn.mean() < 0.9, drawn.mean()
         page.click("[data-toggle=mesh]")
         assert np.abs(_shot(page) - both).mean() < 0.5
+
+
+def test_each_part_s_support_by_its_cloud_is_said_in_words(results):
+    """``figures.parts`` (the fitting stage's reference-free figures) is one figure: each
+    supported part's distance from its cloud, the cloud under it and its landmarks, and the
+    parts the cloud does not support named as the template's shape."""
+    from facecap.flows.page import figure_rows
+
+    parts = {"nose": {"supported": True, "supported_share": 0.72, "mesh_to_cloud_mm": -0.309,
+                      "mesh_to_cloud_abs_mm": 0.748, "cloud_noise_mm": 0.1816,
+                      "landmark_to_cloud_mm": 1.458},
+             "ears": {"supported": False, "supported_share": 0.103,
+                      "mesh_to_cloud_mm": 0.386}}
+    report = {**REPORT, "figures": {**REPORT["figures"], "parts": parts}}
+    text = dict((key, text) for key, _, text in figure_rows(report))["parts"]
+    assert text == ("nose: mesh -0.31 mm from its cloud (typically 0.75 mm), 72 % under "
+                    "cloud, cloud noise 0.18 mm, landmarks 1.46 mm off the cloud; shaped by "
+                    "the template, not the capture (too little cloud): ears (10 % under cloud)")
+    page = build_page(report, results, mesh_glb(results["mesh.ply"])).decode()
+    assert 'data-figure="parts"' in page or "data-figure=parts" in page
+    assert "1.46 mm off the cloud" in page

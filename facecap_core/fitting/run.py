@@ -21,6 +21,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from facecap_core.errors import InputError
+from facecap_core.fitting.quality import part_quality
 from facecap_core.fitting.sanity import MeshSanity, check_mesh, relax_folds
 from facecap_core.landmarks.ears import EAR_VERTEX_IDS
 from facecap_core.meshio import load_landmarks, save_landmarks
@@ -194,7 +195,9 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
                    template=template.name)
     rough = roughness(result.vertices, result.faces,
                       face_edges(template.vertices, template.faces, template.landmarks))
-    write_report(out / FIT_JSON, result, config, sanity, relaxed, ears_report, rough)
+    parts = (part_quality(result.vertices, template, cloud, cloud_normals, cloud_errors,
+                          landmarks) if config.use_cloud else None)
+    write_report(out / FIT_JSON, result, config, sanity, relaxed, ears_report, rough, parts)
     last = result.log[-1] if result.log else {}
     log.info("fitted %d vertices in %d steps (%.1f s): landmark RMS %.2f mm, %d cloud targets, "
              "last step moved %.3f mm; %.1f %% of the face's edges bent over %g°",
@@ -212,13 +215,15 @@ def _rounded(value: float | None, digits: int) -> float | None:
 
 def write_report(path: Path, result: FitResult, config: FittingConfig,
                  sanity: MeshSanity | None = None, relaxed: dict | None = None,
-                 ears: dict | None = None, rough: dict | None = None) -> Path:
+                 ears: dict | None = None, rough: dict | None = None,
+                 parts: dict | None = None) -> Path:
     doc = {"config": config.model_dump(mode="json"), "timing": result.timing(),
            "vertices": len(result.vertices), "faces": len(result.faces), "steps": result.log,
            "sanity": sanity.to_json() if sanity is not None else None, "relaxed": relaxed,
            "ears_on_cloud": ears or {}, "roughness": rough,
            "cloud_noise": {"noise_mm": _rounded(result.cloud_noise_mm, 4),
                            "reference_mm": config.cloud_noise_mm,
-                           "weight": _rounded(result.cloud_weight, 4)}}
+                           "weight": _rounded(result.cloud_weight, 4)},
+           **(parts or {})}
     path.write_text(json.dumps(doc, indent=1))
     return path

@@ -72,8 +72,8 @@ def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str |
 
 
 def figures(folder: str | Path) -> dict:
-    """Headline figures of a fitting artifact: its time, the mesh checks and the face's
-    roughness."""
+    """Headline figures of a fitting artifact: its time, the mesh checks, the face's
+    roughness and each part's support by the cloud (:mod:`facecap_core.fitting.quality`)."""
     if not (Path(folder) / FIT_JSON).is_file():
         return {}
     fit = json.loads((Path(folder) / FIT_JSON).read_text())
@@ -84,6 +84,9 @@ def figures(folder: str | Path) -> dict:
         fig["roughness"] = fit["roughness"]
     if fit.get("cloud_noise"):
         fig["cloud_noise"] = fit["cloud_noise"]
+    if fit.get("parts"):
+        fig["parts"] = fit["parts"]
+        fig["landmarks_to_cloud_mm"] = fit.get("landmarks_to_cloud_mm")
     return fig
 
 
@@ -91,7 +94,7 @@ def run(inputs: Folders, out: Path, config: FittingConfig, params: dict) -> None
     main(inputs["fusion"] / CLOUD, inputs["coarse"], inputs["frames"], out, config)
 
 
-STAGE = Stage("fitting", step="fitting", version="6", inputs=("fusion", "coarse", "frames"),
+STAGE = Stage("fitting", step="fitting", version="7", inputs=("fusion", "coarse", "frames"),
               section="fitting", run=run,
               outputs=(MESH_PLY, MESH_OBJ, MESH_LANDMARKS, FIT_JSON),
               exported=(MESH_PLY, MESH_OBJ, FIT_JSON), figures=figures)
