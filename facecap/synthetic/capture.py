@@ -30,6 +30,9 @@ from facecap.synthetic.sensor import (
     turn_image,
 )
 from facecap.synthetic.subjects import Subject, make_subject
+from facecap.tasks.outputs import ResultWriter, check_output_place
+from facecap.tasks.runner import default_store_url
+from facecap.tasks.scratch import process_scratch
 from facecap_core.camera import (
     Intrinsics,
     project,
@@ -202,9 +205,6 @@ def check_synth_output(out: Path, inputs: list[str | os.PathLike]) -> None:
     """Refuse, before any frame is rendered, an output folder that lies in the artifact
     store or facecap's own folders, or where a result would replace an input or a link
     stands for the ``gt`` folder."""
-    from facecap.tasks.outputs import check_output_place
-    from facecap.tasks.runner import default_store_url
-
     check_output_place(out, default_store_url(), [p for p in inputs if Path(p).is_dir()])
     if out.exists() and not out.is_dir():
         raise InputError(f"the output folder {out} is a file; give the path of a folder (--out)")
@@ -235,9 +235,6 @@ def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True,
     as the reconstruction writes its results (:class:`facecap.tasks.outputs.ResultWriter`):
     all at once when every one is made, never through a link, never over an input (the
     subject's mesh and landmarks, the ICT model, ``inputs`` such as a config file)."""
-    from facecap.tasks.outputs import ResultWriter
-    from facecap.tasks.scratch import process_scratch
-
     start = time.perf_counter()
     out = Path(out_dir)
     if config.width % 2 or config.height % 2:
