@@ -3,9 +3,10 @@
 Runs every capture of ``../shared/data/real`` (or ``--root``) through ``facecap reconstruct``
 as a user would (the CLI, a fresh output folder, a shared store), and prints per capture the
 exit code, the one-line message or the headline figures (keyframes kept and dropped, yaw
-coverage, focal length, metric scale, mesh sanity), and the seconds. For each mesh it renders
-``compare.png``: the shaded mesh seen through the reconstructed camera of a frontal and a
-profile keyframe, beside those photos, to look at.
+coverage, focal length, metric scale, mesh sanity, support by part), and the seconds. For each
+mesh it renders ``compare.png``: the shaded mesh seen through the reconstructed camera of a
+frontal and a profile keyframe, beside those photos, lit from the camera and under a raking
+light from the side, to look at.
 
 Two measures need no reference. *Roughness* (``report.json`` ``figures.roughness``,
 :mod:`facecap_core.nonrigid.roughness`): the share of the face's edges bent over 20° and the
@@ -48,9 +49,15 @@ CAPTURES = {
 }
 
 
+RAKING_LIGHT = np.array([-np.cos(np.radians(20)), -0.25, -np.sin(np.radians(20))])
+RAKING_LIGHT /= np.linalg.norm(RAKING_LIGHT)
+"""Towards the light, in the camera's frame (x right, y down, z forwards): from the left."""
+
+
 def render_beside(out: Path, capture: Path, picks: int = 2) -> Path | None:
     """The mesh shaded in the cameras of the most frontal and the most profile keyframe,
-    each beside its photo (a blend in the middle)."""
+    each beside its photo: the photo, a blend, the grey mesh lit from the camera, and the
+    grey mesh under a raking light from the side (what shows lumps and creases)."""
     from facecap_core.camera import read_cameras_json
     from facecap_core.meshio import load_mesh
     from facecap_core.render import RaycastScene, interpolate, vertex_normals
@@ -82,7 +89,12 @@ def render_beside(out: Path, capture: Path, picks: int = 2) -> Path | None:
         render = np.broadcast_to(render, photo.shape).astype(np.uint8)
         blend = np.where(hits.valid[..., None], (0.5 * photo + 0.5 * render).astype(np.uint8),
                          photo)
-        rows.append(np.hstack([photo, blend, render]))
+        # Raking light: grey, lit from the image's left at 20° above the surface it faces,
+        # so a lump or a crease of a fraction of a millimetre throws a shadow.
+        raking = np.clip(n_cam @ RAKING_LIGHT, 0, 1) * 0.9 + 0.06
+        raking = np.where(hits.valid[..., None], (raking[..., None] * 235).astype(np.uint8), 255)
+        raking = np.broadcast_to(raking, photo.shape).astype(np.uint8)
+        rows.append(np.hstack([photo, blend, render, raking]))
     path = out / "compare.png"
     cv2.imwrite(str(path), cv2.cvtColor(np.vstack(rows), cv2.COLOR_RGB2BGR))
     return path
@@ -106,7 +118,8 @@ def run(name: str, capture: Path, out: Path, store: Path, config: Path | None = 
         row.update(keyframes=fig.get("keyframes"), dropped=len(fig.get("dropped_keyframes", [])),
                    yaw=f"{cov.get('yaw_min_deg')}..{cov.get('yaw_max_deg')}",
                    focal_px=fig.get("focal_px"), metric_scale=fig.get("metric_scale"),
-                   sanity=fig.get("mesh_sanity"), roughness=fig.get("roughness"))
+                   sanity=fig.get("mesh_sanity"), roughness=fig.get("roughness"),
+                   parts=fig.get("parts"))
         compare = render_beside(out, capture)
         row["compare"] = str(compare) if compare else None
     return row
