@@ -9,7 +9,9 @@ only through that stage's module (``inputs["fusion"] / fusion.CLOUD``), whose ro
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import re
+import string
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,6 +36,31 @@ def capture_input_name(path: str | Path) -> str:
     return PHOTOS if Path(path).is_dir() else VIDEO
 
 
+class OutputMismatch(RuntimeError):
+    """A stage run wrote other files than its row lists: a bug of the stage or of its row."""
+
+
+def output_pattern(name: str, params: dict | None = None) -> re.Pattern:
+    """The files an entry of :attr:`Stage.outputs` stands for. A field the run's params
+    give is filled in (``depth_{index:05d}.npz`` with ``{"index": 12}``: ``depth_00012.npz``);
+    a field they do not give matches any value, digits for an integer format
+    (``frame_{index:06d}.png``: one PNG per keyframe)."""
+    params = params or {}
+    parts = []
+    for literal, field_name, spec, _ in string.Formatter().parse(name):
+        parts.append(re.escape(literal))
+        if field_name is None:
+            continue
+        if field_name in params:
+            parts.append(re.escape(format(params[field_name], spec or "")))
+        elif spec.endswith("d"):
+            width = int(spec[:-1].lstrip("0") or 0)
+            parts.append(rf"\d{{{max(width, 1)},}}")
+        else:
+            parts.append(r"[^/]+")
+    return re.compile("".join(parts))
+
+
 @dataclass(frozen=True)
 class Stage:
     """One row of the pipeline."""
@@ -55,9 +82,17 @@ class Stage:
     and its settings (the section's model, None without one), writes its files into
     ``out_dir``."""
     outputs: tuple[str, ...]
-    """Files it writes (a ``{index}`` field for per-keyframe stages)."""
+    """Files it writes, exactly (the runner checks every run: :meth:`check_outputs`), as
+    paths in its artifact folder. A name with a format field stands for the files the
+    field's values name: filled from the run's params (``depth_{index:05d}.npz`` of a
+    per-keyframe stage: one file), or, a field the params do not give, one or more files
+    (``frame_{index:06d}.png``: one per keyframe). A fixed set of names is listed one by
+    one (``heatmap_similarity.png``, ``heatmap_metric.png``)."""
     exported: tuple[str, ...] = ()
     """Those of its files copied into the user's output folder."""
+    optional_outputs: tuple[str, ...] = ()
+    """Files it writes only when it has something to put in them (the pose stage's
+    ``points.ply``: none without sparse points); named as :attr:`outputs`."""
     optional: tuple[str, ...] = ()
     """Inputs it reads when they are given."""
     per_keyframe: Callable[[Folders], list[int]] | None = None
@@ -80,6 +115,25 @@ class Stage:
         """Whether ``name`` is one of this stage's rows (:meth:`row_name`)."""
         return name == self.name or (self.per_keyframe is not None
                                      and name.startswith(f"{self.name}_"))
+
+    def check_outputs(self, files: Iterable[str], params: dict | None = None) -> None:
+        """Raise :class:`OutputMismatch` unless ``files`` (the paths a run wrote, relative
+        to its folder) are exactly what the row lists: every file listed in
+        :attr:`outputs` or :attr:`optional_outputs`, every entry of :attr:`outputs`
+        written."""
+        files = sorted(set(files))
+        listed = [(name, output_pattern(name, params)) for name in self.outputs]
+        maybe = [output_pattern(name, params) for name in self.optional_outputs]
+        unlisted = [f for f in files
+                    if not any(p.fullmatch(f) for _, p in listed) and
+                    not any(p.fullmatch(f) for p in maybe)]
+        missing = [name for name, p in listed if not any(p.fullmatch(f) for f in files)]
+        if unlisted or missing:
+            said = [f"wrote {', '.join(unlisted)}, which its row does not list"] if unlisted else []
+            if missing:
+                said.append(f"did not write {', '.join(missing)}, which its row lists")
+            raise OutputMismatch(f"the {self.name} stage {' and '.join(said)} "
+                                 f"(Stage.outputs in its module)")
 
     def settings(self, pipeline: BaseModel) -> BaseModel | None:
         """The section of ``pipeline`` (a PipelineConfig) that this stage reads."""

@@ -234,6 +234,7 @@ def run_stage(store_url: str, stage: Stage, inputs: dict[str, str], config: Base
                      for p in sorted(work.rglob("*")) if p.is_file()}
             if not files:
                 raise FacecapError(f"stage {stage.name} wrote no files")
+            stage.check_outputs(files, params)
             inject_fault(stage.name, work)
             store.put(key, files, stage=stage.name, inputs=inputs, config=config_data(config),
                       version=stage.full_version(), meta={**meta, **(params or {})})

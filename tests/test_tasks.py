@@ -4,6 +4,7 @@ stores, and which faults are retried."""
 from __future__ import annotations
 
 import errno
+import re
 import threading
 import time
 from dataclasses import replace
@@ -15,11 +16,14 @@ from facecap.tasks.graph import BY_NAME, stage_key
 from facecap.tasks.runner import ingest, is_transient, run_stage
 from facecap.tasks.store import CorruptArtifactError, StoreWriteError, open_store
 from facecap_core.errors import FacecapError, InputError
+from facecap_core.stage import OutputMismatch
 
 
-def _stage(run, name: str = "fusion"):
-    """A stage row with another body and no config section (its params reach the body)."""
-    return replace(BY_NAME[name], run=run, section=None)
+def _stage(run, name: str = "fusion", outputs: tuple[str, ...] = ("result.txt",)):
+    """A stage row with another body, the files it writes and no config section (its params
+    reach the body)."""
+    return replace(BY_NAME[name], run=run, section=None, outputs=outputs,
+                   optional_outputs=())
 
 
 def test_key_depends_on_inputs_config_and_version(monkeypatch):
@@ -97,10 +101,64 @@ def test_inputs_reach_the_stage_as_folders(tmp_path):
         seen["bytes"] = (folders["video"] / "video.mp4").read_bytes()
         (out / "ok").write_text("1")
 
-    run_stage(store, _stage(body, "keyframes"), {"video": key}, {})
+    run_stage(store, _stage(body, "keyframes", outputs=("ok",)), {"video": key}, {})
     assert seen["bytes"] == b"not really a video"
     with pytest.raises(InputError, match="not found"):
         ingest(store, tmp_path / "missing.mp4", "video.mp4")
+
+
+def test_a_stage_writes_exactly_the_files_its_row_lists(tmp_path):
+    """Stage.outputs is checked on every run: a file the row does not list, or one it lists
+    and the run did not write, fails the stage (not retried) and stores nothing. A field
+    the params give names one file; one they do not give, one or more."""
+    store = str(tmp_path / "store")
+    outputs = ("a.json", "map_{index:05d}.npz", "frame_{frame:06d}.png")
+
+    def writer(*names):
+        def body(folders, out: Path, config, params):
+            for name in names:
+                (out / name).parent.mkdir(parents=True, exist_ok=True)
+                (out / name).write_text("1")
+        return body
+
+    ok = _stage(writer("a.json", "map_00003.npz", "frame_000012.png", "frame_000020.png"),
+                outputs=outputs)
+    key, computed = run_stage(store, ok, {}, {}, {"index": 3})
+    assert computed and sorted(p.name for p in open_store(store).get(key).iterdir()
+                               if p.name != "manifest.json") == [
+        "a.json", "frame_000012.png", "frame_000020.png", "map_00003.npz"]
+    for names, says in [
+        (("a.json", "map_00003.npz", "frame_000012.png", "debug.txt"),
+         "wrote debug.txt, which its row does not list"),
+        (("a.json", "map_00004.npz", "frame_000012.png"),
+         "wrote map_00004.npz, which its row does not list and did not write "
+         "map_{index:05d}.npz"),
+        (("a.json", "map_00003.npz"), "did not write frame_{frame:06d}.png, which its row lists"),
+        (("a.json", "map_00003.npz", "frame_12.png", "frame_000012.png"), "wrote frame_12.png"),
+    ]:
+        before = open_store(store).keys()
+        with pytest.raises(OutputMismatch, match=re.escape(says)) as failed:
+            run_stage(store, _stage(writer(*names), outputs=outputs), {}, {"n": len(before)},
+                      {"index": 3})
+        assert not is_transient(failed.value)
+        assert open_store(store).keys() == before
+    # A file written only when there is something in it (the poses' points.ply).
+    maybe = replace(_stage(writer("a.json"), outputs=("a.json",)),
+                    optional_outputs=("points.ply",))
+    run_stage(store, maybe, {}, {"with": False})
+    run_stage(store, replace(maybe, run=writer("a.json", "points.ply")), {}, {"with": True})
+
+
+def test_every_row_exports_and_reads_files_it_lists():
+    """What a run copies to the user's folder and what the capture flow reads of the
+    evaluation (its per-vertex accuracy) are files of the rows."""
+    from facecap_core.evaluation.stage import ACCURACY_NPY
+    from facecap_core.stage import output_pattern
+
+    for stage in BY_NAME.values():
+        listed = [output_pattern(n) for n in stage.outputs + stage.optional_outputs]
+        assert all(any(p.fullmatch(f) for p in listed) for f in stage.exported), stage.name
+    assert ACCURACY_NPY.format(protocol="metric") in BY_NAME["evaluation"].outputs
 
 
 @pytest.mark.parametrize("exc, retried", [

@@ -253,5 +253,6 @@ def run(inputs: Folders, out: Path, config: PoseConfig, params: dict) -> None:
 
 
 STAGE = Stage("poses", step="poses", version="3", inputs=("video", "keyframes"),
-              section="poses", run=run, outputs=(CAMERAS_JSON, POINTS, SPARSE, *COLMAP_MODEL),
+              section="poses", run=run, outputs=(CAMERAS_JSON, SPARSE, *COLMAP_MODEL),
+              optional_outputs=(POINTS,),
               exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=figures)
