@@ -471,7 +471,7 @@ def run(inputs: Folders, out: Path, config: CoarseConfig, params: dict) -> None:
     main(inputs["landmarks"], inputs["poses"] / CAMERAS_JSON, out, config=config)
 
 
-STAGE = Stage("coarse", step="coarse", version="5", inputs=("landmarks", "poses"),
+STAGE = Stage("coarse", version="5", inputs=("landmarks", "poses"),
               section="coarse", run=run,
               outputs=(CAMERAS_JSON, LANDMARKS_3D, EARS_3D, COARSE_PLY, COARSE_JSON),
               exported=(CAMERAS_JSON, LANDMARKS_3D, EARS_3D, COARSE_PLY, COARSE_JSON),

@@ -67,8 +67,6 @@ class Stage:
 
     name: str
     """Stage name: the artifact key's prefix, the task's name, the report's row."""
-    step: str
-    """The ``--until`` step the stage belongs to (several stages may share one)."""
     version: str
     """Algorithm version, part of every artifact key: bump it when the output changes."""
     inputs: tuple[str, ...]

@@ -94,7 +94,7 @@ def run(inputs: Folders, out: Path, config: FittingConfig, params: dict) -> None
     main(inputs["fusion"] / CLOUD, inputs["coarse"], inputs["frames"], out, config)
 
 
-STAGE = Stage("fitting", step="fitting", version="7", inputs=("fusion", "coarse", "frames"),
+STAGE = Stage("fitting", version="7", inputs=("fusion", "coarse", "frames"),
               section="fitting", run=run,
               outputs=(MESH_PLY, MESH_OBJ, MESH_LANDMARKS, FIT_JSON),
               exported=(MESH_PLY, MESH_OBJ, FIT_JSON), figures=figures)

@@ -185,7 +185,7 @@ def reference_keyframes(inputs: Folders) -> list[int]:
     return sorted(read_views(inputs["views"] / VIEWS))
 
 
-STAGE = Stage("depth", step="mvs", version="1", inputs=("frames", "coarse", "views"),
+STAGE = Stage("depth", version="1", inputs=("frames", "coarse", "views"),
               section="mvs.depth", run=run,
               outputs=("depth_{index:05d}.npz", "depth_{index:05d}.json"),
               per_keyframe=reference_keyframes)

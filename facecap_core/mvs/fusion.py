@@ -181,5 +181,5 @@ def run(inputs: Folders, out: Path, config: FusionConfig, params: dict) -> None:
     main(maps, inputs["frames"], inputs["coarse"] / CAMERAS_JSON, out, config)
 
 
-STAGE = Stage("fusion", step="mvs", version="2", inputs=("frames", "coarse", "depth"),
+STAGE = Stage("fusion", version="2", inputs=("frames", "coarse", "depth"),
               section="mvs.fusion", run=run, outputs=(CLOUD, FUSION), exported=(CLOUD,))

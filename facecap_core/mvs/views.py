@@ -205,5 +205,5 @@ def run(inputs: Folders, out: Path, config: ViewSelectionConfig, params: dict) -
          config, inputs["poses"] / SPARSE)
 
 
-STAGE = Stage("views", step="mvs", version="1", inputs=("frames", "coarse", "poses"),
+STAGE = Stage("views", version="1", inputs=("frames", "coarse", "poses"),
               section="mvs.views", run=run, outputs=(VIEWS,))

@@ -252,7 +252,7 @@ def run(inputs: Folders, out: Path, config: PoseConfig, params: dict) -> None:
     main(capture_in(inputs["video"]), inputs["keyframes"] / KEYFRAMES_JSON, out, config)
 
 
-STAGE = Stage("poses", step="poses", version="3", inputs=("video", "keyframes"),
+STAGE = Stage("poses", version="3", inputs=("video", "keyframes"),
               section="poses", run=run, outputs=(CAMERAS_JSON, SPARSE, *COLMAP_MODEL),
               optional_outputs=(POINTS,),
               exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=figures)
