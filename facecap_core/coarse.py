@@ -467,12 +467,22 @@ def figures(folder: str | Path) -> dict:
     return fig
 
 
+def headline(folder: str | Path) -> str:
+    """The coarse task's log line's figure: ``: metric scale 90.9 mm per camera unit, ±4.0 %
+    (1σ) from landmarks + iris`` ("" without a metric scale)."""
+    scale = figures(folder).get("scale") or {}
+    if scale.get("metric_scale") is None:
+        return ""
+    sigma = f", {scale_summary(scale)}" if scale.get("sigma_pct") is not None else ""
+    return f": metric scale {scale['metric_scale']:.4g} mm per camera unit{sigma}"
+
+
 def run(inputs: Folders, out: Path, config: CoarseConfig, params: dict) -> None:
     main(inputs["landmarks"], inputs["poses"] / CAMERAS_JSON, out, config=config)
 
 
-STAGE = Stage("coarse", version="5", inputs=("landmarks", "poses"),
+STAGE = Stage("coarse", version="5", inputs=("landmarks", "poses"), work_seconds=1.0,
               section="coarse", run=run,
               outputs=(CAMERAS_JSON, LANDMARKS_3D, EARS_3D, COARSE_PLY, COARSE_JSON),
               exported=(CAMERAS_JSON, LANDMARKS_3D, EARS_3D, COARSE_PLY, COARSE_JSON),
-              figures=figures)
+              figures=figures, headline=headline)

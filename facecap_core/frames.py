@@ -69,5 +69,5 @@ def run(inputs: Folders, out: Path, config: None, params: dict) -> None:
     main(capture_in(inputs["video"]), inputs["poses"] / CAMERAS_JSON, out)
 
 
-STAGE = Stage("frames", version="1", inputs=("video", "poses"),
+STAGE = Stage("frames", version="1", inputs=("video", "poses"), work_seconds=2.0,
               section=None, run=run, outputs=(FRAMES_JSON, "frame_{index:06d}.png"))

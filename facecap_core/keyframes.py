@@ -373,5 +373,5 @@ def run(inputs: Folders, out: Path, config: KeyframeConfig, params: dict) -> Non
     main(capture_in(inputs["video"]), out, config)
 
 
-STAGE = Stage("keyframes", version="2", inputs=("video",),
+STAGE = Stage("keyframes", version="2", inputs=("video",), work_seconds=7.6,
               section="keyframes", run=run, outputs=(KEYFRAMES_JSON, TRACKS_NPZ))

@@ -86,6 +86,10 @@ class Stage:
     per-keyframe stage: one file), or, a field the params do not give, one or more files
     (``frame_{index:06d}.png``: one per keyframe). A fixed set of names is listed one by
     one (``heatmap_similarity.png``, ``heatmap_metric.png``)."""
+    work_seconds: float
+    """Its share of a capture's work, for the run's progress bar: its seconds on an 8 s
+    720p capture on 2 cores (``docs/benchmarks.md``), all keyframes' runs together for a
+    per-keyframe stage."""
     exported: tuple[str, ...] = ()
     """Those of its files copied into the user's output folder."""
     optional_outputs: tuple[str, ...] = ()
@@ -93,6 +97,9 @@ class Stage:
     ``points.ply``: none without sparse points); named as :attr:`outputs`."""
     optional: tuple[str, ...] = ()
     """Inputs it reads when they are given."""
+    sources: dict[str, str] = field(default_factory=dict, hash=False)
+    """Inputs named otherwise than the stage that makes them: ``{input name: stage}`` (the
+    evaluation's ``mesh`` is the fitting stage's artifact); see :meth:`source`."""
     per_keyframe: Callable[[Folders], list[int]] | None = None
     """For a stage run once per keyframe: the keyframe indices, read from its inputs; each
     run gets ``params={"index": i}`` and its report row is :meth:`row_name`."""
@@ -100,9 +107,16 @@ class Stage:
     """Part of the version that is not code: the digest of a trained model the stage reads."""
     figures: Callable[[Path], dict] | None = field(default=None, repr=False)
     """Headline figures of its artifact folder for the run report and the UI."""
+    headline: Callable[[Path], str] | None = field(default=None, repr=False)
+    """What its task's log line adds after "computed"/"reused", from its artifact folder
+    (the coarse stage: ``: metric scale 90.9 mm per camera unit, ...``), or "" for nothing."""
 
     def full_version(self) -> str:
         return f"{self.version}+{self.version_suffix()}" if self.version_suffix else self.version
+
+    def source(self, input_name: str) -> str:
+        """The stage (or raw input) whose artifact its input ``input_name`` is."""
+        return self.sources.get(input_name, input_name)
 
     def row_name(self, params: dict | None = None) -> str:
         """The run's row in the report and its artifact's input name for the next stage:

@@ -51,7 +51,6 @@ from facecap.tasks.graph import (
     VIDEO,
     Stage,
     capture_input_name,
-    producer,
     stages_until,
 )
 from facecap.tasks.outputs import ResultWriter, check_output_place
@@ -114,7 +113,7 @@ def _inputs(stage: Stage, keys: dict[str, str]) -> dict[str, str] | None:
     """The stage's input keys, or None when a required input is missing (no scan given)."""
     inputs = {}
     for name in stage.inputs + stage.optional:
-        source = producer(name)
+        source = stage.source(name)
         fanned = source in BY_NAME and BY_NAME[source].per_keyframe
         items = {k: v for k, v in keys.items() if fanned and BY_NAME[source].is_row(k)}
         if source in keys:
@@ -124,14 +123,6 @@ def _inputs(stage: Stage, keys: dict[str, str]) -> dict[str, str] | None:
         elif name in stage.inputs:
             return None
     return inputs
-
-
-WORK_SECONDS = {"keyframes": 7.6, "poses": 106.8, "frames": 2.0, "landmarks": 4.0,
-                "coarse": 1.0, "views": 1.1, "depth": 135.0, "fusion": 3.5, "fitting": 34.2,
-                "evaluation": 3.0}
-"""Each stage's seconds on an 8 s 720p capture on 2 cores (docs/benchmarks.md): the progress
-bar moves with the work done, not with the count of stages (the depth maps and the poses are
-most of a capture)."""
 
 
 class _RunProgress:
@@ -146,7 +137,10 @@ class _RunProgress:
 
     def __init__(self, label: str, stages: list[str]):
         self.label, self.stages, self.done = label, len(stages), 0
-        self.weights = [WORK_SECONDS.get(name, 1.0) for name in stages]
+        # Each stage's share: its seconds on an 8 s 720p capture on 2 cores (its row's
+        # work_seconds), the depth maps and the poses most of a capture.
+        self.weights = [BY_NAME[name].work_seconds if name in BY_NAME else 1.0
+                        for name in stages]
         self.total = sum(self.weights) or 1.0
         self.id = prefect.artifacts.create_progress_artifact(0.0, description=f"{label}: started")
         self.sent = time.monotonic()

@@ -47,8 +47,8 @@ def config_data(config: BaseModel | dict | None) -> dict:
 BY_NAME = {stage.name: stage for stage in STAGES}
 INPUT_VERSION = "1"
 """Version of the raw-input artifacts (a copy of the user's file)."""
-ALIASES = {"mesh": "fitting"}
-"""Input names that differ from the stage that makes them."""
+ALIASES = {name: source for stage in STAGES for name, source in stage.sources.items()}
+"""Input names that differ from the stage that makes them (the rows' ``sources``)."""
 STEPS = tuple(stage.name for stage in STAGES)
 """What ``--until`` can stop after, in order: the stages, as the report, the stage table and
 the task runs name them."""
@@ -66,9 +66,10 @@ def is_keyframe_row(row: str) -> bool:
     return any(stage.is_row(row) and row != stage.name for stage in STAGES)
 
 
-def producer(input_name: str) -> str:
-    """The stage (or raw input) an input name refers to."""
-    return ALIASES.get(input_name, input_name)
+def producer(input_name: str, stage: Stage | None = None) -> str:
+    """The stage (or raw input) an input name refers to: as ``stage`` reads it, or as any
+    row names it."""
+    return stage.source(input_name) if stage else ALIASES.get(input_name, input_name)
 
 
 def stages_until(until: str) -> list[Stage]:

@@ -29,7 +29,6 @@ from facecap.tasks.graph import BY_NAME, STAGES
 from facecap.tasks.logs import send_core_logs_to_runs
 from facecap.tasks.runner import default_store_url, ingest, retry_condition, run_stage
 from facecap.tasks.store import open_store
-from facecap_core.coarse import scale_summary
 from facecap_core.errors import FacecapError
 from facecap_core.settings import settings
 
@@ -46,15 +45,9 @@ def _run_name(template: str):
 
 
 def _headline(stage, store: str, key: str) -> str:
-    """The figure a stage's log line gives: the metric scale of the coarse stage."""
-    if stage.name != "coarse" or stage.figures is None:
-        return ""
-
-    scale = stage.figures(open_store(store).get(key)).get("scale") or {}
-    if scale.get("metric_scale") is None:
-        return ""
-    sigma = f", {scale_summary(scale)}" if scale.get("sigma_pct") is not None else ""
-    return f": metric scale {scale['metric_scale']:.4g} mm per camera unit{sigma}"
+    """The figure a stage's log line gives (its row's ``headline``: the coarse stage's metric
+    scale)."""
+    return stage.headline(open_store(store).get(key)) if stage.headline else ""
 
 
 def _stage_task(name: str):

@@ -217,6 +217,36 @@ def test_a_stage_without_its_input_is_skipped_and_fan_out_items_are_gathered():
                                                 "depth_00003": "d3", "depth_00009": "d9"}
 
 
+def test_what_the_flows_and_tasks_know_of_a_stage_is_in_its_row(tmp_path):
+    """Every input is a raw input or an earlier stage (by its row's ``sources`` where named
+    otherwise), every stage states its share of the work for the progress bar, and the
+    coarse stage's log line gives its metric scale through its row."""
+    import json
+
+    from facecap.tasks.stages import _headline
+    from facecap.tasks.store import open_store
+
+    seen = set()
+    for stage in STAGES:
+        for name in stage.inputs + stage.optional:
+            assert stage.source(name) in seen | set(RAW), (stage.name, name)
+        assert stage.work_seconds > 0, stage.name
+        seen.add(stage.name)
+    assert BY_NAME["evaluation"].source("mesh") == producer("mesh") == "fitting"
+    shares = {s.name: s.work_seconds / sum(t.work_seconds for t in STAGES) for s in STAGES}
+    assert shares["poses"] + shares["depth"] > 0.6  # the poses and the depth maps: most of it
+    store = open_store(str(tmp_path / "store"))
+    key = artifact_key("coarse", {}, {}, "1")
+    scale = {"metric_scale": 90.9, "sigma_pct": 4.0, "used": ["landmarks", "iris"],
+             "dropped": []}
+    store.put(key, {"cameras.json": json.dumps({"metric_scale": 90.9}).encode(),
+                    "coarse.json": json.dumps({"scale": scale}).encode()},
+              stage="coarse", inputs={}, config={}, version="1")
+    assert _headline(BY_NAME["coarse"], str(tmp_path / "store"), key) == (
+        ": metric scale 90.9 mm per camera unit, ±4.0 % (1σ) from landmarks + iris")
+    assert _headline(BY_NAME["fusion"], str(tmp_path / "store"), key) == ""
+
+
 def _code_metrics():
     """``tools/code_metrics.py``, which draws the import graph and its layers."""
     import importlib.util

@@ -87,7 +87,7 @@ def run(inputs: Folders, out: Path, config: None, params: dict) -> None:
 HEATMAPS = tuple(f"heatmap_{p}.png" for p in PROTOCOLS)
 ACCURACY = tuple(ACCURACY_NPY.format(protocol=p) for p in PROTOCOLS)
 
-STAGE = Stage("evaluation", version="4", inputs=("mesh", "scan"),
+STAGE = Stage("evaluation", version="4", inputs=("mesh", "scan"), work_seconds=3.0,
               section=None, run=run, outputs=(EVALUATION_JSON, *HEATMAPS, *ACCURACY),
               exported=(EVALUATION_JSON, *HEATMAPS), optional=("scan_landmarks",),
-              figures=figures)
+              sources={"mesh": "fitting"}, figures=figures)

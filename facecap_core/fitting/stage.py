@@ -95,6 +95,7 @@ def run(inputs: Folders, out: Path, config: FittingConfig, params: dict) -> None
 
 
 STAGE = Stage("fitting", version="7", inputs=("fusion", "coarse", "frames"),
+              work_seconds=34.2,
               section="fitting", run=run,
               outputs=(MESH_PLY, MESH_OBJ, MESH_LANDMARKS, FIT_JSON),
               exported=(MESH_PLY, MESH_OBJ, FIT_JSON), figures=figures)

@@ -541,6 +541,6 @@ def models_digest() -> str:
     return f"ears-{ears.model_digest()}-{mesh}-tables-{tables.hexdigest()[:12]}"
 
 
-STAGE = Stage("landmarks", version="7", inputs=("video", "poses"),
+STAGE = Stage("landmarks", version="7", inputs=("video", "poses"), work_seconds=4.0,
               section="landmarks", run=run, outputs=(LANDMARKS_2D, LANDMARKS_3D, EARS_3D),
               version_suffix=models_digest)

@@ -186,6 +186,7 @@ def reference_keyframes(inputs: Folders) -> list[int]:
 
 
 STAGE = Stage("depth", version="1", inputs=("frames", "coarse", "views"),
+              work_seconds=135.0,
               section="mvs.depth", run=run,
               outputs=("depth_{index:05d}.npz", "depth_{index:05d}.json"),
               per_keyframe=reference_keyframes)

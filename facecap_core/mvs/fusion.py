@@ -182,4 +182,5 @@ def run(inputs: Folders, out: Path, config: FusionConfig, params: dict) -> None:
 
 
 STAGE = Stage("fusion", version="2", inputs=("frames", "coarse", "depth"),
+              work_seconds=3.5,
               section="mvs.fusion", run=run, outputs=(CLOUD, FUSION), exported=(CLOUD,))

@@ -206,4 +206,5 @@ def run(inputs: Folders, out: Path, config: ViewSelectionConfig, params: dict) -
 
 
 STAGE = Stage("views", version="1", inputs=("frames", "coarse", "poses"),
+              work_seconds=1.1,
               section="mvs.views", run=run, outputs=(VIEWS,))

@@ -253,6 +253,7 @@ def run(inputs: Folders, out: Path, config: PoseConfig, params: dict) -> None:
 
 
 STAGE = Stage("poses", version="3", inputs=("video", "keyframes"),
+              work_seconds=106.8,
               section="poses", run=run, outputs=(CAMERAS_JSON, SPARSE, *COLMAP_MODEL),
               optional_outputs=(POINTS,),
               exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=figures)
