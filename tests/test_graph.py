@@ -247,15 +247,35 @@ def test_what_the_flows_and_tasks_know_of_a_stage_is_in_its_row(tmp_path):
     assert _headline(BY_NAME["fusion"], str(tmp_path / "store"), key) == ""
 
 
-def _code_metrics():
-    """``tools/code_metrics.py``, which draws the import graph and its layers."""
+def _tool(name: str):
+    """``tools/NAME.py`` as a module."""
     import importlib.util
 
-    path = Path(__file__).resolve().parents[1] / "tools" / "code_metrics.py"
-    spec = importlib.util.spec_from_file_location("code_metrics", path)
+    path = Path(__file__).resolve().parents[1] / "tools" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def test_the_service_page_s_artifact_table_is_the_rows():
+    """docs/service.md's stage table is what tools/stage_table.py makes of the rows (run it
+    with --write after changing a row); a stage added since shows there by itself."""
+    from dataclasses import replace
+
+    tool = _tool("stage_table")
+    assert tool.page_table(tool.PAGE.read_text()) == tool.table(), (
+        "docs/service.md's stage table is out of date: python tools/stage_table.py --write")
+    checksum = replace(BY_NAME["views"], name="checksum", inputs=("mesh",), section=None,
+                       sources={"mesh": "fitting"},
+                       outputs=("checksum.txt",))
+    made = tool.table((*STAGES, checksum))
+    assert made.splitlines()[-1] == "| checksum | mesh (fitting) | – | `checksum.txt` |"
+
+
+def _code_metrics():
+    """``tools/code_metrics.py``, which draws the import graph and its layers."""
+    return _tool("code_metrics")
 
 
 def test_dependencies_point_one_way():
