@@ -66,6 +66,7 @@ from facecap_core.landmarks.convention import (
 )
 from facecap_core.landmarks.ear_check import check_ears
 from facecap_core.landmarks.triangulate import Triangulation, box_size, triangulate
+from facecap_core.pose.checks import CameraSolveError, face_problem
 from facecap_core.pose.stage import MIN_YAW_SPAN_DEG
 from facecap_core.stage import Folders, Stage, capture_in
 from facecap_core.template import INNER_LANDMARKS
@@ -142,6 +143,10 @@ class LandmarkConfig(StrictModel):
             raise ValueError("huber must not exceed outlier_threshold")
         return self
 
+
+TRY_AGAIN = ("record a slower, steadier sweep of a well-lit, still face from one ear round to "
+             "the other (photos: named in sweep order, frame_001.jpg, …, or the video itself)")
+"""What to try when the landmarks show that the camera solve failed."""
 
 LANDMARKS_2D = "landmarks2d.json"
 LANDMARKS_3D = "landmarks3d.json"
@@ -425,8 +430,8 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
     # First triangulation (all 68, all detections): head frame, yaw and agreement.
     first = _triangulate_faces(dets, detected, np.arange(68), cams, config)
     if not np.all(np.isfinite(first.points[np.r_[27, 36:48, 57]])):
-        raise InputError(f"the face landmarks of {len(detected)} of {n} keyframes do not agree "
-                         "in 3D: the cameras do not fit the video, or the face moved")
+        raise CameraSolveError(f"the face's landmarks in {len(detected)} of {n} views do not "
+                               "meet in 3D with its cameras", TRY_AGAIN)
     head_R, head_o = robust_head_frame(first.points)
     inner = INNER_LANDMARKS
     records = _keyframe_records(dets, detected, first, head_R, head_o, cams)
@@ -438,8 +443,8 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
     triangulated = np.full((68, 3), np.nan)
     triangulated[inner] = final.points
     if np.sum(np.all(np.isfinite(triangulated[inner]), axis=1)) < len(inner) // 2:
-        raise InputError(f"the landmarks of the {len(gated)} confident keyframes do not "
-                         "triangulate: the cameras do not fit the video")
+        raise CameraSolveError(f"the landmarks of the {len(gated)} confident views do not "
+                               "triangulate with its cameras", TRY_AGAIN)
     # Head frame and eye distance from the final inner points (as in the calibration), a
     # missing one from the first pass.
     frame_from = triangulated.copy()
@@ -455,6 +460,9 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
     spread = final.spread(noise_px) / eye_distance(frame_from)
     uncertain = inner[~(spread <= config.max_point_spread)]
     landmarks[uncertain] = np.nan
+    problem = face_problem(landmarks)
+    if problem:
+        raise CameraSolveError(problem, TRY_AGAIN)
 
     iris_doc = iris.triangulate_irises(dets, records, gated, cams, head_R, config)
     for k, det in enumerate(dets):
@@ -541,6 +549,6 @@ def models_digest() -> str:
     return f"ears-{ears.model_digest()}-{mesh}-tables-{tables.hexdigest()[:12]}"
 
 
-STAGE = Stage("landmarks", version="7", inputs=("video", "poses"), work_seconds=4.0,
+STAGE = Stage("landmarks", version="8", inputs=("video", "poses"), work_seconds=4.0,
               section="landmarks", run=run, outputs=(LANDMARKS_2D, LANDMARKS_3D, EARS_3D),
               version_suffix=models_digest)

@@ -23,8 +23,16 @@ from pydantic import Field
 
 from facecap_core.camera import CAMERAS_JSON
 from facecap_core.config import StrictModel
-from facecap_core.errors import InputError
-from facecap_core.keyframes import KEYFRAMES_JSON, load_keyframes
+from facecap_core.errors import FacecapError, InputError
+from facecap_core.keyframes import KEYFRAMES_JSON, Keyframes, load_keyframes
+from facecap_core.photos import list_photos
+from facecap_core.pose.checks import (
+    NOMINAL_HFOV_DEG,
+    CameraSolveError,
+    focal_problem,
+    frame_numbers,
+    solve_problem,
+)
 from facecap_core.pose.colmap_sfm import Poses, run_sfm
 from facecap_core.pose.geometric import refine_with_tracks, triangulate
 from facecap_core.pose.io import write_outputs
@@ -178,27 +186,97 @@ def registered_enough(poses: Poses, total: int, config: PoseConfig) -> None:
                      "a slower, steadier sweep of a well-lit face")
 
 
+def what_to_try(keyframes: Keyframes, numbers) -> str:
+    """The advice of a failed camera solve, for the kind of capture."""
+    if keyframes.ordered:
+        return ("record a slower, steadier sweep of a well-lit face from one ear round to the "
+                "other, with the phone's main (1×) camera")
+    if numbers is not None:
+        return ("give the video itself (its tracking follows the views along the sweep), or "
+                "photos that keep the camera's EXIF focal length")
+    return ("name the photos in sweep order (frame_001.jpg, frame_002.jpg, …: they are then "
+            "matched along it) or give the video itself")
+
+
+def structure_from_motion(images: dict[int, np.ndarray], work: Path, keyframes: Keyframes,
+                          config: PoseConfig, numbers=None, names=None) -> Poses:
+    """SfM's cameras of ``images``, checked (:func:`~facecap_core.pose.checks.solve_problem`).
+    Cameras that fail a check are solved again once with what may fix them: photos whose
+    file names give their order (``numbers``) matched along it, a focal length outside a
+    phone's started from a phone's nominal one. Raises CameraSolveError when no solve
+    passes, InputError when too few views register."""
+
+    def solve(ordered: bool, focal_px: float | None, folder: str) -> Poses:
+        poses = run_sfm(images, work / folder, keyframes.video_size,
+                        overlap=config.match_overlap, threads=config.threads, ordered=ordered,
+                        focal_px=focal_px, extraction_threads=config.extraction_threads)
+        registered_enough(poses, len(keyframes.indices), config)
+        return poses
+
+    poses = solve(keyframes.ordered, keyframes.focal_px, "sfm")
+    problem = solve_problem(poses, keyframes, numbers, names)
+    if problem is None:
+        return poses
+    retries = []
+    if not keyframes.ordered and numbers is not None:
+        retries.append(("matching along the file names' order", True, keyframes.focal_px))
+    if focal_problem(poses.intrinsics):
+        nominal = (keyframes.video_size[0] / 2) / np.tan(np.radians(NOMINAL_HFOV_DEG) / 2)
+        retries.append(("a phone's nominal focal length to start from", keyframes.ordered,
+                        nominal))
+    for how, ordered, focal_px in retries:
+        log.warning("the camera solve failed (%s); structure from motion again with %s",
+                    problem, how)
+        try:
+            again = solve(ordered, focal_px, "sfm-again")
+        except FacecapError as exc:
+            log.warning("... which failed too: %s", exc)
+            continue
+        again_problem = solve_problem(again, keyframes, numbers, names)
+        if again_problem is None:
+            return again
+        log.warning("... which failed too: %s", again_problem)
+    raise CameraSolveError(problem, what_to_try(keyframes, numbers))
+
+
+def checked(refined: Poses, step: str, keyframes: Keyframes, numbers=None,
+            names=None) -> Poses | None:
+    """``refined`` (the cameras after the refinement ``step``) when they pass the camera
+    solve's checks, else None (with a warning): the previous step's cameras, which passed,
+    are then kept."""
+    problem = solve_problem(refined, keyframes, numbers, names)
+    if problem is None:
+        return refined
+    log.warning("%s left the cameras wrong (%s): the cameras before it are kept", step, problem)
+    return None
+
+
 def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
                    config: PoseConfig | None = None, progress: bool = False) -> dict[str, Poses]:
     """The cameras of ``keyframes`` after each step: {"sfm", "geometric", "pba"} (the last
-    two as configured). Keyframes SfM cannot register are left out (the cameras file lists
-    them); too few registered raises InputError. Photos are put in sweep order."""
+    two as configured, and only when they pass the camera solve's checks: a refinement that
+    leaves them wrong is dropped). Keyframes SfM cannot register are left out (the cameras
+    file lists them); too few registered raises InputError, a solve that fails the checks
+    CameraSolveError. Photos are put in sweep order."""
 
     config = config or PoseConfig()
     work = Path(work_dir)
+    names = numbers = None
+    if not keyframes.ordered:  # a photo folder: its file names may give the sweep's order
+        names = [path.name for path in list_photos(video)]
+        numbers = frame_numbers(names)
     images = read_frames(video, keyframes.indices, width=config.sfm_width)
-    sfm = run_sfm(images, work / "sfm", keyframes.video_size, overlap=config.match_overlap,
-                  threads=config.threads, ordered=keyframes.ordered,
-                  focal_px=keyframes.focal_px, extraction_threads=config.extraction_threads)
-    registered_enough(sfm, len(keyframes.indices), config)
+    sfm = structure_from_motion(images, work, keyframes, config, numbers, names)
     if not keyframes.ordered:
         sfm = reorder(sfm, sweep_order(sfm))
     steps = {"sfm": sfm}
     current = sfm
     if config.use_tracks and len(keyframes.observations):
-        current = refine_with_tracks(sfm, keyframes.observations, keyframes.indices,
-                                     work / "geometric")
-        steps["geometric"] = current
+        refined = checked(refine_with_tracks(sfm, keyframes.observations, keyframes.indices,
+                                             work / "geometric"),
+                          "the bundle adjustment with the tracks", keyframes, numbers, names)
+        if refined is not None:
+            current = steps["geometric"] = refined
     if config.method == "pba":
         start = time.perf_counter()
         # Decoded straight to PBA's processing width: PBA holds every keyframe at once.
@@ -206,7 +284,9 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
         grey_list = [greys[i] for i in current.frame_indices]
         refined = photometric_refinement(current, grey_list, config, progress, keyframes)
         refined.seconds = current.seconds + time.perf_counter() - start
-        current = steps["pba"] = refined
+        refined = checked(refined, "photometric bundle adjustment", keyframes, numbers, names)
+        if refined is not None:
+            current = steps["pba"] = refined
     return steps
 
 
@@ -252,7 +332,7 @@ def run(inputs: Folders, out: Path, config: PoseConfig, params: dict) -> None:
     main(capture_in(inputs["video"]), inputs["keyframes"] / KEYFRAMES_JSON, out, config)
 
 
-STAGE = Stage("poses", version="3", inputs=("video", "keyframes"),
+STAGE = Stage("poses", version="4", inputs=("video", "keyframes"),
               work_seconds=106.8,
               section="poses", run=run, outputs=(CAMERAS_JSON, SPARSE, *COLMAP_MODEL),
               optional_outputs=(POINTS,),
