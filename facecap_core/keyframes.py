@@ -59,8 +59,6 @@ class KeyframeConfig(StrictModel):
     """Frames past (1 - slack) of that angle compete on sharpness to be the keyframe."""
     nominal_hfov_deg: float = Field(65.0, gt=20, lt=150)
     """Horizontal field of view assumed while measuring angles (the true focal comes later)."""
-    sharpness_window: int = Field(6, ge=1, le=240)
-    """The sharpest of this many recent frames becomes the keyframe."""
     min_shared_tracks: int = Field(30, ge=8, le=10000)
     """A keyframe is forced when fewer tracks than this link back to the last one."""
     min_frames: int = Field(15, ge=2, le=MAX_FRAMES)

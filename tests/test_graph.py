@@ -9,6 +9,7 @@ here from the pipeline's data flow, not derived from the table under test.
 
 from __future__ import annotations
 
+import re
 import typing
 from pathlib import Path
 
@@ -119,9 +120,37 @@ def with_field(path: str, value) -> PipelineConfig:
     return PipelineConfig.model_validate(data)
 
 
+CODE = ("facecap_core", "flows", "tasks")
+"""Where a setting is read: the stages and the orchestration."""
+
+
 def test_every_config_field_is_read_by_one_stage_or_changes_no_result():
-    unread = [path for path, _ in FIELDS if section_of(path) is None]
-    assert unread == ["mvs.workers"]  # how many depth maps run at once
+    """Every setting sits in the section of one stage, whose key hashes it, and code reads
+    it by name (``config.name``, ``getattr(config, "name")``, ``data["name"]``) somewhere
+    other than its declaration: a field no code names is read nowhere, yet changing it would
+    recompute its stage and every one after it. ``mvs.workers`` (how many depth maps run at
+    once) is in no stage's section: the capture flow reads it and it changes no result."""
+    root = Path(__file__).resolve().parents[1]
+    code = "\n".join(p.read_text() for folder in CODE for p in (root / folder).rglob("*.py"))
+    outside = [path for path, _ in FIELDS if section_of(path) is None]
+    assert outside == ["mvs.workers"]
+    unread = []
+    for path, _ in FIELDS:
+        name = path.rsplit(".", 1)[-1]
+        if not re.search(rf"\.{name}\b|[\"']{name}[\"']", code):
+            unread.append(path)
+    assert unread == [], f"settings no code reads: {unread}"
+
+
+def test_a_removed_setting_is_refused_by_name():
+    """keyframes.sharpness_window was read nowhere and is gone: a config that still names
+    it is refused in one line naming it, as every unknown key."""
+    from facecap_core.errors import InputError
+    from facecap_core.pipeline import load_pipeline_config
+
+    with pytest.raises(InputError, match=r"keyframes\.sharpness_window: Extra inputs are not "
+                                         r"permitted; correct or remove these settings"):
+        load_pipeline_config({"keyframes": {"sharpness_window": 6}})
 
 
 @pytest.mark.parametrize("path, field", FIELDS, ids=[path for path, _ in FIELDS])
@@ -135,11 +164,12 @@ def test_a_changed_field_recomputes_exactly_what_depends_on_it(path, field):
     changed = {row.split("_")[0] if row.startswith("depth_") else row
                for row in before if before[row] != after[row]}
     assert changed & KNOWN == RECOMPUTED.get(section, set()), (path, value)
-    for stage in STAGES:  # a stage added since: new keys exactly when what it reads changed
-        if stage.name not in KNOWN:
-            reads_changed = (section is not None and stage.section == section) or any(
-                producer(name) in changed for name in stage.inputs + stage.optional)
-            assert (stage.name in changed) == reads_changed, (stage.name, path)
+    # Every stage, one added since too: new keys exactly when what its row says it reads
+    # changed (its section, or an input's artifact).
+    for stage in STAGES:
+        reads_changed = (section is not None and stage.section == section) or any(
+            stage.source(name) in changed for name in stage.inputs + stage.optional)
+        assert (stage.name in changed) == reads_changed, (stage.name, path)
 
 
 class _Before(StrictModel):
