@@ -406,6 +406,13 @@ def _ears3d(video, cams, records, landmarks, ears, config: LandmarkConfig) -> di
     return ears_doc
 
 
+def _must_be_a_face(landmarks: np.ndarray) -> None:
+    """Refuse landmarks that do not form a face: the camera solve failed."""
+    problem = face_problem(landmarks)
+    if problem:
+        raise CameraSolveError(problem, TRY_AGAIN)
+
+
 def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
          config: LandmarkConfig | None = None) -> Path:
     """Detect 68 landmarks on every keyframe of ``cameras_json``, score and gate them,
@@ -460,9 +467,7 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
     spread = final.spread(noise_px) / eye_distance(frame_from)
     uncertain = inner[~(spread <= config.max_point_spread)]
     landmarks[uncertain] = np.nan
-    problem = face_problem(landmarks)
-    if problem:
-        raise CameraSolveError(problem, TRY_AGAIN)
+    _must_be_a_face(landmarks)
 
     iris_doc = iris.triangulate_irises(dets, records, gated, cams, head_R, config)
     for k, det in enumerate(dets):

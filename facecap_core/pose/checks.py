@@ -200,33 +200,75 @@ def face_shape_error(landmarks, reference) -> tuple[int, float]:
     return len(ok), float(np.sqrt((residual ** 2).sum(1).mean()) / eyes)
 
 
+def _steps(poses, keyframes, numbers=None):
+    """The views of ``poses`` in capture order (rotations, frame numbers; photos without an
+    order in their names: in the poses' own, sweep order), the solve's rotation between
+    consecutive ones and what the images say it is (None: nothing)."""
+    ordered = keyframes.ordered or numbers is not None
+    order = np.argsort(poses.frame_indices) if ordered else np.arange(len(poses.R))
+    R = np.asarray(poses.R, float)[order]
+    frames = np.asarray(poses.frame_indices, np.int64)[order]
+    steps = rotation_angles_deg(R)
+    expected = None
+    if len(frames) < 3:
+        pass
+    elif keyframes.ordered:
+        position = {int(i): k for k, i in enumerate(keyframes.indices)}
+        expected = tracked_steps_deg(keyframes.angles_deg, [position[int(i)] for i in frames],
+                                     poses.intrinsics.width, poses.intrinsics.fx)
+    elif numbers is not None:
+        expected = numbered_steps_deg(steps, np.asarray(numbers)[frames])
+    return R, frames, steps, expected
+
+
 def solve_problem(poses, keyframes, numbers=None, names=None) -> str | None:
     """What is wrong with the cameras ``poses`` (a :class:`~facecap_core.pose.colmap_sfm.
     Poses`) of ``keyframes``: the focal length, the views' order (a video's keyframes, or
     photos whose file names give ``numbers``, see :func:`frame_numbers`; ``names`` the
     photos' file names) and a video's span against its tracking; None when nothing is."""
-    intr = poses.intrinsics
-    problem = focal_problem(intr)
-    if problem or len(poses.frame_indices) < 3:
+    problem = focal_problem(poses.intrinsics)
+    if problem:
         return problem
-    order = np.argsort(poses.frame_indices)
-    R = np.asarray(poses.R, float)[order]
-    frames = np.asarray(poses.frame_indices, np.int64)[order]
-    steps = rotation_angles_deg(R)
-    if keyframes.ordered:
-        position = {int(i): k for k, i in enumerate(keyframes.indices)}
-        expected = tracked_steps_deg(keyframes.angles_deg, [position[int(i)] for i in frames],
-                                     intr.width, intr.fx)
-        if expected is None:
-            return None
-        labels = [f"frame {i}" for i in frames]
-        return (order_problem(R, expected, labels, "keyframes")
-                or span_problem(R, expected))
-    if numbers is None:
+    R, frames, _, expected = _steps(poses, keyframes, numbers)
+    if expected is None:
         return None
-    expected = numbered_steps_deg(steps, np.asarray(numbers)[frames])
+    if keyframes.ordered:
+        return (order_problem(R, expected, [f"frame {i}" for i in frames], "keyframes")
+                or span_problem(R, expected))
     labels = [str(names[i]) if names is not None else f"photo {i}" for i in frames]
     return order_problem(R, expected, labels, "photos (by file name)")
+
+
+def solve_figures(poses, keyframes, numbers=None) -> dict:
+    """The solve's own figures for the run's report: focal length, principal point and
+    field of view; the sparse points' reprojection error and track length; the views'
+    turn along the sweep, against the tracker's, and the largest step between consecutive
+    views over what the images say (the order check's ratio; jumps are over 2)."""
+    intr = poses.intrinsics
+    doc = {"focal_px": round(float(intr.fx), 2),
+           "principal_point_px": [round(float(intr.cx), 2), round(float(intr.cy), 2)],
+           "field_of_view_deg": [round(x, 2) for x in fields_of_view_deg(intr)]}
+    obs = np.asarray(poses.observations, float)
+    if len(obs) and len(poses.points):
+        R, t = np.asarray(poses.R, float), np.asarray(poses.t, float)
+        point, view = obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64)
+        cam = np.einsum("nij,nj->ni", R[view], poses.points[point]) + t[view]
+        xy = cam[:, :2] / np.where(np.abs(cam[:, 2:]) > 1e-12, cam[:, 2:], 1e-12)
+        r2 = (xy ** 2).sum(1, keepdims=True)
+        xy = xy * (1 + intr.k1 * r2 + intr.k2 * r2 ** 2)
+        pixels = xy * [intr.fx, intr.fy] + [intr.cx, intr.cy]
+        error = np.linalg.norm(pixels - obs[:, 2:4], axis=1)
+        doc["reprojection_px"] = {"median": round(float(np.median(error)), 3),
+                                  "rms": round(float(np.sqrt(np.mean(error ** 2))), 3)}
+        doc["track_length"] = round(float(len(obs) / len(poses.points)), 2)
+    _, _, steps, expected = _steps(poses, keyframes, numbers)
+    doc["turn_deg"] = round(float(steps.sum()), 1)
+    if expected is not None:
+        if keyframes.ordered:
+            doc["tracked_turn_deg"] = round(float(np.sum(expected)), 1)
+        floor = np.maximum(expected, MIN_JUMP_DEG / JUMP_FACTOR)
+        doc["largest_step_ratio"] = round(float(np.max(steps / floor)), 3)
+    return doc
 
 
 @lru_cache(maxsize=1)

@@ -31,6 +31,7 @@ from facecap_core.pose.checks import (
     CameraSolveError,
     focal_problem,
     frame_numbers,
+    solve_figures,
     solve_problem,
 )
 from facecap_core.pose.colmap_sfm import Poses, run_sfm
@@ -251,6 +252,16 @@ def checked(refined: Poses, step: str, keyframes: Keyframes, numbers=None,
     return None
 
 
+def photo_order(video: str | Path, keyframes: Keyframes):
+    """A photo folder's file names and, where they are a video's frames numbered at a
+    constant step, their numbers (:func:`~facecap_core.pose.checks.frame_numbers`): the
+    order of the sweep. None, None for a video."""
+    if keyframes.ordered:
+        return None, None
+    names = [path.name for path in list_photos(video)]
+    return names, frame_numbers(names)
+
+
 def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
                    config: PoseConfig | None = None, progress: bool = False) -> dict[str, Poses]:
     """The cameras of ``keyframes`` after each step: {"sfm", "geometric", "pba"} (the last
@@ -261,10 +272,7 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
 
     config = config or PoseConfig()
     work = Path(work_dir)
-    names = numbers = None
-    if not keyframes.ordered:  # a photo folder: its file names may give the sweep's order
-        names = [path.name for path in list_photos(video)]
-        numbers = frame_numbers(names)
+    names, numbers = photo_order(video, keyframes)
     images = read_frames(video, keyframes.indices, width=config.sfm_width)
     sfm = structure_from_motion(images, work, keyframes, config, numbers, names)
     if not keyframes.ordered:
@@ -312,7 +320,8 @@ def main(video: str | Path, keyframes_json: str | Path, out_dir: str | Path,
                     len(dropped), len(keyframes.indices))
     log.info("cameras of %d keyframes by %s in %.1f s", len(final.frame_indices),
              " + ".join(steps), time.perf_counter() - start)
-    return write_outputs(final, out, method=list(steps)[-1], dropped=dropped,
+    solve = solve_figures(final, keyframes, photo_order(video, keyframes)[1])
+    return write_outputs(final, out, method=list(steps)[-1], dropped=dropped, solve=solve,
                          wall_seconds=round(time.perf_counter() - start, 2),
                          cpu_seconds=round(time.process_time() - cpu, 2))
 
@@ -325,7 +334,7 @@ def figures(folder: str | Path) -> dict:
         return {}
     doc = json.loads(path.read_text())
     return {"keyframes": len(doc["keyframes"]), "focal_px": round(doc["intrinsics"]["fx"], 2),
-            "dropped_keyframes": doc.get("dropped", [])}
+            "dropped_keyframes": doc.get("dropped", []), "solve": doc.get("solve", {})}
 
 
 def run(inputs: Folders, out: Path, config: PoseConfig, params: dict) -> None:

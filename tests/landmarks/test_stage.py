@@ -342,3 +342,26 @@ def test_irises_unmeasured_say_why():
     doc = iris.triangulate_irises(dets, records, [], cams, np.eye(3), LandmarkConfig())
     assert doc["pupil_distance"] is None and "two or more" in doc["reason"]
     assert doc["pupils"] == {"right": None, "left": None}
+
+
+def test_cameras_collapsed_onto_one_view_are_a_failed_camera_solve(capture, tmp_path,
+                                                                   monkeypatch):
+    """A degenerate solve that put every view where the first one is (no parallax: the
+    landmarks cannot meet in 3D): one line naming the camera solve and what to try, and no
+    file of the run's. (Views merely shuffled round the head are not always caught here:
+    the robust triangulation may find a few whose cameras still agree, and a face.)"""
+    from facecap_core.pose.checks import CameraSolveError  # only this test names the error
+
+    cams = write_gt_keyframe_cameras(capture.gt_cameras, tmp_path / "cameras.json", step=1,
+                                     **WORLD)
+    doc = json.loads(cams.read_text())
+    first = doc["keyframes"][0]
+    for k in doc["keyframes"]:
+        k["R"], k["t"] = first["R"], first["t"]
+    cams.write_text(json.dumps(doc))
+    monkeypatch.setattr(stage, "_ear_module", lambda: None)
+    with pytest.raises(CameraSolveError) as caught:
+        stage.main(capture.video, cams, tmp_path / "out")
+    message = str(caught.value)
+    assert message.startswith("the camera solve failed: ") and " — record a slower" in message
+    assert "\n" not in message and str(tmp_path) not in message and ".json" not in message

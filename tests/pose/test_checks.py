@@ -191,3 +191,27 @@ def test_landmarks_of_real_faces_form_a_face_and_broken_ones_are_named():
     few = np.full((68, 3), np.nan)
     few[[27, 30, 36, 45, 48]] = mean[[27, 30, 36, 45, 48]]
     assert checks.face_problem(few).startswith("only 5 of the face's 51 inner landmarks")
+
+
+def test_the_solves_figures_are_its_reprojection_turn_and_order_against_the_tracking():
+    from facecap_core.camera import project  # only this test projects points
+
+    yaws = np.arange(-40.0, 41.0, 4.0)
+    poses, keyframes = _video(yaws, tremor_deg=0.0)
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-60, 60, (30, 3))
+    rows = []
+    for view, (R, t) in enumerate(zip(poses.R, poses.t)):
+        pixels = project(points, R, t, PHONE)[0]
+        rows += [(n, view, *pixels[n]) for n in range(len(points))]
+    rows = np.array(rows)
+    rows[0, 2] += 3.0  # one observation 3 px off
+    exact = Poses(PHONE, poses.frame_indices, poses.R, poses.t, points, 0.0, rows)
+    figures = checks.solve_figures(exact, keyframes)
+    assert figures["focal_px"] == 298.6 and figures["principal_point_px"] == [120.4, 158.7]
+    assert figures["reprojection_px"]["median"] == 0.0
+    assert figures["reprojection_px"]["rms"] == pytest.approx(3 / np.sqrt(len(rows)), abs=1e-3)
+    assert figures["track_length"] == len(yaws)
+    assert figures["turn_deg"] == figures["tracked_turn_deg"] == 80.0
+    # Every 4° step against the 5° floor (a jump is over 2).
+    assert figures["largest_step_ratio"] == pytest.approx(0.8, abs=1e-3)
