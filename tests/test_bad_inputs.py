@@ -507,6 +507,19 @@ CORPUS = {
                          _config(t, f"fitting: {{stiffness: {[1.0] * 40}, landmark_weight: "
                                     f"{[1.0] * 40}}}\n")],
         ["fitting.stiffness", "at most 32 items"]),
+    "config: a blur no image can take": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                         _config(t, "fitting: {edge_blur_sigma: 1.0e308}\n")],
+        ["fitting.edge_blur_sigma", "less than or equal to 20"]),
+    "config: weights the solver cannot hold": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                         _config(t, "fitting: {gamma: 1.0e308, data_weight: 1.0e-308}\n")],
+        ["fitting.gamma", "less than or equal to 1000"]),
+    "config: stiffness and landmark weight 616 orders apart": (
+        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
+                         _config(t, "fitting: {stiffness: [1.0e-308], "
+                                    "landmark_weight: [1.0e308]}\n")],
+        ["stiffness must lie in [0.001, 10000]", "landmark_weight in [0, 10000]"]),
     "config: 200,000 stiffness levels": (
         lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                          _config(t, f"fitting: {{stiffness: {[1] * 200_000}}}\n")],

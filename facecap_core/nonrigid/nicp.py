@@ -40,6 +40,12 @@ from facecap_core.render import RaycastScene, vertex_normals
 from facecap_core.template import INNER_LANDMARKS, Template
 
 
+STIFFNESS_RANGE = (1e-3, 1e4)
+"""The stiffness values the solver works with (the template is scaled to unit radius)."""
+WEIGHT_MAX = 1e4
+"""The largest weight of a landmark (one cloud target weighs ``data_weight``, about 1)."""
+
+
 class FittingConfig(StrictModel):
     """Non-rigid template fitting: optimal-step NICP (Amberg et al. 2007) to a fused point
     cloud, 3D landmarks, ear points and keyframe silhouettes (Agrawal et al. 2020, "Mesh
@@ -56,9 +62,9 @@ class FittingConfig(StrictModel):
     the stiffness so that landmarks place the mesh first and the cloud refines it."""
     iterations_per_level: int = Field(3, ge=1, le=100)
     """Most optimal steps per stiffness level (fewer when the mesh stops moving)."""
-    convergence_mm: float = Field(0.02, ge=0)
+    convergence_mm: float = Field(0.02, ge=0, le=10)
     """A level ends early when no vertex moved more than this in its last step."""
-    gamma: float = Field(1.0, gt=0)
+    gamma: float = Field(1.0, ge=1e-3, le=1e3)
     """Weight of the translation part against the linear part in the stiffness term."""
     reuse_factorization: bool = True
     """Keep the per-vertex weights fixed within a level, so the matrix is factored once per
@@ -76,12 +82,12 @@ class FittingConfig(StrictModel):
     use_ear_landmarks: bool = True
     """Use ear points (vertex id, 3D target) when given."""
 
-    data_weight: float = Field(1.0, gt=0)
+    data_weight: float = Field(1.0, ge=1e-4, le=1e4)
     """Weight of one point-cloud target."""
     search_radius_mm: tuple[float, float] = (8.0, 3.0)
     """How far along the vertex normal cloud points are accepted, at the first and last
     level (geometric in between): wide while the template is far, tight at the end."""
-    normal_distance_mm: float = Field(1.5, gt=0)
+    normal_distance_mm: float = Field(1.5, gt=0, le=20)
     """Largest distance of an accepted cloud point from the vertex-normal line."""
     min_points: int = Field(3, ge=1, le=1000)
     """Fewest accepted points for a cloud target; vertices with fewer fall back to stiffness."""
@@ -100,22 +106,22 @@ class FittingConfig(StrictModel):
     recompute_every: int = Field(1, ge=1, le=100)
     """Recompute the cloud targets every this many steps (the paper: every few)."""
 
-    ear_weight: float = Field(1.0, ge=0)
+    ear_weight: float = Field(1.0, ge=0, le=1e4)
     """Ear point weight relative to the level's landmark weight."""
 
-    edge_weight: float = Field(1.0, ge=0)
+    edge_weight: float = Field(1.0, ge=0, le=1e4)
     """Weight of one silhouette target (per keyframe that sees the vertex on its contour)."""
     edge_recompute_every: int = Field(2, ge=1, le=100)
     """Recompute silhouette vertices and their edge targets every this many steps."""
     edge_first_level: int = Field(1, ge=0, le=MAX_LEVELS)
     """First level (0-based) that uses edges: before it the mesh is too far for a few-pixel
     match."""
-    edge_max_px: float = Field(3.0, gt=0)
+    edge_max_px: float = Field(3.0, gt=0, le=100)
     """Largest image distance from a projected contour vertex to its edge pixel."""
     edge_min_cos: float = Field(0.7, ge=0, le=1)
     """The edge pixel must lie along the projected vertex normal: |cos| of the angle at least
     this."""
-    edge_blur_sigma: float = Field(1.0, ge=0)
+    edge_blur_sigma: float = Field(1.0, ge=0, le=20)
     """Gaussian blur (px) before Canny."""
     canny_thresholds: tuple[int, int] = (30, 90)
     """Canny hysteresis thresholds on the grey image."""
@@ -136,11 +142,20 @@ class FittingConfig(StrictModel):
     def _check_schedule(self):
         if len(self.stiffness) == 0 or len(self.stiffness) != len(self.landmark_weight):
             raise ValueError("stiffness and landmark_weight need the same, non-zero length")
-        if any(a <= 0 for a in self.stiffness) or any(b < 0 for b in self.landmark_weight):
-            raise ValueError("stiffness must be > 0 and landmark_weight >= 0")
+        # The solver's matrix sums stiffness² and weights: values this far apart leave it
+        # singular or lose one of the two to rounding (a double has 16 digits).
+        if any(not STIFFNESS_RANGE[0] <= a <= STIFFNESS_RANGE[1] for a in self.stiffness) or \
+                any(not 0 <= b <= WEIGHT_MAX for b in self.landmark_weight):
+            raise ValueError(f"stiffness must lie in [{STIFFNESS_RANGE[0]:g}, "
+                             f"{STIFFNESS_RANGE[1]:g}] and landmark_weight in [0, "
+                             f"{WEIGHT_MAX:g}]")
+        if not 0 <= self.canny_thresholds[0] <= self.canny_thresholds[1] <= 1020:
+            raise ValueError("canny_thresholds: (low, high) with 0 <= low <= high <= 1020 "
+                             "(Sobel gradients of 8-bit images)")
         if self.search_radius_mm[1] <= self.normal_distance_mm / 2 or \
-                self.search_radius_mm[0] < self.search_radius_mm[1]:
-            raise ValueError("search_radius_mm: (start, end) with start >= end > "
+                self.search_radius_mm[0] < self.search_radius_mm[1] or \
+                self.search_radius_mm[0] > 100:
+            raise ValueError("search_radius_mm: (start, end) with 100 >= start >= end > "
                              "normal_distance_mm / 2")
         return self
 
