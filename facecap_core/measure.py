@@ -1,0 +1,251 @@
+"""Distances on the fitted face: along the straight line and along the surface, in mm, with
+the metric scale's uncertainty, between two vertices or between two of the 68 landmarks.
+
+The surface distance is the shortest path over the mesh found on a graph of its vertices and
+:data:`STEINER` points on each edge, every node joined to those on the faces it touches
+(Lanthier et al.'s Steiner graph), then straightened: each point of the path that lies inside
+an edge slides along it to where the path is shortest (the path keeps crossing the same
+edges, so it stays on the surface). The figure is the length of a path on the mesh: never
+under the true geodesic, never under the straight line; on a plane it is the straight line
+within 0.1 %. The results page (``flows/viewer/viewer.js``) does the same for two clicks.
+
+The metric scale's uncertainty (``report.json`` ``figures.scale.sigma_pct``, 1σ) scales every
+distance alike: a distance ``d`` is stated ``d ± d·σ``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+import trimesh
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+STEINER = 3
+"""Points on each edge, besides its ends, in the surface path's graph."""
+RELAX_SWEEPS = 400
+"""Sweeps of the straightening (each moves every inner point, odd then even ones)."""
+GOLDEN_STEPS = 30
+"""Golden-section steps a point takes along its edge per sweep (its place to 1e-6 of it)."""
+
+PRESETS = (
+    ("outer_eyes", "Outer eye corners", 36, 45),
+    ("inner_eyes", "Inner eye corners", 39, 42),
+    ("nose_width", "Nose width", 31, 35),
+    ("mouth_width", "Mouth width", 48, 54),
+    ("nose_length", "Nose length", 27, 33),
+    ("face_height", "Face height", 27, 8),
+)
+"""(key, name, landmark, landmark) of the anatomical measurements: iBUG 68-point indices
+(0-based): the eyes' outer and inner corners, the nostrils' wings, the mouth's corners, the
+nasion to the nose's base (subnasale), the nasion to the chin."""
+
+
+def _edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh's edges (E, 2: lower vertex id first) and each face's three edge ids
+    (F, 3: the edges opposite nothing; edge k of a face joins its vertices k and k+1)."""
+    pairs = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
+    pairs = np.sort(pairs, axis=1)
+    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    return edges, inverse.reshape(-1, 3)
+
+
+class SurfacePaths:
+    """Shortest paths over one mesh's surface (vertices in mm, faces as vertex ids)."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, steiner: int = STEINER):
+        self.vertices = np.asarray(vertices, float)
+        self.faces = np.asarray(faces, np.int64)
+        self.m = steiner
+        self.edges, self.face_edges = _edges(self.faces)
+        a, b = self.edges.T
+        lengths = np.linalg.norm(self.vertices[a] - self.vertices[b], axis=1)
+        n = len(self.vertices)
+        self.vertex_graph = sp.coo_matrix((np.r_[lengths, lengths], (np.r_[a, b], np.r_[b, a])),
+                                          shape=(n, n)).tocsr()
+        self.longest_edge = float(lengths.max()) if len(lengths) else 0.0
+
+    # -- nodes of the Steiner graph: vertex v is node v; point k of edge e is V + e*m + k ----
+    def _face_nodes(self, faces: np.ndarray) -> np.ndarray:
+        """(F, 3 + 3m) node ids on each face's boundary."""
+        n, m = len(self.vertices), self.m
+        steiner = (n + self.face_edges[faces][:, :, None] * m + np.arange(m)).reshape(len(faces), -1)
+        return np.concatenate([self.faces[faces], steiner], axis=1)
+
+    def _node_points(self, nodes: np.ndarray) -> np.ndarray:
+        n, m = len(self.vertices), self.m
+        nodes = np.asarray(nodes)
+        points = np.empty((len(nodes), 3))
+        is_vertex = nodes < n
+        points[is_vertex] = self.vertices[nodes[is_vertex]]
+        e, k = np.divmod(nodes[~is_vertex] - n, m)
+        t = (k + 1) / (m + 1)
+        u, v = self.edges[e].T
+        points[~is_vertex] = self.vertices[u] + t[:, None] * (self.vertices[v] - self.vertices[u])
+        return points
+
+    def path(self, a: int, b: int) -> tuple[float, np.ndarray]:
+        """(length in mm, points of the path) along the surface from vertex ``a`` to ``b``."""
+        if a == b:
+            return 0.0, self.vertices[[a]]
+        # The path over the edges bounds the geodesic: it lies in the ellipsoid of the points
+        # whose distances to a and b sum to no more, which is the graph's region.
+        bound = float(dijkstra(self.vertex_graph, indices=a)[b])
+        if not math.isfinite(bound):
+            return math.inf, self.vertices[[a, b]]
+        reach = (np.linalg.norm(self.vertices - self.vertices[a], axis=1)
+                 + np.linalg.norm(self.vertices - self.vertices[b], axis=1))
+        near = reach <= bound + 2 * self.longest_edge
+        faces = np.flatnonzero(near[self.faces].any(axis=1))
+        nodes_of = self._face_nodes(faces)
+        ids, local = np.unique(nodes_of, return_inverse=True)
+        local = local.reshape(nodes_of.shape)
+        points = self._node_points(ids)
+        k = nodes_of.shape[1]
+        i, j = np.triu_indices(k, 1)
+        rows, cols = local[:, i].ravel(), local[:, j].ravel()
+        weights = np.linalg.norm(points[rows] - points[cols], axis=1)
+        # The path passes no vertex but its ends: every point inside it lies on an edge,
+        # where the straightening can slide it (to the edge's end, if that is shortest).
+        ends = np.isin(ids, (a, b)) | (ids >= len(self.vertices))
+        keep = ends[rows] & ends[cols]
+        rows, cols, weights = rows[keep], cols[keep], weights[keep]
+        graph = sp.coo_matrix((np.r_[weights, weights], (np.r_[rows, cols], np.r_[cols, rows])),
+                              shape=(len(ids), len(ids))).tocsr()
+        graph.data[:] = np.linalg.norm(points[np.repeat(np.arange(len(ids)),
+                                                         np.diff(graph.indptr))]
+                                       - points[graph.indices], axis=1)  # duplicates summed
+        start, end = int(np.searchsorted(ids, a)), int(np.searchsorted(ids, b))
+        _, before = dijkstra(graph, indices=start, return_predecessors=True)
+        chain = [end]
+        while chain[-1] != start:
+            chain.append(int(before[chain[-1]]))
+        nodes = ids[np.array(chain[::-1])]
+        pts = straighten(self.vertices, self.edges, nodes, len(self.vertices), self.m)
+        return float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()), pts
+
+
+def straighten(vertices: np.ndarray, edges: np.ndarray, nodes: np.ndarray, n: int, m: int,
+               sweeps: int = RELAX_SWEEPS) -> np.ndarray:
+    """The path through ``nodes`` with each point inside an edge slid along that edge to
+    where the path is shortest (vertices stay): odd points, then even ones, each by golden
+    section on its edge with its neighbours held."""
+    nodes = np.asarray(nodes)
+    inner = nodes >= n
+    e, k = np.divmod(np.where(inner, nodes - n, 0), m)
+    t = np.where(inner, (k + 1) / (m + 1), 0.0)
+    u = np.where(inner, edges[e, 0], nodes)
+    v = np.where(inner, edges[e, 1], nodes)
+    start, step = vertices[u], vertices[v] - vertices[u]
+    ratio = (math.sqrt(5) - 1) / 2
+    length = math.inf
+    for _ in range(sweeps):
+        for parity in (1, 0):
+            idx = np.arange(parity if parity else 2, len(nodes) - 1, 2)
+            idx = idx[inner[idx]]
+            if not len(idx):
+                continue
+            p = start + t[:, None] * step
+            prev, nxt = p[idx - 1], p[idx + 1]
+            s0, s1 = start[idx], step[idx]
+
+            def cost(x, s0=s0, s1=s1, prev=prev, nxt=nxt):
+                q = s0 + x[:, None] * s1
+                return np.linalg.norm(q - prev, axis=1) + np.linalg.norm(q - nxt, axis=1)
+
+            lo, hi = np.zeros(len(idx)), np.ones(len(idx))
+            for _ in range(GOLDEN_STEPS):
+                d = ratio * (hi - lo)
+                x1, x2 = hi - d, lo + d
+                left = cost(x1) < cost(x2)
+                hi = np.where(left, x2, hi)
+                lo = np.where(left, lo, x1)
+            t[idx] = (lo + hi) / 2
+        p = start + t[:, None] * step
+        shorter = float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+        if shorter > length * (1 - 1e-7):
+            break
+        length = shorter
+    return start + t[:, None] * step
+
+
+def with_sigma(mm: float, sigma_pct: float | None) -> dict:
+    """``{"mm", "sigma_mm"}`` of a distance under the metric scale's 1σ (None: unknown)."""
+    return {"mm": round(mm, 3),
+            "sigma_mm": round(mm * sigma_pct / 100, 3) if sigma_pct is not None else None}
+
+
+def measure(paths: SurfacePaths, a: int, b: int, sigma_pct: float | None) -> dict:
+    """The distance from vertex ``a`` to ``b``: straight and along the surface, each with its
+    1σ from the metric scale."""
+    straight = float(np.linalg.norm(paths.vertices[a] - paths.vertices[b]))
+    surface, _ = paths.path(a, b)
+    return {"vertices": [int(a), int(b)], "straight": with_sigma(straight, sigma_pct),
+            "surface": with_sigma(max(surface, straight), sigma_pct), "sigma_pct": sigma_pct}
+
+
+def landmark_measurements(vertices: np.ndarray, faces: np.ndarray, landmark_ids,
+                          sigma_pct: float | None) -> dict:
+    """:data:`PRESETS` on a mesh whose 68 landmarks are the vertices ``landmark_ids``: key ->
+    ``{"name", "landmarks", "vertices", "straight": {"mm", "sigma_mm"}, "surface": ...,
+    "sigma_pct"}``."""
+    paths = SurfacePaths(vertices, faces)
+    ids = np.asarray(landmark_ids, np.int64)
+    return {key: {"name": name, "landmarks": [i, j],
+                  **measure(paths, int(ids[i]), int(ids[j]), sigma_pct)}
+            for key, name, i, j in PRESETS}
+
+
+def landmark_vertices(vertices: np.ndarray, points: np.ndarray, tolerance_mm: float = 1e-3
+                      ) -> np.ndarray | None:
+    """The vertex ids of ``points`` (the fitting stage's ``landmarks.json``: the template's
+    landmark vertices, moved with the mesh); None where one is not a vertex of the mesh."""
+    dist, ids = cKDTree(np.asarray(vertices, float)).query(np.asarray(points, float))
+    return ids if len(ids) == 68 and float(np.max(dist)) <= tolerance_mm else None
+
+
+def figures(fitting_folder: str | Path, sigma_pct: float | None) -> dict:
+    """``{"measurements": ...}`` of the fitting stage's mesh (``mesh.ply`` and its
+    ``landmarks.json``), the metric scale's ``sigma_pct`` given; {} without them."""
+    folder = Path(fitting_folder)
+    if not (folder / "mesh.ply").is_file() or not (folder / "landmarks.json").is_file():
+        return {}
+    mesh = trimesh.load(folder / "mesh.ply", process=False, force="mesh")
+    points = json.loads((folder / "landmarks.json").read_text()).get("landmarks")
+    ids = landmark_vertices(mesh.vertices, np.asarray(points, float)) if points else None
+    if ids is None:
+        return {}
+    return {"measurements": landmark_measurements(mesh.vertices, mesh.faces, ids, sigma_pct)}
+
+
+def summary(measurements: dict) -> str:
+    """The measurements in words: ``Outer eye corners 98.1 mm ± 3.9 mm (surface 104.2 mm);
+    ...`` (the uncertainty is the metric scale's, 1σ)."""
+    said = []
+    for m in measurements.values():
+        if not isinstance(m, dict) or not isinstance(m.get("straight"), dict):
+            continue
+        said.append(f"{m.get('name', '?')} {distance_text(m['straight'])} (surface "
+                    f"{_number(m.get('surface', {}).get('mm'))} mm)")
+    return "; ".join(said)
+
+
+def _number(value) -> str:
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+        return "–"
+    return f"{value:.1f}"
+
+
+def distance_text(d: dict, sigma_pct: float | None = None) -> str:
+    """``63.2 mm ± 2.5 mm`` (``d`` as :func:`with_sigma` gives it; with ``sigma_pct``, ``(±4.0
+    %, 1σ)`` after it)."""
+    text = f"{_number(d.get('mm'))} mm"
+    if d.get("sigma_mm") is not None:
+        text += f" ± {_number(d['sigma_mm'])} mm"
+        if sigma_pct is not None:
+            text += f" (±{sigma_pct:.1f} %, 1σ)"
+    return text

@@ -1,0 +1,75 @@
+"""Distances on a mesh (:mod:`facecap_core.measure`): along the surface, against surfaces
+whose geodesics are known, and the anatomical presets of ``report.json``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import trimesh
+
+from facecap_core.measure import PRESETS, SurfacePaths, distance_text, figures, summary
+
+
+def _grid(rows: int, cols: int, place) -> tuple[np.ndarray, np.ndarray]:
+    """A grid of quads split in two, vertex (i, j) at ``place(i, j)``; columns wrap round
+    when ``place`` does."""
+    vertices = np.array([place(i, j) for i in range(rows) for j in range(cols)], float)
+    faces = []
+    for i in range(rows - 1):
+        for j in range(cols - 1):
+            a = i * cols + j
+            faces += [[a, a + 1, a + cols + 1], [a, a + cols + 1, a + cols]]
+    return vertices, np.array(faces)
+
+
+def test_on_a_plane_the_surface_distance_is_the_straight_one():
+    rng = np.random.default_rng(0)
+    jitter = rng.normal(0, 0.3, (51, 51, 2))
+    vertices, faces = _grid(51, 51, lambda i, j: [2 * j + jitter[i, j, 0],
+                                                  2 * i + jitter[i, j, 1], 0.0])
+    paths = SurfacePaths(vertices, faces)
+    for a, b in ((0, 51 * 51 - 1), (10, 51 * 40 + 3), (5, 51 * 50 + 30)):
+        length, points = paths.path(a, b)
+        straight = np.linalg.norm(vertices[a] - vertices[b])
+        assert straight <= length < straight * 1.001
+        assert np.allclose(points[[0, -1]], vertices[[a, b]])
+
+
+def test_round_a_cylinder_the_surface_distance_is_the_unrolled_one():
+    """A polyhedral cylinder unrolls into a plane: its geodesic is a straight line there.
+    The path found is never shorter and within 0.5 % of it."""
+    n, radius = 128, 50.0
+    width = 2 * radius * np.sin(np.pi / n)  # a side's width
+    vertices, faces = _grid(81, n + 1, lambda i, j: [radius * np.cos(2 * np.pi * j / n),
+                                                     radius * np.sin(2 * np.pi * j / n),
+                                                     2.5 * i - 100])
+    paths = SurfacePaths(vertices, faces)
+    for (i1, j1), (i2, j2) in (((20, 0), (60, 32)), ((10, 5), (70, 20)), ((40, 0), (41, 40))):
+        length, _ = paths.path(i1 * (n + 1) + j1, i2 * (n + 1) + j2)
+        unrolled = np.hypot((j2 - j1) * width, 2.5 * (i2 - i1))
+        assert unrolled * (1 - 1e-9) <= length < unrolled * 1.005
+
+
+def test_the_presets_of_a_fitted_mesh_are_its_landmarks_distances(tmp_path):
+    """``figures.measurements`` from the fitting stage's mesh and its landmarks.json: each
+    preset's straight distance is its two landmarks', the surface one no shorter, each with
+    the scale's 1σ; a landmarks file off the mesh gives none."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=80.0)
+    sphere.export(tmp_path / "mesh.ply")
+    ids = np.flatnonzero(sphere.vertices[:, 2] > 30)[:68]
+    points = sphere.vertices[ids]
+    (tmp_path / "landmarks.json").write_text(json.dumps({"landmarks": points.tolist()}))
+    found = figures(tmp_path, 4.0)["measurements"]
+    assert list(found) == [key for key, *_ in PRESETS]
+    for key, name, i, j in PRESETS:
+        m = found[key]
+        straight = np.linalg.norm(points[i] - points[j])
+        assert m["name"] == name and m["vertices"] == [int(ids[i]), int(ids[j])]
+        assert abs(m["straight"]["mm"] - straight) < 1e-3
+        assert m["surface"]["mm"] >= m["straight"]["mm"]
+        assert abs(m["straight"]["sigma_mm"] - 0.04 * straight) < 1e-3
+    assert summary(found).startswith(f"Outer eye corners {found['outer_eyes']['straight']['mm']:.1f} mm ± ")
+    assert distance_text({"mm": 63.21, "sigma_mm": 2.53}, 4.0) == "63.2 mm ± 2.5 mm (±4.0 %, 1σ)"
+    (tmp_path / "landmarks.json").write_text(json.dumps({"landmarks": (points + 1).tolist()}))
+    assert figures(tmp_path, 4.0) == {}
