@@ -32,6 +32,7 @@ from facecap.tasks.store.keys import KEY_PATTERN
 from facecap_core.coarse import ears_summary, scale_summary
 from facecap_core.errors import FacecapError
 from facecap_core.frames import frame_name
+from facecap_core.measure import summary as measurements_summary
 
 _log = logging.getLogger(__name__)
 
@@ -228,6 +229,9 @@ def figure_rows(report: dict) -> list[tuple[str, str, str]]:
                      f"{rough['median_bend_deg']:.1f}° (smooth skin: under 7 % and 3°)"))
     if fig.get("parts"):
         rows.append(("parts", "Support by part", parts_summary(fig["parts"])))
+    if isinstance(fig.get("measurements"), dict) and measurements_summary(fig["measurements"]):
+        rows.append(("measurements", "Measurements", measurements_summary(fig["measurements"])
+                     + " (straight; ± the metric scale's 1σ)"))
     for protocol, sc in (fig.get("evaluation") or {}).items():
         rows.append((f"evaluation_{protocol}", f"Accuracy ({protocol})", _scores(sc)))
         ears = sc.get("ears") or {}
@@ -362,6 +366,8 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
                             "max_mm": HEAT_MAX_MM}
     if glb and "cloud.ply" in results:
         data["cloud"] = _cloud(results["cloud.ply"])
+    if glb:
+        data["measure"] = _measure_data(report)
     if "cameras.json" in results and centre is not None:
         data["cameras"], data["view_direction"], data["view_up"] = _cameras(
             results["cameras.json"], centre, frames)
@@ -384,7 +390,12 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
                                "</button>")
         if "cloud" in data:  # off, the cloud is seen alone
             buttons.append('<button data-toggle="mesh" aria-pressed="true">Mesh</button>')
-        view = VIEW.format(buttons="\n".join(buttons), ticks=_ticks())
+        buttons += ['<button data-toggle="wireframe" aria-pressed="false">Wireframe</button>',
+                    '<button id="measure-button" aria-pressed="false">Measure</button>',
+                    '<label id="light">Light <input type="range" min="-90" max="90" '
+                    'value="0" step="5" aria-label="the light\'s side"></label>']
+        view = VIEW.format(buttons="\n".join(buttons), ticks=_ticks(),
+                           presets=_preset_buttons(data["measure"]))
         no_mesh = ""
     else:
         until = str(report.get("until", ""))
@@ -409,6 +420,27 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
     return page.encode("utf-8")
 
 
+def _measure_data(report: dict) -> dict:
+    """What the Measure mode needs: the metric scale's 1σ (%, None if unknown) and the
+    anatomical presets of ``figures.measurements`` (their vertices and figures)."""
+    fig = report.get("figures") or {}
+    sigma = (fig.get("scale") or {}).get("sigma_pct")
+    presets = []
+    for key, m in (fig.get("measurements") or {}).items():
+        if isinstance(m, dict) and isinstance(m.get("vertices"), list) and \
+                len(m["vertices"]) == 2 and all(isinstance(v, int) for v in m["vertices"]):
+            presets.append({"key": str(key), "name": str(m.get("name", key)),
+                            "vertices": m["vertices"], "straight": m.get("straight"),
+                            "surface": m.get("surface")})
+    return {"sigma_pct": sigma if isinstance(sigma, (int, float)) else None,
+            "presets": presets}
+
+
+def _preset_buttons(measure: dict) -> str:
+    return "".join(f'<button data-preset="{html.escape(p["key"])}">{html.escape(p["name"])}'
+                   "</button>" for p in measure["presets"])
+
+
 PAGE_HEAD = """<!doctype html>
 <html lang="en">
 <head>
@@ -424,6 +456,13 @@ VIEW = """<div id="view">
   <canvas id="canvas"></canvas>
   <div id="controls">
 {buttons}
+  <div class="break"></div>
+  <div id="measure" hidden>
+    <div>Click two points on the face: the distance between them, straight and along the
+      surface, ± the metric scale's uncertainty.</div>
+    <div class="presets">{presets}</div>
+    <output id="measure-result"></output>
+  </div>
   </div>
   <figure id="keyframe" hidden><img alt=""><figcaption></figcaption></figure>
   <div id="colourbar" hidden>
@@ -447,7 +486,7 @@ TEMPLATE = PAGE_HEAD + """<style>
            height: 100vh; }}
   #canvas {{ width: 100%; height: 100%; display: block; touch-action: none; }}
   #controls {{ position: absolute; top: 8px; left: 8px; display: flex; flex-wrap: wrap;
-               gap: 6px; }}
+               align-items: flex-start; gap: 6px; }}
   button {{ font: inherit; padding: 6px 12px; border: 1px solid #999; border-radius: 6px;
             background: #fff; cursor: pointer; }}
   button[aria-pressed="true"] {{ background: #2060c0; color: #fff; border-color: #2060c0; }}
@@ -483,6 +522,17 @@ TEMPLATE = PAGE_HEAD + """<style>
   .note {{ color: #a04000; }}
   #warnings {{ margin: 8px 0; padding: 8px 12px 8px 28px; background: #fff0e0;
                border: 1px solid #e0a060; border-radius: 6px; color: #7a3000; }}
+  #light {{ display: flex; align-items: center; gap: 4px; padding: 2px 8px;
+            background: rgba(255, 255, 255, 0.88); border-radius: 6px; }}
+  #light input {{ width: 90px; }}
+  #controls .break {{ flex-basis: 100%; height: 0; }}
+  #measure {{ max-width: 380px; padding: 6px 10px; box-sizing: border-box;
+              font-size: 13px; line-height: 1.35; background: rgba(255, 255, 255, 0.9);
+              border-radius: 6px; }}
+  #measure[hidden] {{ display: none; }}
+  #measure .presets {{ display: flex; flex-wrap: wrap; gap: 4px; margin: 4px 0; }}
+  #measure .presets button {{ padding: 2px 8px; font-size: 13px; }}
+  #measure output {{ display: block; font-weight: 600; }}
   #keyframe {{ position: absolute; right: 8px; top: 52px; margin: 0; max-width: 45%;
                background: #fff; padding: 6px; border: 1px solid #999; border-radius: 6px;
                cursor: pointer; }}

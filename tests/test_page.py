@@ -562,3 +562,101 @@ def test_each_part_s_support_by_its_cloud_is_said_in_words(results):
     page = build_page(report, results, mesh_glb(results["mesh.ply"])).decode()
     assert 'data-figure="parts"' in page or "data-figure=parts" in page
     assert "1.46 mm off the cloud" in page
+
+
+def _measured_report(results) -> dict:
+    """REPORT with ``figures.measurements`` of the sphere: its 68 "landmarks" are vertices on
+    its front (the side the cameras see), measured as the capture flow measures a face."""
+    from facecap_core.measure import landmark_measurements
+
+    sphere = trimesh.load(results["mesh.ply"], process=False)
+    front = np.flatnonzero(sphere.vertices[:, 2] > 45)
+    ids = front[np.argsort(sphere.vertices[front, 0])][np.linspace(0, len(front) - 1, 68)
+                                                         .astype(int)]
+    measurements = landmark_measurements(sphere.vertices, sphere.faces, ids, 4.0)
+    return {**REPORT, "figures": {**REPORT["figures"], "measurements": measurements}}
+
+
+def test_two_clicks_measure_the_face_straight_and_along_its_surface(results, tmp_path):
+    """Measure: two clicks on the mesh pick two vertices; the page's straight distance is
+    theirs within 0.1 mm, its surface distance no shorter and within 0.5 % of the path
+    facecap_core/measure.py finds, each said with the scale's 1σ; a preset shows the
+    report's figure and draws its line; the page stays small and is ready in under 2 s."""
+    import time
+
+    from facecap_core.measure import SurfacePaths
+    from tests.browser import chromium
+
+    report = _measured_report(results)
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(report, results, mesh_glb(results["mesh.ply"])))
+    assert page_file.stat().st_size < 15 * 2**20
+    sphere = trimesh.load(results["mesh.ply"], process=False)
+    paths = SurfacePaths(sphere.vertices, sphere.faces)
+    with chromium() as browser:
+        page = browser.new_page(viewport={"width": 1100, "height": 700})
+        errors = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        start = time.perf_counter()
+        page.goto(page_file.as_uri())
+        page.wait_for_function("window.facecap && window.facecap.ready", timeout=60_000)
+        assert time.perf_counter() - start < 2.0
+        before = _shot(page)
+        page.click("#measure-button")
+        assert page.is_visible("#measure")
+        box = page.locator("#canvas").bounding_box()
+        aims = [int(np.argmin(np.linalg.norm(sphere.vertices - target, axis=1)))
+                for target in ([-40.0, 15.0, 80.0], [35.0, -25.0, 80.0])]
+        for i in aims:
+            x, y = page.evaluate(f"window.facecap.vertexOnScreen({i})")
+            page.mouse.click(box["x"] + x, box["y"] + y)
+            page.wait_for_timeout(100)
+        m = page.evaluate("window.facecap.measurement")
+        assert [m["a"], m["b"]] == aims
+        straight = float(np.linalg.norm(sphere.vertices[aims[0]] - sphere.vertices[aims[1]]))
+        assert abs(m["straight"] - straight) < 0.1
+        geodesic, _ = paths.path(*aims)
+        assert m["surface"] >= m["straight"]
+        assert abs(m["surface"] - geodesic) <= 0.005 * geodesic, (m, geodesic)
+        said = page.inner_text("#measure-result")
+        assert (f"straight {straight:.1f} mm ± {0.04 * straight:.1f} mm (±4.0 %, 1σ)"
+                in said), said
+        assert f"along the surface {m['surface']:.1f} mm ±" in said
+        assert np.abs(_shot(page) - before).mean() > 0.05  # the points and the lines drawn
+        page.click("[data-preset=mouth_width]")
+        preset = report["figures"]["measurements"]["mouth_width"]
+        m = page.evaluate("window.facecap.measurement")
+        assert [m["a"], m["b"]] == preset["vertices"]
+        said = page.inner_text("#measure-result")
+        assert said.startswith(f"Mouth width: straight {preset['straight']['mm']:.1f} mm ± "
+                               f"{preset['straight']['sigma_mm']:.1f} mm (±4.0 %, 1σ); "
+                               f"along the surface {preset['surface']['mm']:.1f} mm"), said
+        assert abs(m["straight"] - preset["straight"]["mm"]) < 0.01
+        assert abs(m["surface"] - preset["surface"]["mm"]) <= 0.005 * preset["surface"]["mm"]
+        page.screenshot(path=str(SHOTS / "measure.png"))
+    assert errors == []
+    assert report["figures"]["measurements"]["mouth_width"]["name"] in \
+        page_file.read_text()  # the preset's button
+
+
+def test_the_light_turns_and_the_wireframe_shows(results, tmp_path):
+    """The light slider moves the light round to the side (a raking light: the picture
+    changes), the Wireframe switch draws the triangles' edges over the surface."""
+    from tests.browser import chromium
+
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(REPORT, results, mesh_glb(results["mesh.ply"])))
+    with chromium() as browser:
+        page = _opened(browser, page_file)
+        page.click("[data-mode=plain]")
+        front = _shot(page)
+        page.fill("#light input", "80")  # fires input
+        raking = _shot(page)
+        assert page.evaluate("window.facecap.light") == 80
+        assert np.abs(raking - front).mean() > 5.0
+        page.screenshot(path=str(SHOTS / "raking-light.png"))
+        page.click("[data-toggle=wireframe]")
+        assert page.get_attribute("[data-toggle=wireframe]", "aria-pressed") == "true"
+        wired = _shot(page)
+        assert np.abs(wired - raking).mean() > 2.0
+        page.screenshot(path=str(SHOTS / "wireframe.png"))

@@ -1,8 +1,12 @@
 // The capture page's 3D view: the fitted mesh (glTF) to turn, zoom and light, in its own
 // colours, plain, or coloured by its accuracy against the scan; the fused cloud and the
 // keyframe cameras on demand. Reads the page's JSON (id "facecap-data"); THREE is the
-// vendored three.js bundle. Sets window.facecap = {ready, reason, mode, setMode, toggle}:
-// ready once the mesh is shown, reason when it cannot be.
+// vendored three.js bundle. Sets window.facecap = {ready, reason, mode, setMode, toggle,
+// measure, measurement, showPreset, vertexOnScreen, setLight}: ready once the mesh is shown,
+// reason when it cannot be. Measure: two clicks on the mesh (each snapped to the nearest
+// vertex of the triangle hit) give their distance straight and along the surface (the path
+// of facecap_core/measure.py: a Steiner-point graph searched by A*, then straightened along
+// its edges), ± the metric scale's 1σ; the presets measure between two landmarks.
 (function () {
   "use strict";
   const data = JSON.parse(document.getElementById("facecap-data").textContent);
@@ -14,13 +18,15 @@
   scene.background = new THREE.Color(0xf4f4f4);
   const camera = new THREE.PerspectiveCamera(30, 1, 1, 1e5);
   scene.add(camera);
-  scene.add(new THREE.HemisphereLight(0xffffff, 0x606060, 1.6));
+  const sky = new THREE.HemisphereLight(0xffffff, 0x606060, 1.6);
+  scene.add(sky);
   const headlight = new THREE.DirectionalLight(0xffffff, 1.8);
   headlight.position.set(0.4, 0.6, 1.0);  // follows the viewer: the side facing it is lit
   camera.add(headlight);
   const controls = new THREE.OrbitControls(camera, canvas);
   controls.enableDamping = true;
-  const state = {ready: false, mode: "colour", setMode, toggle};
+  const state = {ready: false, mode: "colour", setMode, toggle, measure: measureVertices,
+                 measurement: null, measuring: false, vertexOnScreen, setLight};
   window.facecap = state;
   // Drawn when something changed (a turn, a zoom, a mode, a size), not every frame: an open
   // page idles rather than keeping a core (or a laptop's GPU) busy.
@@ -92,6 +98,7 @@
   let pressed = null;
   canvas.addEventListener("pointerdown", (e) => { pressed = [e.offsetX, e.offsetY]; });
   canvas.addEventListener("pointerup", (e) => {
+    if (state.measuring) return;  // a click picks a point to measure (below)
     if (!pressed || !extras.cameras || !extras.cameras.visible) return;
     if (Math.hypot(e.offsetX - pressed[0], e.offsetY - pressed[1]) > 4) return;  // a drag
     let best = -1, nearest = 24;  // px
@@ -128,6 +135,304 @@
       .setAttribute("aria-pressed", String(extras[name].visible));
     stale = true;
     return extras[name].visible;
+  }
+
+  // -- Measure ------------------------------------------------------------------------------
+  // Vertex v is node v; point k (of STEINER) inside edge e is node V + e * STEINER + k, at
+  // (k + 1) / (STEINER + 1) of the way from the edge's lower vertex id: as measure.py.
+  const STEINER = 3, SWEEPS = 400, GOLDEN_STEPS = 30, GOLDEN = (Math.sqrt(5) - 1) / 2;
+  let topology = null;
+  function buildTopology() {
+    const geometry = mesh.geometry;
+    const position = geometry.getAttribute("position").array;
+    const V = position.length / 3;
+    const index = geometry.index ? geometry.index.array : Uint32Array.from({length: V}, (_, i) => i);
+    const F = index.length / 3;
+    const edgeOf = new Map(), edges = [], edgeFaceList = [];
+    const faceEdges = new Int32Array(3 * F);
+    for (let f = 0; f < F; f++) {
+      for (let k = 0; k < 3; k++) {
+        const a = index[3 * f + k], b = index[3 * f + (k + 1) % 3];
+        const lo = Math.min(a, b), hi = Math.max(a, b), key = lo * V + hi;
+        let e = edgeOf.get(key);
+        if (e === undefined) {
+          e = edges.length / 2;
+          edgeOf.set(key, e);
+          edges.push(lo, hi);
+          edgeFaceList.push(f, -1);
+        } else edgeFaceList[2 * e + 1] = f;
+        faceEdges[3 * f + k] = e;
+      }
+    }
+    const start = new Int32Array(V + 1);  // the faces round each vertex, as a CSR list
+    for (let i = 0; i < index.length; i++) start[index[i] + 1]++;
+    for (let v = 0; v < V; v++) start[v + 1] += start[v];
+    const fill = start.slice(0, V), vertexFaces = new Int32Array(index.length);
+    for (let i = 0; i < index.length; i++) vertexFaces[fill[index[i]]++] = (i / 3) | 0;
+    topology = {position, index, V, F, edges: Int32Array.from(edges),
+                edgeFaces: Int32Array.from(edgeFaceList), faceEdges, start, vertexFaces,
+                nodes: V + edges.length / 2 * STEINER};
+    return topology;
+  }
+
+  function nodePoint(n, out) {
+    const {position, V, edges} = topology;
+    if (n < V) {
+      out[0] = position[3 * n]; out[1] = position[3 * n + 1]; out[2] = position[3 * n + 2];
+      return out;
+    }
+    const e = Math.floor((n - V) / STEINER), t = ((n - V) % STEINER + 1) / (STEINER + 1);
+    const u = edges[2 * e], v = edges[2 * e + 1];
+    for (let c = 0; c < 3; c++)
+      out[c] = position[3 * u + c] + t * (position[3 * v + c] - position[3 * u + c]);
+    return out;
+  }
+  const dist3 = (p, q) => Math.hypot(p[0] - q[0], p[1] - q[1], p[2] - q[2]);
+
+  function surfacePath(a, b) {
+    // A* over the Steiner graph (the straight distance to b is never more than what is
+    // left), through no vertex but its ends, then straightened: measure.py's path.
+    const topo = topology || buildTopology();
+    const {V, index, faceEdges, edgeFaces, start, vertexFaces} = topo;
+    if (a === b) return {length: 0, points: [nodePoint(a, [0, 0, 0])]};
+    const g = new Float64Array(topo.nodes).fill(Infinity);
+    const before = new Int32Array(topo.nodes).fill(-1);
+    const closed = new Uint8Array(topo.nodes);
+    const target = nodePoint(b, [0, 0, 0]), p = [0, 0, 0], q = [0, 0, 0];
+    const keys = [], values = [];  // a binary heap of (estimate, node)
+    const push = (key, value) => {
+      let i = keys.length;
+      keys.push(key); values.push(value);
+      while (i > 0) {
+        const up = (i - 1) >> 1;
+        if (keys[up] <= key) break;
+        keys[i] = keys[up]; values[i] = values[up]; i = up;
+      }
+      keys[i] = key; values[i] = value;
+    };
+    const pop = () => {
+      const top = values[0], lastKey = keys.pop(), lastValue = values.pop();
+      if (keys.length) {
+        let i = 0;
+        for (;;) {
+          let child = 2 * i + 1;
+          if (child >= keys.length) break;
+          if (child + 1 < keys.length && keys[child + 1] < keys[child]) child++;
+          if (keys[child] >= lastKey) break;
+          keys[i] = keys[child]; values[i] = values[child]; i = child;
+        }
+        keys[i] = lastKey; values[i] = lastValue;
+      }
+      return top;
+    };
+    g[a] = 0;
+    push(dist3(nodePoint(a, p), target), a);
+    const faceNodes = new Int32Array(3 + 3 * STEINER);
+    while (keys.length) {
+      const n = pop();
+      if (closed[n]) continue;
+      closed[n] = 1;
+      if (n === b) break;
+      nodePoint(n, p);
+      let faces;
+      if (n < V) faces = vertexFaces.subarray(start[n], start[n + 1]);
+      else {
+        const e = Math.floor((n - V) / STEINER);
+        faces = edgeFaces[2 * e + 1] < 0 ? [edgeFaces[2 * e]] : [edgeFaces[2 * e], edgeFaces[2 * e + 1]];
+      }
+      for (const f of faces) {
+        for (let k = 0; k < 3; k++) {
+          faceNodes[k] = index[3 * f + k];
+          for (let s = 0; s < STEINER; s++)
+            faceNodes[3 + k * STEINER + s] = V + faceEdges[3 * f + k] * STEINER + s;
+        }
+        for (const m of faceNodes) {
+          if (m === n || closed[m] || (m < V && m !== b)) continue;
+          const d = g[n] + dist3(p, nodePoint(m, q));
+          if (d < g[m]) {
+            g[m] = d;
+            before[m] = n;
+            push(d + dist3(q, target), m);
+          }
+        }
+      }
+    }
+    if (!closed[b]) return {length: Infinity, points: []};
+    const chain = [b];
+    while (chain[chain.length - 1] !== a) chain.push(before[chain[chain.length - 1]]);
+    const points = straighten(chain.reverse());
+    let length = 0;
+    for (let i = 1; i < points.length; i++) length += dist3(points[i - 1], points[i]);
+    return {length, points};
+  }
+
+  function straighten(nodes) {
+    // Each point inside an edge slides along it to where the path is shortest, odd points
+    // then even ones, by golden section with its neighbours held; vertices stay.
+    const {position, V, edges} = topology, n = nodes.length;
+    const from = new Float64Array(3 * n), step = new Float64Array(3 * n);
+    const t = new Float64Array(n), inner = new Uint8Array(n);
+    for (let i = 0; i < n; i++) {
+      const node = nodes[i];
+      let u = node, v = node;
+      if (node >= V) {
+        const e = Math.floor((node - V) / STEINER);
+        u = edges[2 * e]; v = edges[2 * e + 1];
+        t[i] = ((node - V) % STEINER + 1) / (STEINER + 1);
+        inner[i] = 1;
+      }
+      for (let c = 0; c < 3; c++) {
+        from[3 * i + c] = position[3 * u + c];
+        step[3 * i + c] = position[3 * v + c] - position[3 * u + c];
+      }
+    }
+    const at = (i, x) => [from[3 * i] + x * step[3 * i], from[3 * i + 1] + x * step[3 * i + 1],
+                          from[3 * i + 2] + x * step[3 * i + 2]];
+    const total = () => {
+      let sum = 0;
+      for (let i = 1; i < n; i++) sum += dist3(at(i - 1, t[i - 1]), at(i, t[i]));
+      return sum;
+    };
+    let length = Infinity;
+    for (let sweep = 0; sweep < SWEEPS; sweep++) {
+      for (const first of [1, 2]) {
+        for (let i = first; i < n - 1; i += 2) {
+          if (!inner[i]) continue;
+          const prev = at(i - 1, t[i - 1]), next = at(i + 1, t[i + 1]);
+          const cost = (x) => { const r = at(i, x); return dist3(r, prev) + dist3(r, next); };
+          let lo = 0, hi = 1;
+          for (let k = 0; k < GOLDEN_STEPS; k++) {
+            const d = GOLDEN * (hi - lo), x1 = hi - d, x2 = lo + d;
+            if (cost(x1) < cost(x2)) hi = x2; else lo = x1;
+          }
+          t[i] = (lo + hi) / 2;
+        }
+      }
+      const shorter = total();
+      if (shorter > length * (1 - 1e-7)) break;
+      length = shorter;
+    }
+    return Array.from({length: n}, (_, i) => at(i, t[i]));
+  }
+
+  function vertexOnScreen(i) {
+    const position = mesh.geometry.getAttribute("position");
+    const p = new THREE.Vector3().fromBufferAttribute(position, i).project(camera);
+    if (p.z > 1) return null;
+    return [(p.x + 1) / 2 * canvas.clientWidth, (1 - p.y) / 2 * canvas.clientHeight];
+  }
+
+  const sigmaPct = data.measure ? data.measure.sigma_pct : null;
+  function distanceText(mm) {
+    if (!Number.isFinite(mm)) return "–";
+    if (sigmaPct === null || sigmaPct === undefined)
+      return `${mm.toFixed(1)} mm (the metric scale's uncertainty is not known)`;
+    return `${mm.toFixed(1)} mm ± ${(mm * sigmaPct / 100).toFixed(1)} mm ` +
+      `(±${sigmaPct.toFixed(1)} %, 1σ)`;
+  }
+
+  const marks = new THREE.Group();
+  marks.renderOrder = 10;
+  scene.add(marks);
+  function drawMeasure(points, ends) {
+    for (const child of [...marks.children]) {
+      marks.remove(child);
+      child.geometry.dispose();
+    }
+    const radius = mesh.geometry.boundingSphere.radius;
+    const over = {depthTest: false, transparent: true};
+    for (const e of ends) {
+      const dot = new THREE.Mesh(new THREE.SphereGeometry(radius * 0.012, 12, 8),
+                                 new THREE.MeshBasicMaterial({color: 0xe03020, ...over}));
+      dot.position.set(...e);
+      dot.renderOrder = 11;
+      marks.add(dot);
+    }
+    if (ends.length === 2) {
+      const straight = new THREE.Line(new THREE.BufferGeometry().setFromPoints(
+        ends.map((e) => new THREE.Vector3(...e))),
+        new THREE.LineBasicMaterial({color: 0xe03020, ...over}));
+      const along = new THREE.Line(new THREE.BufferGeometry().setFromPoints(
+        points.map((e) => new THREE.Vector3(...e))),
+        new THREE.LineBasicMaterial({color: 0x1050d0, ...over}));
+      straight.renderOrder = along.renderOrder = 10;
+      marks.add(straight, along);
+    }
+    stale = true;
+  }
+
+  function measureVertices(a, b, name, shown) {
+    // The distance from vertex a to b: drawn (red straight, blue along the surface) and
+    // said; ``shown`` (a preset's figures from report.json) is said instead of this page's.
+    if (!topology) buildTopology();
+    const ends = [nodePoint(a, [0, 0, 0]), nodePoint(b, [0, 0, 0])];
+    const path = surfacePath(a, b);
+    const straight = dist3(ends[0], ends[1]);
+    const surface = Math.max(path.length, straight);
+    state.measurement = {a, b, name: name || null, straight, surface, shown: shown || null};
+    drawMeasure(path.points, ends);
+    const s = shown && Number.isFinite(shown.straight) ? shown.straight : straight;
+    const r = shown && Number.isFinite(shown.surface) ? shown.surface : surface;
+    document.getElementById("measure-result").textContent =
+      `${name ? name + ": " : ""}straight ${distanceText(s)}; along the surface ` +
+      `${distanceText(r)}`;
+    return state.measurement;
+  }
+
+  function setMeasuring(on) {
+    state.measuring = on;
+    document.getElementById("measure").hidden = !on;
+    document.getElementById("measure-button").setAttribute("aria-pressed", String(on));
+    marks.visible = on;
+    picked.length = 0;
+    stale = true;
+  }
+
+  function showPreset(key) {
+    const preset = data.measure.presets.find((p) => p.key === key);
+    if (!preset) return null;
+    const count = mesh.geometry.getAttribute("position").count;
+    if (!preset.vertices.every((v) => Number.isInteger(v) && v >= 0 && v < count)) return null;
+    if (!state.measuring) setMeasuring(true);
+    const mm = (d) => (d && typeof d.mm === "number" ? d.mm : NaN);
+    return measureVertices(preset.vertices[0], preset.vertices[1], preset.name,
+                           {straight: mm(preset.straight), surface: mm(preset.surface)});
+  }
+  state.showPreset = showPreset;
+
+  const picked = [];
+  const raycaster = new THREE.Raycaster();
+  canvas.addEventListener("pointerup", (e) => {
+    if (!state.measuring || !pressed || !mesh.visible) return;
+    if (Math.hypot(e.offsetX - pressed[0], e.offsetY - pressed[1]) > 4) return;  // a drag
+    raycaster.setFromCamera(new THREE.Vector2(e.offsetX / canvas.clientWidth * 2 - 1,
+                                              1 - e.offsetY / canvas.clientHeight * 2), camera);
+    const hit = raycaster.intersectObject(mesh, false)[0];
+    if (!hit) return;
+    const position = mesh.geometry.getAttribute("position"), v = new THREE.Vector3();
+    let best = hit.face.a, nearest = Infinity;
+    for (const i of [hit.face.a, hit.face.b, hit.face.c]) {
+      const d = v.fromBufferAttribute(position, i).distanceTo(hit.point);
+      if (d < nearest) { nearest = d; best = i; }
+    }
+    if (picked.length === 2) picked.length = 0;
+    picked.push(best);
+    state.picked = [...picked];
+    if (!topology) buildTopology();
+    if (picked.length === 1) {
+      drawMeasure([], [nodePoint(best, [0, 0, 0])]);
+      document.getElementById("measure-result").textContent = "Click a second point.";
+    } else measureVertices(picked[0], picked[1]);
+  });
+
+  function setLight(degrees) {
+    // The light from the viewer's side (0) round to the left or right (±90: raking, across
+    // the face, so that every bump casts its shading); the sky light dims as it turns.
+    const r = THREE.MathUtils.degToRad(degrees);
+    headlight.position.set(Math.sin(r), 0.35, Math.cos(r));
+    sky.intensity = 1.6 * (0.35 + 0.65 * Math.cos(r));
+    state.light = degrees;
+    stale = true;
   }
 
   function addExtras() {
@@ -180,6 +485,11 @@
     scene.add(mesh);
     addExtras();
     extras.mesh = mesh;  // shown; hidden, the cloud is seen alone (the Mesh switch)
+    // The wireframe: the triangles' edges over the surface, on demand.
+    extras.wireframe = new THREE.Mesh(geometry, new THREE.MeshBasicMaterial(
+      {color: 0x202020, wireframe: true, transparent: true, opacity: 0.35, depthWrite: false}));
+    extras.wireframe.visible = false;
+    scene.add(extras.wireframe);
     setMode("colour");
     resize();
     frame(geometry);
@@ -192,6 +502,12 @@
 
   for (const button of document.querySelectorAll("[data-mode]"))
     button.addEventListener("click", () => setMode(button.dataset.mode));
+  document.getElementById("measure-button").addEventListener(
+    "click", () => setMeasuring(!state.measuring));
+  for (const button of document.querySelectorAll("[data-preset]"))
+    button.addEventListener("click", () => showPreset(button.dataset.preset));
+  const slider = document.querySelector("#light input");
+  slider.addEventListener("input", () => setLight(Number(slider.value)));
   for (const button of document.querySelectorAll("[data-toggle]"))
     button.addEventListener("click", () => toggle(button.dataset.toggle));
   (function loop() {
