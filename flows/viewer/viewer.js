@@ -21,8 +21,11 @@
   const sky = new THREE.HemisphereLight(0xffffff, 0x606060, 1.6);
   scene.add(sky);
   const headlight = new THREE.DirectionalLight(0xffffff, 1.8);
-  headlight.position.set(0.4, 0.6, 1.0);  // follows the viewer: the side facing it is lit
+  // Follows the viewer: it shines along the line of sight (the side facing the viewer is
+  // lit); the Light slider turns it round to the side, in the camera's own frame.
+  headlight.position.set(0, 0, 1);
   camera.add(headlight);
+  headlight.target = camera;
   const controls = new THREE.OrbitControls(camera, canvas);
   controls.enableDamping = true;
   const state = {ready: false, mode: "colour", setMode, toggle, measure: measureVertices,
@@ -429,7 +432,7 @@
     // The light from the viewer's side (0) round to the left or right (±90: raking, across
     // the face, so that every bump casts its shading); the sky light dims as it turns.
     const r = THREE.MathUtils.degToRad(degrees);
-    headlight.position.set(Math.sin(r), 0.35, Math.cos(r));
+    headlight.position.set(Math.sin(r), 0.15, Math.cos(r));
     sky.intensity = 1.6 * (0.35 + 0.65 * Math.cos(r));
     state.light = degrees;
     stale = true;
