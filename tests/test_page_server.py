@@ -171,3 +171,122 @@ def test_a_malformed_request_still_gets_an_answer(served):
         raw.sendall(b"GET /x HTTP/9.9\r\n\r\n")
         assert b"Error" in raw.recv(200)  # the standard library's error page
     assert fetch(url)[0] == 200
+
+
+def test_a_slow_client_is_cut_off_at_the_request_deadline(tmp_path, monkeypatch):
+    """A client that sends a header byte now and then, each within the per-read timeout,
+    holds its connection (a thread) no longer than the whole request's deadline."""
+    import socket
+
+    monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
+    server = page_server(open_store(tmp_path / "store"), "127.0.0.1", 0, request_s=0.5)
+    serve_in_background(server)
+    try:
+        with socket.create_connection(server.server_address[:2], timeout=10) as raw:
+            raw.sendall(b"GET /artifacts/")
+            raw.settimeout(0.2)
+            ended, give_up = False, time.monotonic() + 20  # the bound: 40 times the deadline
+            while not ended and time.monotonic() < give_up:
+                try:
+                    raw.sendall(b"x")  # a byte every 0.2 s: no read ever waits 30 s
+                    ended = raw.recv(100) == b""
+                except TimeoutError:
+                    continue  # still open: the server waits for more
+                except OSError:  # reset or broken pipe: ended as well
+                    ended = True
+            assert ended, "the server still held the connection after 20 s"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+class _Records(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+@pytest.fixture
+def pages_log(monkeypatch):
+    """The server's log records alone: not passed on to handlers other tests' Prefect runs
+    left on the root logger (their console, long closed, would report a logging error)."""
+    logger, held = logging.getLogger("facecap.pages"), _Records()
+    monkeypatch.setattr(logger, "propagate", False)
+    level = logger.level
+    logger.setLevel(logging.INFO)  # (setLevel: a logger caches what its level lets through)
+    logger.addHandler(held)
+    yield held
+    logger.removeHandler(held)
+    logger.setLevel(level)
+
+
+def test_a_client_that_hangs_up_mid_answer_is_no_error(served, pages_log, capfd):
+    """The answer's write meets a closed connection: one line in the server's log, no
+    traceback on the console, and the server goes on."""
+    import socket
+    import struct
+
+    store, _ = served
+    big = artifact_key("fitting", {"big": 1}, None, "1")
+    store.put(big, {"mesh.glb": b"\0" * (64 << 20)}, stage="fitting", inputs={}, config=None,
+              version="1")
+    url = urlsplit(store.presigned_url(big, "mesh.glb", 3600))
+    raw = socket.socket()
+    raw.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    raw.connect((url.hostname, url.port))
+    raw.sendall(f"GET {url.path}?{url.query} HTTP/1.0\r\n\r\n".encode())
+    assert raw.recv(100).startswith(b"HTTP/1.0 200")
+    raw.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    raw.close()  # a reset, with 64 MB still to send
+    give_up = time.monotonic() + 30  # a bound, not a pace: the server's thread says when
+    while time.monotonic() < give_up and not any(
+            "hung up" in r.getMessage() for r in pages_log.records):
+        time.sleep(0.05)
+    said = [r.getMessage() for r in pages_log.records]
+    assert any("hung up" in m for m in said), said
+    assert not any(r.exc_info for r in pages_log.records), said
+    err = capfd.readouterr().err  # socketserver's own report of a failed request:
+    assert "during processing of request" not in err and "ConnectionResetError" not in err
+    assert fetch(store.presigned_url(big, "mesh.glb", 3600), "HEAD")[0] == 200
+
+
+@pytest.mark.parametrize("damage", ["short", "folder", "link"])
+def test_a_damaged_link_secret_is_one_line_at_start_up(damage, tmp_path, monkeypatch, capsys):
+    """``facecap pages`` refuses to start (exit 2, one line) rather than answering every
+    request with a traceback; a secret damaged while it serves is one log line a request."""
+    from http.server import ThreadingHTTPServer
+
+    from facecap.cli import main
+
+    home = tmp_path / "home"
+    monkeypatch.setenv("FACECAP_HOME", str(home))
+    home.mkdir()
+    secret = home / SECRET_NAME
+    if damage == "short":
+        secret.write_text("0123")
+    elif damage == "folder":
+        secret.mkdir()
+    else:
+        (tmp_path / "elsewhere").write_text("f" * 64)
+        secret.symlink_to(tmp_path / "elsewhere")
+    served = []  # serving forever would be the defect: recorded, not waited for
+    monkeypatch.setattr(ThreadingHTTPServer, "serve_forever", lambda self: served.append(1))
+    assert main(["pages", "--port", "0", "--store", str(tmp_path / "store")]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("facecap: error: "), lines
+    assert str(secret) in lines[0] and "retry" in lines[0], lines
+    assert not served
+
+
+def test_a_secret_damaged_while_serving_is_one_log_line_a_request(served, pages_log, capfd):
+    store, keys = served
+    url = store.presigned_url(keys["page"], "index.html", 3600)
+    (settings().home / SECRET_NAME).write_text("damaged")
+    status, _, body = fetch(url)
+    assert status == 503 and b"cannot check links" in body
+    assert any("is not a link secret facecap made" in r.getMessage() for r in pages_log.records)
+    assert not any(r.exc_info for r in pages_log.records)
+    assert "during processing of request" not in capfd.readouterr().err

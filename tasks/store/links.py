@@ -16,6 +16,7 @@ import mimetypes
 import os
 import re
 import secrets
+import stat
 import time
 from urllib.parse import quote, urlencode
 
@@ -45,6 +46,15 @@ def content_type(name: str) -> str:
 
 def _secret() -> bytes:
     path = settings().home / SECRET_NAME
+    try:
+        return _read_secret(path)
+    except OSError as exc:  # a folder, a file facecap may not read, a home it may not write
+        raise InputError(f"the link secret {path} cannot be read or made ({exc.strerror}); "
+                         "remove it or correct its permissions and retry (every link made "
+                         "with the old one stops working)") from None
+
+
+def _read_secret(path) -> bytes:
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         # Made once, by whichever process asks first; O_EXCL so that two never write two.
@@ -54,15 +64,25 @@ def _secret() -> bytes:
     else:
         with os.fdopen(fd, "w") as made:
             made.write(secrets.token_hex(32))
-    with open(path, "rb") as held:  # a process that lost the race may read it half written
+    # Never through a link, never blocked on a FIFO: a plain file of this machine's.
+    held = os.fdopen(os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK), "rb")
+    with held:  # a process that lost the race may read it half written
+        if not stat.S_ISREG(os.fstat(held.fileno()).st_mode):
+            raise InputError(f"{path} is not a file; remove it and retry")
         for _ in range(50):
             held.seek(0)
-            secret = held.read().strip()
-            if len(secret) == 64:
+            secret = held.read(65).strip()
+            if len(secret) == 64 and re.fullmatch(rb"[0-9a-f]{64}", secret):
                 return secret
             time.sleep(0.01)
     raise InputError(f"{path} is not a link secret facecap made; remove it and retry "
                      "(every link made with the old one stops working)")
+
+
+def check_secret() -> None:
+    """Raise a one-line InputError if this machine's link secret cannot be read (or made):
+    what the page server checks before it serves."""
+    _secret()
 
 
 def signature(key: str, name: str, expires_at: int) -> str:
