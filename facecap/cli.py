@@ -428,6 +428,9 @@ def _as_user_sees_it(exc: FacecapError, args) -> str:
 
 FLOW_COMMANDS = ("reconstruct", "dataset", "evaluate-dataset", "serve", "demo")
 """The commands that run flows, on a Prefect server of their own unless one is named."""
+PREFECT_COMMANDS = (*FLOW_COMMANDS, "forget", "alerts")
+"""The commands that use Prefect (``forget``: the UI's pages), whose PREFECT_HOME must be a
+folder."""
 
 
 def _runs_flows(argv: list[str]) -> bool:
@@ -439,7 +442,7 @@ def _runs_flows(argv: list[str]) -> bool:
 def main(argv: list[str] | None = None) -> int:
     console.prefect_defaults()
     # The command's own process: its server starts while it loads the pipeline and Prefect.
-    if argv is None and _runs_flows(sys.argv[1:]):
+    if argv is None and _runs_flows(sys.argv[1:]) and console.prefect_home_problem() is None:
         local_server.spawn_local_server(quiet="--verbose" not in sys.argv)
     try:
         args = build_parser().parse_args(argv)
@@ -447,6 +450,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"facecap: error: {exc}", file=sys.stderr)
         return 2
     console.VERBOSE = args.verbose
+    # Before Prefect is imported (flows.service imports it): it would warn, then fail.
+    problem = console.prefect_home_problem() if args.command in PREFECT_COMMANDS else None
+    if problem:
+        print(f"facecap: error: {problem}", file=sys.stderr)
+        return 2
     from facecap.flows.service import LOCAL_COMMAND
 
     local = LOCAL_COMMAND.set(True)  # one's own machine: any path, any store

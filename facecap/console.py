@@ -7,9 +7,11 @@ import logging
 import logging.config
 import os
 import sys
+from pathlib import Path
 
 from facecap.flows.local_server import start_local_server
 from facecap.tasks.scratch import process_scratch, remove_orphans
+from facecap_core.settings import folder_problem
 
 # Imported where used: Prefect reads its settings when first imported; prefect_defaults() sets
 # them first.
@@ -22,6 +24,21 @@ def prefect_defaults() -> None:
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
     # No PREFECT_LOGGING_LEVEL: the UI keeps every log line; the console is quieted by a
     # logging configuration (see _quiet_console).
+
+
+def prefect_home_problem() -> str | None:
+    """Why the folder Prefect keeps its files in (``PREFECT_HOME``, default ``~/.prefect``)
+    cannot be one, as the one line of a refusal, or None. Prefect itself only warns
+    when it cannot make it, and its server then fails to start: found here, before Prefect
+    is imported, the variable is named."""
+    value = os.environ.get("PREFECT_HOME") or "~/.prefect"
+    problem = folder_problem(Path(value).expanduser())
+    if problem is None:
+        return None
+    where = (f"invalid PREFECT_HOME={value!r} in the environment" if "PREFECT_HOME" in os.environ
+             and os.environ["PREFECT_HOME"] else f"Prefect's default folder {value}")
+    return (f"{where}: {problem}; set PREFECT_HOME to a writable folder, or unset it for "
+            "Prefect's default (~/.prefect)")
 
 
 VERBOSE = False

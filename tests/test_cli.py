@@ -419,3 +419,28 @@ def test_a_facecap_home_that_is_not_a_folder_is_one_line(home, orbit, tmp_path, 
         assert lines[0].endswith("; set FACECAP_HOME to a writable folder, or unset it for "
                                  "the default (~/.cache/facecap)"), err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("home", ["/dev/null", "file", "file/sub"])
+def test_a_prefect_home_that_is_not_a_folder_is_one_line(home, orbit, tmp_path, monkeypatch,
+                                                         capfd):
+    """PREFECT_HOME is the user's as much as FACECAP_HOME: refused in one line naming it,
+    exit 2, before Prefect is asked (it warned, then its server did not start: exit 1)."""
+    from facecap.cli import main
+
+    (tmp_path / "file").write_text("a file")
+    value = home if home.startswith("/") else str(tmp_path / home)
+    monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "facecap-home"))
+    monkeypatch.setenv("PREFECT_HOME", value)
+    for argv in (["forget", "anna", "--out", str(tmp_path / "out")],
+                 ["reconstruct", str(orbit), "--out", str(tmp_path / "out")]):
+        code = main(argv)
+        err = capfd.readouterr().err
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1, err
+        assert lines[0].startswith(f"facecap: error: invalid PREFECT_HOME={value!r} in the "
+                                   "environment: "), err
+        assert "not a folder" in lines[0], err
+        assert lines[0].endswith("; set PREFECT_HOME to a writable folder, or unset it for "
+                                 "Prefect's default (~/.prefect)"), err
+    assert not (tmp_path / "out").exists()
