@@ -485,3 +485,80 @@ def test_the_local_server_logs_to_a_file_and_dies_with_its_command(tmp_path):
         os.kill(server, signal.SIGKILL)
     assert not alive, "the server outlived its command"
     assert log == str(tmp_path / "home" / "logs" / "server.log")
+
+
+# --------------------------------------------------------------------------- train-ears
+
+
+@pytest.fixture
+def quick_training(monkeypatch):
+    """``facecap train-ears`` with its rendering and dlib's training replaced by stand-ins
+    that make small files: what is tested is where the files go. Records each render."""
+    import importlib
+
+    from facecap.ear_training.render import EarSample
+
+    training = importlib.import_module("facecap.ear_training.train")  # the package's train()
+
+    renders = []
+
+    class Model:
+        def save(self, path: str) -> None:
+            Path(path).write_bytes(b"model")
+
+    def render(config, ict_model, transfer, progress):
+        renders.append(ict_model)
+        image = np.zeros((32, 32, 3), np.uint8)
+        return [EarSample(image, np.zeros((4, 2)), np.ones(4, bool), (1, 1, 9, 9),
+                          (1.0, 1.0, 9.0, 9.0), side, 60.0, False) for side in ("left", "right")]
+
+    monkeypatch.setattr(training, "write_contour_file",
+                        lambda path, config, ict: Path(path).write_text('{"ict": null}'))
+    monkeypatch.setattr(training, "load_contour_file", lambda path: {"ict": None})
+    monkeypatch.setattr(training, "render_dataset", render)
+    monkeypatch.setattr(training, "train_detector", lambda *a: Model())
+    monkeypatch.setattr(training, "predictor_boxes", lambda detector, samples: ([], 2))
+    monkeypatch.setattr(training, "train_predictor", lambda *a: Model())
+    return renders
+
+
+def test_train_ears_writes_through_no_link_nor_over_an_input(quick_training, home, tmp_path,
+                                                            monkeypatch, capsys):
+    """Links planted in --out under the model's names (and its renders' cache) are replaced,
+    never followed or read; a hard link to the ICT model in --out is never replaced; a folder
+    of the store is refused before anything is rendered."""
+    from facecap.cli import main
+
+    ict = tmp_path / "ict_face_model.npz"
+    ict.write_bytes(b"the ICT model")
+    monkeypatch.setenv("FACECAP_ICT_MODEL", str(ict))
+    elsewhere, out = tmp_path / "elsewhere", tmp_path / "out"
+    elsewhere.mkdir()
+    out.mkdir()
+    for name in ("ear_detector.svm", "training.json", "dataset.npz"):
+        (elsewhere / name).write_bytes(b"precious")
+        (out / name).symlink_to(elsewhere / name)
+    before = _tree(elsewhere)
+    assert main(["train-ears", "--out", str(out)]) == 0, capsys.readouterr().err
+    assert _tree(elsewhere) == before and len(quick_training) == 1  # the link was not read
+    for name in ("ear_detector.svm", "ear_predictor.dat", "ear_contour.json", "training.json",
+                 "dataset.npz"):
+        assert (out / name).is_file() and not (out / name).is_symlink(), name
+    assert len(list((out / "previews").glob("*.png"))) == 2
+    assert json.loads((out / "training.json").read_text())["samples"] == 2
+
+    (out / "ear_contour.json").unlink()
+    os.link(ict, out / "ear_contour.json")  # the ICT model under a result's name
+    capsys.readouterr()
+    assert main(["train-ears", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("facecap: error: ") and str(ict) in err[0], err
+    assert ict.read_bytes() == b"the ICT model"
+
+    store = home / "store"
+    store.mkdir(exist_ok=True)
+    renders = len(quick_training)
+    assert main(["train-ears", "--out", str(store / "artifacts")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "which facecap keeps for itself" in err[0], err
+    assert len(quick_training) == renders and not (store / "artifacts").exists()

@@ -7,6 +7,7 @@ import argparse
 import hashlib
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -31,6 +32,9 @@ from facecap.ear_training.render import (
     render_key,
     save_dataset,
 )
+from facecap.tasks.outputs import ResultWriter, check_output_place
+from facecap.tasks.runner import default_store_url
+from facecap.tasks.scratch import process_scratch
 from facecap_core.config import load_yaml
 from facecap_core.errors import FacecapError, InputError
 from facecap_core.settings import settings
@@ -150,13 +154,16 @@ def draw_contour(img: np.ndarray, points: np.ndarray, visible: np.ndarray | None
 
 
 def train(out_dir: str | Path, config: EarTrainingConfig | None = None,
-          progress: bool = True) -> Path:
+          progress: bool = True, extra_inputs: tuple = ()) -> Path:
     """Render the training set and train the ear detector and predictor into ``out_dir``.
 
     Writes ``ear_contour.json``, ``ear_detector.svm``, ``ear_predictor.dat``,
     ``training.json`` (config, counts, timings, sha256 of the model files),
     ``dataset.npz`` (the renders, reused by a later run with the same rendering settings)
-    and ``previews/*.png``; returns ``out_dir``.
+    and ``previews/*.png``; returns ``out_dir``. They are made in this process's scratch
+    folder and written through :class:`facecap.tasks.outputs.ResultWriter`: never through a
+    link, never over an input (the ICT model, ``extra_inputs``), never outside ``out_dir``;
+    a folder of the store or of facecap's own is refused before anything is rendered.
     """
     config = config or EarTrainingConfig()
     ict_model = config.ict_model or settings().ict_model
@@ -164,10 +171,26 @@ def train(out_dir: str | Path, config: EarTrainingConfig | None = None,
         raise InputError("ear training needs the ICT Face Model: set ict_model or "
                          "FACECAP_ICT_MODEL to PATH/ict_face_model.npz")
     out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create output folder {out}: {exc.strerror}") from None
+    inputs = (ict_model, *extra_inputs)
+    check_output_place(out, default_store_url(), [p for p in inputs if p is not None],
+                       option="--out")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"the output folder {out} is a file; give the path of a folder (--out)")
+    # Made in this process's scratch, then written as the reconstruction writes its results:
+    # all at once, never through a link planted in ``out``, never over an input.
+    with tempfile.TemporaryDirectory(dir=process_scratch()) as scratch:
+        made = _train_into(Path(scratch), out, config, ict_model, progress)
+        with ResultWriter(out, inputs) as writer:
+            for name in made:
+                writer.add(name, source=Path(scratch) / name)
+            writer.commit()
+    return out
+
+
+def _train_into(scratch: Path, out: Path, config: EarTrainingConfig, ict_model,
+                progress: bool) -> list[str]:
+    """Every file of a training into the empty folder ``scratch`` (the renders of an earlier
+    run in ``out`` reused when they are a plain file there); returns their names."""
     wall0, cpu0 = time.perf_counter(), time.process_time()
     timings: dict[str, dict] = {}
     last = [wall0, cpu0]
@@ -177,27 +200,30 @@ def train(out_dir: str | Path, config: EarTrainingConfig | None = None,
         timings[name] = {"wall_s": round(w - last[0], 2), "cpu_s": round(c - last[1], 2)}
         last[:] = [w, c]
 
-    write_contour_file(out / CONTOUR_FILE, config, ict_model)
-    transfer = load_contour_file(out / CONTOUR_FILE)["ict"]
+    write_contour_file(scratch / CONTOUR_FILE, config, ict_model)
+    transfer = load_contour_file(scratch / CONTOUR_FILE)["ict"]
     lap("contour_fit")
     # The renders are kept (``dataset.npz``) so that retraining with other detector or
-    # predictor settings does not render again.
+    # predictor settings does not render again (read only from a plain file, not a link).
     key = render_key(config)
-    samples = load_dataset(out / "dataset.npz", key)
+    kept = out / "dataset.npz"
+    samples = None if kept.is_symlink() else load_dataset(kept, key)
+    made = [*MODEL_FILES, "training.json"]
     if samples is None:
         samples = render_dataset(config, ict_model, transfer, progress)
         if not samples:
             raise InputError("no usable ear views were rendered: widen the view ranges")
-        save_previews(samples, out / "previews")
-        save_dataset(out / "dataset.npz", samples, key)
+        previews = save_previews(samples, scratch / "previews")
+        save_dataset(scratch / "dataset.npz", samples, key)
+        made += ["dataset.npz", *(f"previews/{p.name}" for p in previews)]
     lap("render")
     detector = train_detector(samples, config, progress)
-    detector.save(str(out / DETECTOR_FILE))
+    detector.save(str(scratch / DETECTOR_FILE))
     lap("detector")
     boxes, found = predictor_boxes(detector, samples)
     lap("detector_on_training_set")
     predictor = train_predictor(samples, boxes, config, progress)
-    predictor.save(str(out / PREDICTOR_FILE))
+    predictor.save(str(scratch / PREDICTOR_FILE))
     lap("predictor")
     report = {
         "config": config.model_dump(mode="json"),
@@ -207,11 +233,11 @@ def train(out_dir: str | Path, config: EarTrainingConfig | None = None,
         "timings": timings,
         "total": {"wall_s": round(time.perf_counter() - wall0, 1),
                   "cpu_s": round(time.process_time() - cpu0, 1)},
-        "sha256": {name: sha256(out / name) for name in MODEL_FILES},
-        "bytes": {name: (out / name).stat().st_size for name in MODEL_FILES},
+        "sha256": {name: sha256(scratch / name) for name in MODEL_FILES},
+        "bytes": {name: (scratch / name).stat().st_size for name in MODEL_FILES},
     }
-    (out / "training.json").write_text(json.dumps(report, indent=1))
-    return out
+    (scratch / "training.json").write_text(json.dumps(report, indent=1))
+    return made
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -225,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         config = load_yaml(EarTrainingConfig, args.config) if args.config else EarTrainingConfig()
-        out = train(args.out, config, progress=not args.quiet)
+        out = train(args.out, config, progress=not args.quiet, extra_inputs=(args.config,))
     except FacecapError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
