@@ -116,6 +116,7 @@ def prune_unreferenced(store: ArtifactStore, results: list[Path], before: dateti
         if next(_run_reports(Path(folder)), None) is None:  # a wrong folder keeps nothing
             raise InputError(f"{folder} holds no facecap results (no report.json under it); "
                              "give the results folder the runs wrote (--out)")
+        _check_reports_readable(Path(folder))
     manifests, damaged = _dated_manifests(store)
     named = set().union(*(_reported_keys(Path(folder))[0] for folder in results))
     keep = _up(_made_from(manifests), named)
@@ -125,6 +126,27 @@ def prune_unreferenced(store: ArtifactStore, results: list[Path], before: dateti
     if not dry_run:
         _delete(store, removal)
     return removal
+
+
+def _check_reports_readable(folder: Path) -> None:
+    """Refuse, before anything is deleted, a results folder with a ``report.json`` that cannot
+    be read or is no JSON: the artifacts of the run it may report would be pruned as
+    unreferenced. A link or a folder of that name is none of facecap's (its writer writes
+    neither) and is passed over, as is JSON that names no stages (a file of the user's)."""
+    for path in folder.rglob("report.json"):
+        if path.is_symlink() or not path.is_file():
+            continue
+        try:
+            json.loads(path.read_bytes())
+        except OSError as exc:
+            raise InputError(f"the run report {path} cannot be read ({exc.strerror}); make it "
+                             "readable or move it out of the results folder, then prune again "
+                             "(nothing was removed)") from None
+        except ValueError as exc:  # not UTF-8, not JSON
+            raise InputError(f"the run report {path} is damaged ({type(exc).__name__}): the "
+                             "artifacts of its run could not be kept; restore it or move it out "
+                             "of the results folder, then prune again (nothing was removed)"
+                             ) from None
 
 
 def _delete(store: ArtifactStore, removal: Removal) -> None:
