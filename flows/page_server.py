@@ -42,6 +42,7 @@ log = logging.getLogger("facecap.pages")
 
 def _handler(store: ArtifactStore, request_s: float,
              answer_s: float) -> type[BaseHTTPRequestHandler]:
+    # Long on purpose: one class, the handler of a store's links, closed over its settings.
     class PageHandler(BaseHTTPRequestHandler):
         server_version = "facecap-pages"
         sys_version = ""
