@@ -6,7 +6,9 @@
 Per condition a capture is rendered with ``facecap synth --config`` (the clean reference
 plus one phone condition: portrait with rotation metadata, a 30 ms rolling shutter, 4K,
 120 fps, HEVC, a swaying subject, plain walls, smooth skin; same subject, seed, camera path
-and lighting) and reconstructed with ``facecap reconstruct`` as a user would (the CLI, a
+and lighting; ``phone_512`` and ``phone_240`` are a phone's sensor, lens and codec at the real
+photo folders' and the real mannequin sweep's sizes; a scan subject such as ``james`` keeps its
+own texture) and reconstructed with ``facecap reconstruct`` as a user would (the CLI, a
 fresh output folder, one fresh artifact store per benchmark run under OUT, so nothing is
 reused). Printed per condition: exit code, keyframes registered, camera error against the
 ground-truth cameras (:func:`facecap_core.pose.evaluate.pose_errors`, median rotation °,
@@ -54,6 +56,12 @@ CONDITIONS = {
                    "sharpen": 0.8, "specular": 0.25, "crf": 28},
                   "phone-like: 512×512, smooth skin, Bayer + demosaic, high-ISO noise, soft "
                   "lens, sharpening, specular skin, crf 28"),
+    # The size of the real mannequin sweep's frames: 240×320 portrait, the phone's processing
+    # and compression of phone_512, so a face ~120 px wide.
+    "phone_240": ({"width": 240, "height": 320, "hfov_deg": 50.0, "skin_detail": 0.2,
+                   "bayer": True, "read_noise": 0.02, "shot_noise": 0.03, "defocus_px": 0.7,
+                   "sharpen": 0.8, "specular": 0.25, "crf": 28},
+                  "phone-like at 240×320 (portrait): phone_512's sensor, lens and codec"),
     # 4K renders at ~20–40 s a frame here: half the sweep (±47.5°) in half the time, at
     # the others' angular speed, so tracking sees the same motion between frames.
     "4k": ({"width": 3840, "height": 2160, "duration_s": 2.0, "yaw_start_deg": -47.5,
@@ -96,6 +104,8 @@ def run_condition(name: str, overrides: dict, args, out: Path, env: dict) -> dic
     folder.mkdir(parents=True, exist_ok=True)
     values = {"subject": args.subject, "seed": args.seed, "duration_s": args.seconds,
               **BASE, **overrides}
+    if not args.subject.startswith("ict:"):
+        values.pop("skin_detail", None)  # a scan keeps its own texture
     if args.ict_model:
         values["ict_model"] = args.ict_model
     (folder / "synth.yaml").write_text(yaml.safe_dump(values, sort_keys=False))
@@ -180,7 +190,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/bench_real_conditions")
     ap.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=CONDITIONS)
-    ap.add_argument("--subject", default="ict:3")
+    ap.add_argument("--subject", default="ict:3",
+                    help="ict:SEED, or james (the real scan; the split of docs/experiments/"
+                         "2026-11-28-real-geometry.md: seed 1 at 240x320 to calibrate, seed 2 "
+                         "at 512x512 to report)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--seconds", type=float, default=4.0,
                     help="sweep length (the 4K capture keeps its own 2 s)")
