@@ -257,6 +257,12 @@ def _config(tmp: Path, text: str, name: str = "pipeline.yaml") -> Path:
     return tmp / name
 
 
+def _reconstruct_with(config_text: str):
+    """The command line of a reconstruction of the orbit capture with ``config_text`` as its
+    settings file (a case of :data:`CORPUS`)."""
+    return lambda m, t, k: ["reconstruct", m["orbit"], "--config", _config(t, config_text)]
+
+
 def _scan(tmp: Path) -> Path:
     (tmp / "scan.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
     return tmp / "scan.ply"
@@ -394,20 +400,15 @@ CORPUS = {
     "larger than 8K (8448x4752)": (lambda m, t, k: ["reconstruct", m["over_8k"]],
                                    ["8448x4752", "larger than the limit of 8192",
                                     "record at 8k or less"]),
-    "config: NaN": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                     _config(t, "mvs: {depth: {sigma_color: .nan}}\n")],
+    "config: NaN": (_reconstruct_with("mvs: {depth: {sigma_color: .nan}}\n"),
                     ["mvs.depth.sigma_color", "finite number", "correct or remove"]),
-    "config: NaN in a list": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                               _config(t, "fitting: {stiffness: [.nan, 1]}\n")],
+    "config: NaN in a list": (_reconstruct_with("fitting: {stiffness: [.nan, 1]}\n"),
                               ["fitting.stiffness.0", "finite number"]),
-    "config: infinity": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                          _config(t, "coarse: {rbf_kernel_mm: .inf}\n")],
+    "config: infinity": (_reconstruct_with("coarse: {rbf_kernel_mm: .inf}\n"),
                          ["coarse.rbf_kernel_mm", "finite number"]),
-    "config: negative value": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                                _config(t, "mvs: {depth: {iterations: -3}}\n")],
+    "config: negative value": (_reconstruct_with("mvs: {depth: {iterations: -3}}\n"),
                                ["mvs.depth.iterations", "greater than or equal to 1"]),
-    "config: unknown key": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                             _config(t, "fitting: {stifness: [1.0]}\n")],
+    "config: unknown key": (_reconstruct_with("fitting: {stifness: [1.0]}\n"),
                             ["fitting.stifness", "extra inputs are not permitted",
                              "correct or remove"]),
     "a capture named like a result in --out": (
@@ -420,14 +421,11 @@ CORPUS = {
         ["config", "coarse.json would be overwritten", "another --out"]),
     "an IPD no adult has": (lambda m, t, k: ["reconstruct", m["orbit"], "--ipd-mm", "6.3"],
                             ["--ipd-mm", "ipd_mm", "greater than or equal to 40"]),
-    "config: unknown section": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                                 _config(t, "meshing: {depth: 9}\n")],
+    "config: unknown section": (_reconstruct_with("meshing: {depth: 9}\n"),
                                 ["meshing", "extra inputs"]),
-    "config: not YAML": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                          _config(t, "mvs: {iterations: [\n")],
+    "config: not YAML": (_reconstruct_with("mvs: {iterations: [\n"),
                          ["not valid yaml"]),
-    "config: not a mapping": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                               _config(t, "- mvs\n- fitting\n")],
+    "config: not a mapping": (_reconstruct_with("- mvs\n- fitting\n"),
                               ["must hold a mapping"]),
     "config: Latin-1": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                                          _config_bytes(t, b"mvs: {depth: {iterations: 4}} # caf\xe9\n")],
@@ -438,10 +436,8 @@ CORPUS = {
     "config: nested 20,000 deep": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                                                     _config(t, "a: " + "[" * 20000 + "]" * 20000)],
                                    ["nests too deeply"]),
-    "config: an empty list": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                               _config(t, "[]\n")], ["must hold a mapping"]),
-    "config: false": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                                       _config(t, "false\n")], ["must hold a mapping"]),
+    "config: an empty list": (_reconstruct_with("[]\n"), ["must hold a mapping"]),
+    "config: false": (_reconstruct_with("false\n"), ["must hold a mapping"]),
     "config file missing": (lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                                              t / "none.yaml"], ["config file not found"]),
     "scan without landmarks": (lambda m, t, k: ["reconstruct", m["orbit"], "--scan", _scan(t)],
@@ -508,17 +504,14 @@ CORPUS = {
                                     f"{[1.0] * 40}}}\n")],
         ["fitting.stiffness", "at most 32 items"]),
     "config: a blur no image can take": (
-        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                         _config(t, "fitting: {edge_blur_sigma: 1.0e308}\n")],
+        _reconstruct_with("fitting: {edge_blur_sigma: 1.0e308}\n"),
         ["fitting.edge_blur_sigma", "less than or equal to 20"]),
     "config: weights the solver cannot hold": (
-        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                         _config(t, "fitting: {gamma: 1.0e308, data_weight: 1.0e-308}\n")],
+        _reconstruct_with("fitting: {gamma: 1.0e308, data_weight: 1.0e-308}\n"),
         ["fitting.gamma", "less than or equal to 1000"]),
     "config: stiffness and landmark weight 616 orders apart": (
-        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                         _config(t, "fitting: {stiffness: [1.0e-308], "
-                                    "landmark_weight: [1.0e308]}\n")],
+        _reconstruct_with("fitting: {stiffness: [1.0e-308], "
+                                    "landmark_weight: [1.0e308]}\n"),
         ["stiffness must lie in [0.001, 10000]", "landmark_weight in [0, 10000]"]),
     "config: 200,000 stiffness levels": (
         lambda m, t, k: ["reconstruct", m["orbit"], "--config",
@@ -536,24 +529,19 @@ CORPUS = {
     "config: a FIFO": (lambda m, t, k: ["reconstruct", m["orbit"], "--config", _a_fifo(t)],
                        ["pipeline.yaml is not a regular file", "give the path of a yaml file"]),
     "config: a key given twice": (
-        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                         _config(t, "mvs: {depth: {iterations: 3, iterations: 4}}\n")],
+        _reconstruct_with("mvs: {depth: {iterations: 3, iterations: 4}}\n"),
         ["sets mvs.depth.iterations twice", "line 1", "keep one of them"]),
     "config: true for a number": (
-        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                         _config(t, "mvs: {depth: {iterations: true}}\n")],
+        _reconstruct_with("mvs: {depth: {iterations: true}}\n"),
         ["mvs.depth.iterations", "should be a number, not a boolean"]),
     "config: on in a list of numbers": (
-        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                         _config(t, "fitting: {stiffness: [1.0, on]}\n")],
+        _reconstruct_with("fitting: {stiffness: [1.0, on]}\n"),
         ["fitting.stiffness", "not a boolean"]),
     "config: 1:30 (YAML 1.1 reads base 60: 90)": (
-        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                         _config(t, "mvs: {depth: {iterations: 1:30}}\n")],
+        _reconstruct_with("mvs: {depth: {iterations: 1:30}}\n"),
         ["mvs.depth.iterations", "valid integer"]),
     "config: ._ (a float to a careless resolver)": (
-        lambda m, t, k: ["reconstruct", m["orbit"], "--config",
-                         _config(t, "mvs: {depth: {iterations: ._}}\n")],
+        _reconstruct_with("mvs: {depth: {iterations: ._}}\n"),
         ["mvs.depth.iterations", "valid integer"]),
     "synth: subject ict:-1": (lambda m, t, k: ["synth", "--subject", "ict:-1"],
                               ["subject: 'ict:-1'", *ICT_SUBJECT_FORMS]),

@@ -408,17 +408,24 @@ def test_a_facecap_home_that_is_not_a_folder_is_one_line(home, orbit, tmp_path, 
     (tmp_path / "file").write_text("a file")
     value = home if home.startswith("/") else str(tmp_path / home)
     monkeypatch.setenv("FACECAP_HOME", value)
-    for argv in (["assets"], ["reconstruct", str(orbit), "--out", str(tmp_path / "out")]):
+    _refused_in_one_line(main, capfd, "FACECAP_HOME", value, "the default (~/.cache/facecap)",
+                         [["assets"], ["reconstruct", str(orbit), "--out", str(tmp_path / "out")]])
+    assert not (tmp_path / "out").exists()
+
+
+def _refused_in_one_line(main, capfd, variable: str, value: str, default: str, argvs) -> None:
+    """Each command line of ``argvs`` ends with one line naming ``variable``'s bad value and
+    what to do, exit 2."""
+    for argv in argvs:
         code = main(argv)
         err = capfd.readouterr().err
         lines = err.strip().splitlines()
         assert code == 2 and len(lines) == 1, err
-        assert lines[0].startswith(f"facecap: error: invalid FACECAP_HOME={value!r} in the "
+        assert lines[0].startswith(f"facecap: error: invalid {variable}={value!r} in the "
                                    "environment: "), err
         assert "not a folder" in lines[0], err
-        assert lines[0].endswith("; set FACECAP_HOME to a writable folder, or unset it for "
-                                 "the default (~/.cache/facecap)"), err
-    assert not (tmp_path / "out").exists()
+        assert lines[0].endswith(f"; set {variable} to a writable folder, or unset it for "
+                                 f"{default}"), err
 
 
 @pytest.mark.parametrize("home", ["/dev/null", "file", "file/sub"])
@@ -432,15 +439,7 @@ def test_a_prefect_home_that_is_not_a_folder_is_one_line(home, orbit, tmp_path, 
     value = home if home.startswith("/") else str(tmp_path / home)
     monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "facecap-home"))
     monkeypatch.setenv("PREFECT_HOME", value)
-    for argv in (["forget", "anna", "--out", str(tmp_path / "out")],
-                 ["reconstruct", str(orbit), "--out", str(tmp_path / "out")]):
-        code = main(argv)
-        err = capfd.readouterr().err
-        lines = err.strip().splitlines()
-        assert code == 2 and len(lines) == 1, err
-        assert lines[0].startswith(f"facecap: error: invalid PREFECT_HOME={value!r} in the "
-                                   "environment: "), err
-        assert "not a folder" in lines[0], err
-        assert lines[0].endswith("; set PREFECT_HOME to a writable folder, or unset it for "
-                                 "Prefect's default (~/.prefect)"), err
+    _refused_in_one_line(main, capfd, "PREFECT_HOME", value, "Prefect's default (~/.prefect)",
+                         [["forget", "anna", "--out", str(tmp_path / "out")],
+                          ["reconstruct", str(orbit), "--out", str(tmp_path / "out")]])
     assert not (tmp_path / "out").exists()
