@@ -54,6 +54,7 @@ def synth(args) -> int:
 
 def evaluate(args) -> int:
     from facecap_core import evaluation as ev
+    from facecap_core.evaluation.stage import scored_per_vertex
     from facecap_core.meshio import load_mesh
 
     protocols = ev.PROTOCOLS if args.protocol == "both" else (args.protocol,)
@@ -73,7 +74,7 @@ def evaluate(args) -> int:
               ResultWriter(folder, inputs) as writer):
             for name, sc in scores.items():
                 drawn = ev.error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces,
-                                         sc.accuracy_per_vertex,
+                                         scored_per_vertex(sc),
                                          Path(scratch) / heatmaps[name].name)
                 writer.add(heatmaps[name].name, source=drawn)
             writer.commit()

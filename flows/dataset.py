@@ -143,9 +143,12 @@ def summary_line(summary: dict, out: str | Path) -> str:
     page = Path(out) / "index.html"
     if meshes == done:
         made = f"{done} of {summary['captures']} captures reconstructed into {out}"
+    elif summary.get("until"):
+        made = (f"{done} of {summary['captures']} captures run into {out}, "
+                f"{done - meshes} of them stopped after {summary['until']} with no mesh")
     else:
         made = (f"{done} of {summary['captures']} captures run into {out}, "
-                f"{done - meshes} of them stopped after {summary.get('until')} with no mesh")
+                f"{done - meshes} of them with no mesh in {out} (removed since)")
     return f"{made}; their page: {page}"
 
 

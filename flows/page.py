@@ -372,11 +372,11 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
         data["cameras"], data["view_direction"], data["view_up"] = _cameras(
             results["cameras.json"], centre, frames)
     title = f"{report.get('subject', '')} / {report.get('capture', '')}"
-    figures = "\n".join(f'<dt>{html.escape(label)}</dt><dd data-figure="{key}">'
+    figures = "\n".join(f'<dt>{html.escape(label)}</dt><dd data-figure="{html.escape(key)}">'
                         f"{html.escape(text)}</dd>" for key, label, text in figure_rows(report))
     warned = warnings(report)
     warning_list = ('<ul id="warnings">' + "".join(
-        f'<li data-warning="{key}">{html.escape(text)}</li>' for key, text in warned)
+        f'<li data-warning="{html.escape(key)}">{html.escape(text)}</li>' for key, text in warned)
         + "</ul>") if warned else ""
     viewer = resources.files("facecap.flows") / "viewer"
     if glb:

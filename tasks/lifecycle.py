@@ -11,12 +11,18 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
-from facecap.tasks.outputs import ResultWriter, check_output_place, remove_results
+from facecap.tasks.outputs import (
+    RECORD_NAME,
+    ResultWriter,
+    check_output_place,
+    remove_results,
+)
 from facecap.tasks.runner import key_lock, unleased
 from facecap.tasks.store import ArtifactStore, CorruptArtifactError, input_key
 from facecap.tasks.store.base import redact
@@ -313,6 +319,12 @@ def _check_places(out: Path, root: Path | None, subject: str, store: ArtifactSto
                              "(--out); nothing was removed")
 
 
+def _holds_a_record(folder: Path) -> bool:
+    """Whether a results record lies in ``folder`` or a plain folder below it (no link
+    followed)."""
+    return any(RECORD_NAME in files for _, _, files in os.walk(folder, followlinks=False))
+
+
 def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
                 out: Path | None) -> Removal:
     """What forgetting ``subject`` removes: every artifact derived from the subject's
@@ -347,6 +359,12 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
                              "name and --out")
         # Only what facecap can prove it wrote there: the files its records name, as written.
         removal.files, removal.kept = remove_results(results, dry_run=True)
+        if removal.kept and not _holds_a_record(results):
+            raise InputError(
+                f"{results} holds no record of a facecap result, so nothing in it can be shown "
+                "to be facecap's (results written before facecap kept records, or files of "
+                "your own): remove what you no longer want from it yourself, then run forget "
+                "again; nothing was removed")
         reported, stores, labels = _reported_keys(results, removal.files)
         others = [u for u in stores if not _same_store(u, str(store.url))]
         if reported and not reported & set(made_from) and others:

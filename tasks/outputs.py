@@ -279,12 +279,16 @@ def recorded_files(folder: str | os.PathLike) -> dict[PurePosixPath, str | None]
 def _ours_at(fd: int, name: PurePosixPath, recorded: dict[PurePosixPath, str | None]) -> bool:
     """Whether ``name`` (in the folder open as ``fd``) is a plain file facecap wrote and
     nobody changed since: a record names it with its very content (or it is a record, or a
-    file a killed writer staged)."""
-    if name not in recorded and not _TEMPORARY.match(name.name):
+    file a killed writer staged: one left for ``ABANDONED_S``, so a running writer's is
+    not taken)."""
+    staged = name not in recorded and _TEMPORARY.match(name.name)
+    if name not in recorded and not staged:
         return False
     try:
         found = os.stat(name.name, dir_fd=fd, follow_symlinks=False)
         if not stat.S_ISREG(found.st_mode):
+            return False
+        if staged and time.time() - found.st_mtime <= ABANDONED_S:
             return False
         digest = recorded.get(name)
         return digest is None or _sha256_at(fd, name.name) == digest

@@ -15,7 +15,7 @@ from facecap.cli import main
 from facecap.flows.page import store_page
 from facecap.tasks.graph import stage_key
 from facecap.tasks.lifecycle import derived, forget, prune, prune_unreferenced
-from facecap.tasks.outputs import write_results
+from facecap.tasks.outputs import RECORD_NAME, write_results
 from facecap.tasks.runner import ingest
 from facecap.tasks.store import open_store
 from facecap_core.errors import InputError
@@ -357,7 +357,8 @@ def test_forget_removes_only_what_facecap_wrote(world, tmp_path, capsys):
 def test_forget_refuses_an_out_that_is_no_results_folder(dry_run, world, capfd):
     """``--out`` the dataset folder (the subject's raw captures would go), ``/`` (``/etc``
     was planned) or a folder in the store: one line, nothing removed. The dataset folder
-    given as ``--out`` alone holds nothing facecap wrote: the captures stay."""
+    given as ``--out`` alone holds no record of a result: refused in one line, the captures
+    stay."""
     from tests.test_bad_inputs import assert_one_line_error, facecap
 
     root, store = world["root"], world["store"]
@@ -367,11 +368,10 @@ def test_forget_refuses_an_out_that_is_no_results_folder(dry_run, world, capfd):
         code, _, err = facecap(capfd, "forget", "alice", "--root", root, "--out", out,
                                "--store", store, *dry_run)
         assert_one_line_error(code, err, words)
-    code, printed, err = facecap(capfd, "forget", "alice", "--out", root, "--store", store,
-                                 *dry_run)
-    assert code == 0, err
+    code, _, err = facecap(capfd, "forget", "alice", "--out", root, "--store", store, *dry_run)
+    assert_one_line_error(code, err, ["holds no record of a facecap result"])
     assert (root / "alice" / "take1.mp4").read_bytes() == b"the face of alice"
-    assert (root / "alice" / "scan.ply").is_file() and "kept 2 entries" in printed
+    assert (root / "alice" / "scan.ply").is_file()
     assert sorted(open_store(store).keys()) == before
 
 
@@ -403,3 +403,20 @@ def test_forget_makes_every_rewrite_before_it_removes_anything(world, tmp_path, 
     page = (out / "index.html").read_text()
     assert "alice/take1" not in page and "bob/take2" in page
     assert not (out / "alice").exists()
+
+
+def test_forget_refuses_a_results_folder_without_records(world, capfd):
+    """A subject's results written before facecap kept records (a mesh and a report, no
+    ``.facecap-results.json``) cannot be shown to be facecap's: one line that says so and
+    what to do, exit 2, and nothing removed, not the artifacts either."""
+    out = world["out"]
+    old = out / "alice" / "take1"
+    (old / RECORD_NAME).unlink()  # as a run wrote it before facecap kept records
+    (old / "mesh.ply").write_bytes(b"a mesh from before records")
+    before = set(open_store(world["store"]).keys())
+    code = main(["forget", "alice", "--out", str(out), "--store", world["store"]])
+    err = capfd.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert "holds no record of a facecap result" in err[0] and "nothing was removed" in err[0]
+    assert (old / "mesh.ply").read_bytes() == b"a mesh from before records"
+    assert set(open_store(world["store"]).keys()) == before
