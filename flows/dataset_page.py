@@ -151,9 +151,13 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
     for subject, capture in sorted(captures):
         name = f"{subject}/{capture}"
         folder = out / subject / capture
+        # A link anywhere on the way (the subject's folder, the capture's, the report) would
+        # show what lies outside OUT: such a row shows nothing of it.
+        inside = not any(p.is_symlink() for p in (out / subject, folder, folder / "report.json",
+                                                  folder / "preview.png", folder / "mesh.ply"))
         try:
-            report = ({} if (folder / "report.json").is_symlink()
-                      else _mapping(json.loads((folder / "report.json").read_text())))
+            report = (_mapping(json.loads((folder / "report.json").read_text())) if inside
+                      else {})
         except (OSError, ValueError):
             report = {}
         fig = _mapping(report.get("figures"))
@@ -170,7 +174,7 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
         else:
             status, order = "not run", 4
         href, face = link(out, subject, capture, report)
-        thumb = _thumbnail(folder / "preview.png") if face else ""
+        thumb = _thumbnail(folder / "preview.png") if face and inside else ""
         image = f'<img src="{thumb}" width="{THUMB_WIDTH}" alt="">' if thumb else ""
         picture = f'<a href="{html.escape(href)}">{image}</a>' if href and thumb else image
         accuracy = _mapping(_mapping(_mapping(fig.get("evaluation")).get("similarity"))

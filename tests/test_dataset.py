@@ -155,20 +155,23 @@ def test_the_dataset_page_checks_and_escapes_what_out_holds(tmp_path):
     _touch(out / "bob" / "take1" / "report.json", b'{"figures": "damaged"}')
     _touch(out / "carl" / "take1" / "report.json", b"[1, 2]")
     (out / "carl" / "linked").symlink_to(outside, target_is_directory=True)
+    (out / "dora").symlink_to(tmp_path, target_is_directory=True)  # dora/x is outside
     (out / "evaluations").mkdir()
     (out / "evaluations" / "20260101T000000000000Z.json").write_text(json.dumps(
         {"captures": {"anna/take1": {"accuracy": {"median": "high"}}},
          "regressions": [{"capture": ["anna/take1"]}, "bob/take1"]}))
     (out / "dataset.json").write_text(json.dumps(
         {"failed": {"../x": "no face", "anna/take2": attack, "bob/take2": {"a": 1},
-                    "./x": "?", "evaluations/x": "?"}}))
+                    "./x": "?", "evaluations/x": "?", "dora/x": "failed"}}))
     rewrite_dataset_page(out)
     page = (out / "index.html").read_text()
     assert "<img src=x" not in page
     assert "&lt;img src=x onerror=alert(1)&gt;" in page  # anna/take2's reason, as text
     rows = sorted(part.split('"', 1)[0] for part in page.split('data-capture="')[1:])
-    assert rows == ["anna/take1", "anna/take2", "bob/take1", "carl/take1"]
+    assert rows == ["anna/take1", "anna/take2", "bob/take1", "carl/take1", "dora/x"]
     assert "data:image/png" not in page  # no picture from outside OUT
+    dora = page.split('data-capture="dora/x"', 1)[1].split("</tr>", 1)[0]
+    assert ">7<" not in dora  # nor a figure of the report there
 
 
 def test_the_dataset_run_s_last_line_says_what_it_made_and_names_its_page(tmp_path):
