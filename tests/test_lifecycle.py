@@ -376,7 +376,7 @@ def test_forget_refuses_an_out_that_is_no_results_folder(dry_run, world, capfd):
 
 
 def test_forget_makes_every_rewrite_before_it_removes_anything(world, tmp_path, capfd):
-    """A damaged report.json elsewhere under OUT no longer stops the dataset page from being
+    """A damaged report.json elsewhere under OUT does not stop the dataset page from being
     written again without the subject; a summary that cannot be rewritten (the evaluation
     history a link out of OUT) stops the forget before anything is removed."""
     from facecap.flows.dataset_page import rewrite_dataset_page

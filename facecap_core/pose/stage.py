@@ -193,8 +193,10 @@ def what_to_try(keyframes: Keyframes, numbers) -> str:
         return ("record a slower, steadier sweep of a well-lit face from one ear round to the "
                 "other, with the phone's main (1×) camera")
     if numbers is not None:
-        return ("give the video itself (its tracking follows the views along the sweep), or "
-                "photos that keep the camera's EXIF focal length")
+        return ("if the numbered photos were not taken in sweep order, rename them in that "
+                "order or give them names without numbers; or give the video itself (its "
+                "tracking follows the views along the sweep), or photos that keep the camera's "
+                "EXIF focal length")
     return ("name the photos in sweep order (frame_001.jpg, frame_002.jpg, …: they are then "
             "matched along it) or give the video itself")
 
