@@ -21,9 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-import trimesh
 from scipy.sparse.csgraph import dijkstra
-from scipy.spatial import cKDTree
 
 STEINER = 3
 """Points on each edge, besides its ends, in the surface path's graph."""
@@ -200,26 +198,19 @@ def landmark_measurements(vertices: np.ndarray, faces: np.ndarray, landmark_ids,
             for key, name, i, j in PRESETS}
 
 
-def landmark_vertices(vertices: np.ndarray, points: np.ndarray, tolerance_mm: float = 1e-3
-                      ) -> np.ndarray | None:
-    """The vertex ids of ``points`` (the fitting stage's ``landmarks.json``: the template's
-    landmark vertices, moved with the mesh); None where one is not a vertex of the mesh."""
-    dist, ids = cKDTree(np.asarray(vertices, float)).query(np.asarray(points, float))
-    return ids if len(ids) == 68 and float(np.max(dist)) <= tolerance_mm else None
-
-
 def figures(fitting_folder: str | Path, sigma_pct: float | None) -> dict:
-    """``{"measurements": ...}`` of the fitting stage's mesh (``mesh.ply`` and its
-    ``landmarks.json``), the metric scale's ``sigma_pct`` given; {} without them."""
-    folder = Path(fitting_folder)
-    if not (folder / "mesh.ply").is_file() or not (folder / "landmarks.json").is_file():
+    """``{"measurements": ...}``: the fitting stage's measurements (``fit.json``, made with
+    the mesh) under the metric scale's ``sigma_pct``; {} without them."""
+    path = Path(fitting_folder) / "fit.json"
+    if not path.is_file():
         return {}
-    mesh = trimesh.load(folder / "mesh.ply", process=False, force="mesh")
-    points = json.loads((folder / "landmarks.json").read_text()).get("landmarks")
-    ids = landmark_vertices(mesh.vertices, np.asarray(points, float)) if points else None
-    if ids is None:
+    found = json.loads(path.read_text()).get("measurements")
+    if not isinstance(found, dict) or not found:
         return {}
-    return {"measurements": landmark_measurements(mesh.vertices, mesh.faces, ids, sigma_pct)}
+    return {"measurements": {
+        key: {**m, "sigma_pct": sigma_pct,
+              **{side: with_sigma(m[side]["mm"], sigma_pct) for side in ("straight", "surface")}}
+        for key, m in found.items()}}
 
 
 def summary(measurements: dict) -> str:

@@ -24,6 +24,7 @@ from facecap_core.errors import InputError
 from facecap_core.fitting.quality import part_quality
 from facecap_core.fitting.sanity import MeshSanity, check_mesh, relax_folds
 from facecap_core.landmarks.ears import EAR_VERTEX_IDS
+from facecap_core.measure import landmark_measurements
 from facecap_core.meshio import load_landmarks, save_landmarks
 from facecap_core.nonrigid.constraints import Keyframe
 from facecap_core.nonrigid.nicp import FitResult, FittingConfig, fit
@@ -197,7 +198,12 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
                       face_edges(template.vertices, template.faces, template.landmarks))
     parts = (part_quality(result.vertices, template, cloud, cloud_normals, cloud_errors,
                           landmarks) if config.use_cloud else None)
-    write_report(out / FIT_JSON, result, config, sanity, relaxed, ears_report, rough, parts)
+    # The anatomical distances on the mesh, for a dataset to compare (the metric scale's
+    # uncertainty is the coarse stage's, added where the report is made).
+    measurements = landmark_measurements(result.vertices, result.faces, template.landmarks,
+                                         None)
+    write_report(out / FIT_JSON, result, config, sanity, relaxed, ears_report, rough,
+                 {**(parts or {}), "measurements": measurements})
     last = result.log[-1] if result.log else {}
     log.info("fitted %d vertices in %d steps (%.1f s): landmark RMS %.2f mm, %d cloud targets, "
              "last step moved %.3f mm; %.1f %% of the face's edges bent over %g°",
@@ -216,7 +222,7 @@ def _rounded(value: float | None, digits: int) -> float | None:
 def write_report(path: Path, result: FitResult, config: FittingConfig,
                  sanity: MeshSanity | None = None, relaxed: dict | None = None,
                  ears: dict | None = None, rough: dict | None = None,
-                 parts: dict | None = None) -> Path:
+                 more: dict | None = None) -> Path:
     doc = {"config": config.model_dump(mode="json"), "timing": result.timing(),
            "vertices": len(result.vertices), "faces": len(result.faces), "steps": result.log,
            "sanity": sanity.to_json() if sanity is not None else None, "relaxed": relaxed,
@@ -224,6 +230,6 @@ def write_report(path: Path, result: FitResult, config: FittingConfig,
            "cloud_noise": {"noise_mm": _rounded(result.cloud_noise_mm, 4),
                            "reference_mm": config.cloud_noise_mm,
                            "weight": _rounded(result.cloud_weight, 4)},
-           **(parts or {})}
+           **(more or {})}
     path.write_text(json.dumps(doc, indent=1))
     return path
