@@ -395,6 +395,32 @@ def _inside(path: Path, folder: Path) -> bool:
     return path == folder or folder in path.parents
 
 
+def check_result_names(out: str | os.PathLike, names: Iterable[str],
+                       inputs: Iterable[str | os.PathLike | None] = ()) -> None:
+    """Refuse, before any work, an output folder where one of the result ``names`` (relative
+    paths) is a folder, or the very file of an input (a hard link or a link to it): the
+    writer would refuse it only once the work is done, and the work would be lost."""
+    out = Path(out)
+    sources = []
+    for source in inputs:
+        try:
+            sources.append((source, os.stat(source)))
+        except (OSError, TypeError):
+            continue
+    for name in names:
+        try:
+            found = os.lstat(out / name)
+        except OSError:
+            continue
+        if stat.S_ISDIR(found.st_mode):
+            raise InputError(f"{out / name} is a folder where facecap writes a result; remove "
+                             "it or give another --out")
+        for source, source_stat in sources:
+            if os.path.samestat(found, source_stat):
+                raise InputError(f"the result {out / name} would replace the input {source}; "
+                                 "give another --out")
+
+
 def check_output_place(out: str | os.PathLike, store: str | None,
                        inputs: Iterable[str | os.PathLike | None] = (),
                        option: str = "--out") -> None:

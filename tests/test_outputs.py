@@ -550,10 +550,20 @@ def test_train_ears_writes_through_no_link_nor_over_an_input(quick_training, hom
     (out / "ear_contour.json").unlink()
     os.link(ict, out / "ear_contour.json")  # the ICT model under a result's name
     capsys.readouterr()
+    (out / "dataset.npz").unlink()  # so that a run that went on would render again
+    trained = len(quick_training)
     assert main(["train-ears", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("facecap: error: ") and str(ict) in err[0], err
     assert ict.read_bytes() == b"the ICT model"
+    assert len(quick_training) == trained  # refused before the training, not after it
+    (out / "ear_contour.json").unlink()
+    (out / "training.json").unlink()
+    (out / "training.json").mkdir()  # a folder where a result goes
+    assert main(["train-ears", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a folder where facecap writes a result" in err[0], err
+    assert len(quick_training) == trained
 
     store = home / "store"
     store.mkdir(exist_ok=True)

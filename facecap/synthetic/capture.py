@@ -30,7 +30,7 @@ from facecap.synthetic.sensor import (
     turn_image,
 )
 from facecap.synthetic.subjects import Subject, make_subject
-from facecap.tasks.outputs import ResultWriter, check_output_place
+from facecap.tasks.outputs import ResultWriter, check_output_place, check_result_names
 from facecap.tasks.runner import default_store_url
 from facecap.tasks.scratch import process_scratch
 from facecap_core.camera import (
@@ -212,19 +212,7 @@ def check_synth_output(out: Path, inputs: list[str | os.PathLike]) -> None:
     if gt.is_symlink() or (gt.exists() and not gt.is_dir()):
         raise InputError(f"{gt} is a link or a file where facecap writes the ground truth "
                          "folder; remove it or give another --out")
-    for name in SYNTH_OUTPUTS:
-        try:
-            found = os.lstat(out / name)
-        except OSError:
-            continue
-        for source in inputs:
-            try:
-                same = os.path.samestat(found, os.stat(source))
-            except OSError:
-                continue
-            if same:
-                raise InputError(f"the result {out / name} would replace the input {source}; "
-                                 "give another --out")
+    check_result_names(out, SYNTH_OUTPUTS, inputs)
 
 
 def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True,
