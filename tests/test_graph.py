@@ -319,12 +319,14 @@ def test_dependencies_point_one_way():
     assert figures["circles"] == []
     # The checks see what they are for: an import up the layers, a forbidden one, a circle.
     graph = {"facecap_core.camera": {"facecap_core.mvs.depth"}, "facecap_core.mvs.depth": set(),
-             "tasks.graph": {"facecap.synthetic"}, "facecap.synthetic": set()}
+             "tasks.graph": {"facecap.synthetic"},
+             "facecap.synthetic": {"tasks.graph", "tasks.outputs"}}
     third_party = {"facecap_core.camera": set(), "facecap_core.mvs.depth": {"prefect"},
                    "tasks.graph": {"flows"}, "facecap.synthetic": set()}
     assert metrics.layer_violations(graph, third_party) == [
         "facecap_core.camera -> facecap_core.mvs.depth", "tasks.graph -> facecap.synthetic",
-        "tasks.graph -> flows", "facecap_core.mvs.depth -> prefect"]
+        "tasks.graph -> flows", "facecap_core.mvs.depth -> prefect",
+        "facecap.synthetic -> tasks.graph"]
     assert metrics.circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 

@@ -53,7 +53,13 @@ list lacks takes its place from the pipeline's order (:func:`layers`)."""
 
 FORBIDDEN = {"facecap_core": ("prefect",), "facecap.synthetic": ("tasks", "flows", "deploy"),
              "facecap.ear_training": ("tasks", "flows", "deploy")}
-"""Besides the layers: what a package never imports."""
+"""Besides the layers: what a package never imports (a third-party name, or a module of the
+repository's, by prefix)."""
+OUTPUT_DISCIPLINE = ("tasks.outputs", "tasks.scratch", "tasks.runner")
+"""What of the orchestration the synthetic world and the ear training may import all the
+same: the results writer, the scratch folder and the store's address, so that ``synth`` and
+``train-ears`` write their results as ``reconstruct`` does (never through a link, never over
+an input, never in the store)."""
 
 UNINSTALLED = ("tasks", "flows", "deploy")
 """Top-level names that exist only in a checkout (installed as ``facecap.tasks``, ...): an
@@ -218,6 +224,11 @@ def layer_violations(graph: dict[str, set[str]], third_party: dict[str, set[str]
         found += [f"{m} -> {t}" for m in sorted(graph)
                   if _under(m, package)
                   for t in sorted(third_party[m] & set(banned))]
+        found += [f"{m} -> {d}" for m in sorted(graph) if _under(m, package)
+                  for d in sorted(graph[m])
+                  if any(_under(d, b) for b in banned)
+                  and not (package != "facecap_core"
+                           and any(_under(d, a) for a in OUTPUT_DISCIPLINE))]
     return found
 
 
