@@ -6,8 +6,8 @@ then fails stages later for a reason the user cannot act on. Each check here com
 solve with what it must agree with, and a failure is one line
 (:class:`CameraSolveError`: ``the camera solve failed: what — what to try``):
 
-- **focal length** (:func:`check_focal`): the field of view across the image's width and
-  height within what phone cameras have (``FOV_RANGE_DEG``);
+- **focal length** (:func:`focal_problem`): the field of view across the image's long side
+  within what phone cameras have (``FOV_RANGE_DEG``);
 - **order** (:func:`order_jumps`): consecutive views of the capture (a video's keyframes;
   the photos of a folder numbered at a constant step, a video's frames) must be neighbours
   in the solve: the rotation between them within ``JUMP_FACTOR`` times what the tracker
@@ -33,10 +33,10 @@ from facecap_core.camera import Intrinsics
 from facecap_core.errors import InputError
 
 FOV_RANGE_DEG = (35.0, 100.0)
-"""Fields of view (degrees, across the image's width and across its height) a phone camera
-has: a 2-3× telephoto lens is about 35–40° across its long side and a front camera's or a
-wide main camera's about 80°; ultra-wide lenses (over 100°) are not for face captures. A
-16:9 frame of a main camera (65–75° across) is 38–45° across its short side."""
+"""Fields of view (degrees, across the image's long side) a phone camera has: a 2× telephoto
+lens is about 35–40° and a front camera's or a wide main camera's about 80°; ultra-wide
+lenses (over 100°) are not for face captures. The short side is not held to it: a 16:9
+frame of a 60° lens is 35° across its short side, a 2× telephoto's about 22°."""
 MIN_JUMP_DEG = 10.0
 """Consecutive views may be this far apart in the solve whatever the tracking says."""
 JUMP_FACTOR = 2.0
@@ -75,10 +75,11 @@ def focal_problem(intr: Intrinsics) -> str | None:
     """What is wrong with the solve's focal length (None: a phone's)."""
     lo, hi = FOV_RANGE_DEG
     h, v = fields_of_view_deg(intr)
-    if lo <= h <= hi and lo <= v <= hi:
+    if lo <= max(h, v) <= hi:
         return None
     return (f"its focal length, {intr.fx:.0f} px, gives a field of view of {h:.0f}° × {v:.0f}°"
-            f" ({intr.width}×{intr.height}), outside any phone camera's {lo:.0f}–{hi:.0f}°")
+            f" ({intr.width}×{intr.height}), outside any phone camera's {lo:.0f}–{hi:.0f}° "
+            "across the long side")
 
 
 def rotation_angles_deg(R) -> np.ndarray:

@@ -202,12 +202,16 @@ def what_to_try(keyframes: Keyframes, numbers) -> str:
 
 
 def structure_from_motion(images: dict[int, np.ndarray], work: Path, keyframes: Keyframes,
-                          config: PoseConfig, numbers=None, names=None) -> Poses:
-    """SfM's cameras of ``images``, checked (:func:`~facecap_core.pose.checks.solve_problem`).
-    Cameras that fail a check are solved again once with what may fix them: photos whose
-    file names give their order (``numbers``) matched along it, a focal length outside a
-    phone's started from a phone's nominal one. Raises CameraSolveError when no solve
-    passes, InputError when too few views register."""
+                          config: PoseConfig, numbers=None, names=None
+                          ) -> tuple[Poses, list | None]:
+    """SfM's cameras of ``images``, checked (:func:`~facecap_core.pose.checks.solve_problem`),
+    and the photo numbers the later checks hold them to. Cameras that fail a check are
+    solved again once with what may fix them: photos whose file names may give their order
+    (``numbers``) matched along it, a focal length outside a phone's started from a phone's
+    nominal one. Numbered photos whose first solve fails only the order, and whose solve
+    along the numbers does no better, were not taken in that order (photos come in any
+    order): the first solve is kept and their numbers are not held to. Raises
+    CameraSolveError when no solve passes, InputError when too few views register."""
 
     def solve(ordered: bool, focal_px: float | None, folder: str) -> Poses:
         poses = run_sfm(images, work / folder, keyframes.video_size,
@@ -219,7 +223,7 @@ def structure_from_motion(images: dict[int, np.ndarray], work: Path, keyframes: 
     poses = solve(keyframes.ordered, keyframes.focal_px, "sfm")
     problem = solve_problem(poses, keyframes, numbers, names)
     if problem is None:
-        return poses
+        return poses, numbers
     retries = []
     if not keyframes.ordered and numbers is not None:
         retries.append(("matching along the file names' order", True, keyframes.focal_px))
@@ -237,8 +241,12 @@ def structure_from_motion(images: dict[int, np.ndarray], work: Path, keyframes: 
             continue
         again_problem = solve_problem(again, keyframes, numbers, names)
         if again_problem is None:
-            return again
+            return again, numbers
         log.warning("... which failed too: %s", again_problem)
+    if numbers is not None and solve_problem(poses, keyframes, None, names) is None:
+        log.warning("the photos' numbers do not follow the sweep (%s): they are put in sweep "
+                    "order from the solve", problem)
+        return poses, None
     raise CameraSolveError(problem, what_to_try(keyframes, numbers))
 
 
@@ -276,7 +284,7 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
     work = Path(work_dir)
     names, numbers = photo_order(video, keyframes)
     images = read_frames(video, keyframes.indices, width=config.sfm_width)
-    sfm = structure_from_motion(images, work, keyframes, config, numbers, names)
+    sfm, numbers = structure_from_motion(images, work, keyframes, config, numbers, names)
     if not keyframes.ordered:
         sfm = reorder(sfm, sweep_order(sfm))
     steps = {"sfm": sfm}

@@ -57,12 +57,16 @@ def test_a_phone_focal_passes_and_a_field_of_view_outside_35_to_100_degrees_is_n
         f = (side / 2) / np.tan(np.radians(fov_deg) / 2)
         return Intrinsics(PHONE.width, PHONE.height, f, f, PHONE.cx, PHONE.cy)
 
-    # Just inside: across the short side at the lower bound, the long side at the upper.
-    assert checks.focal_problem(with_fov(240, lo + 1e-6)) is None
+    # Just inside, across the long side: at the lower bound and at the upper.
+    assert checks.focal_problem(with_fov(320, lo + 1e-6)) is None
     assert checks.focal_problem(with_fov(320, hi - 1e-6)) is None
     # Just outside, either way: a telephoto beyond phones' and the degenerate wide solve.
-    assert "35–100°" in checks.focal_problem(with_fov(240, lo - 0.1))
+    assert "35–100°" in checks.focal_problem(with_fov(320, lo - 0.1))
     assert "outside" in checks.focal_problem(with_fov(320, hi + 0.1))
+    # The short side is not held to the range: a 16:9 frame of a 56° lens is 34° across it.
+    f = 112 / np.tan(np.radians(56) / 2)
+    wide = Intrinsics(224, 128, f, f, 111.5, 63.5)
+    assert checks.fields_of_view_deg(wide)[1] < lo and checks.focal_problem(wide) is None
 
 
 def test_the_tracked_angles_become_the_solves_turns_at_its_focal_length():
