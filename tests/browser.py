@@ -21,6 +21,18 @@ BACKGROUND = np.array([244, 244, 244])
 READY_TIMEOUT_MS = 60_000
 
 
+SETTLED_FRAMES = 5
+"""Frames without a draw after which the view has settled (the damped turn ended)."""
+
+
+def settled(page, timeout_ms: float = 15000) -> None:
+    """Wait until the viewer has drawn a frame and then drawn nothing for
+    :data:`SETTLED_FRAMES` frames: what is on the canvas is what stays there, on a fast
+    machine or a slow software renderer alike."""
+    page.wait_for_function(f"window.facecap.drawn > 0 && window.facecap.still >= "
+                           f"{SETTLED_FRAMES}", timeout=timeout_ms)
+
+
 def _pixels(png: bytes) -> np.ndarray:
     import cv2
 
@@ -103,7 +115,7 @@ def _look(browser, page_file: Path | str, shots: Path | None, found: dict) -> di
     view = page.locator("#canvas")
 
     def shot(name: str) -> np.ndarray:
-        page.wait_for_timeout(400)  # the damped controls settle; frames are drawn
+        settled(page)
         png = view.screenshot()
         if shots is not None:
             shots.mkdir(parents=True, exist_ok=True)

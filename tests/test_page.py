@@ -14,7 +14,7 @@ import pytest
 import trimesh
 
 from facecap.flows.page import build_page, mesh_glb
-from tests.browser import look_at_page
+from tests.browser import look_at_page, settled
 
 ROOT = Path(__file__).resolve().parents[1]
 SHOTS = ROOT / "out" / "test-artifacts" / "page"
@@ -271,8 +271,7 @@ def test_the_colour_bar_is_in_sight_on_a_laptop_whatever_the_wheel_does(results,
         assert _in_sight(page, "#colourbar")
         page.mouse.move(size[0] - 100, size[1] / 2)  # over the figures
         page.mouse.wheel(0, 5000)
-        page.wait_for_timeout(300)
-        assert page.evaluate("scrollY") > 0  # the page scrolled to its last rows
+        page.wait_for_function("scrollY > 0")  # the page scrolled to its last rows
         assert _in_sight(page, "#colourbar")
         assert _in_sight(page, "[data-stage=depth]")
         page.screenshot(path=str(SHOTS / f"colour-bar-{size[0]}x{size[1]}.png"))
@@ -306,7 +305,7 @@ def test_plain_is_grey(results, tmp_path):
     with chromium() as browser:
         page = _opened(browser, page_file)
         page.click("[data-mode=plain]")
-        page.wait_for_timeout(400)
+        settled(page)
         shot = _pixels(page.locator("#canvas").screenshot())
         h, w = shot.shape[:2]
         middle = shot[h // 3: 2 * h // 3, w // 3: 2 * w // 3].reshape(-1, 3)
@@ -442,7 +441,7 @@ def test_the_dataset_page_says_a_capture_stopped_before_its_mesh(results, tmp_pa
 def _shot(page) -> np.ndarray:
     from tests.browser import _pixels
 
-    page.wait_for_timeout(400)  # the damped controls settle
+    settled(page)
     return _pixels(page.locator("#canvas").screenshot())
 
 

@@ -2,8 +2,9 @@
 // colours, plain, or coloured by its accuracy against the scan; the fused cloud and the
 // keyframe cameras on demand. Reads the page's JSON (id "facecap-data"); THREE is the
 // vendored three.js bundle. Sets window.facecap = {ready, reason, mode, setMode, toggle,
-// measure, measurement, showPreset, vertexOnScreen, setLight}: ready once the mesh is shown,
-// reason when it cannot be. Measure: two clicks on the mesh (each snapped to the nearest
+// measure, measurement, showPreset, vertexOnScreen, setLight, drawn, still}: ready once the
+// mesh is shown, reason when it cannot be; drawn counts the frames drawn, still the frames
+// since the last one (the view has settled when it grows). Measure: two clicks on the mesh (each snapped to the nearest
 // vertex of the triangle hit) give their distance straight and along the surface (the path
 // of facecap_core/measure.py: a Steiner-point graph searched by A*, then straightened along
 // its edges), ± the metric scale's 1σ; the presets measure between two landmarks.
@@ -29,7 +30,8 @@
   const controls = new THREE.OrbitControls(camera, canvas);
   controls.enableDamping = true;
   const state = {ready: false, mode: "colour", setMode, toggle, measure: measureVertices,
-                 measurement: null, measuring: false, vertexOnScreen, setLight};
+                 measurement: null, measuring: false, vertexOnScreen, setLight, drawn: 0,
+                 still: 0};
   window.facecap = state;
   // Drawn when something changed (a turn, a zoom, a mode, a size), not every frame: an open
   // page idles rather than keeping a core (or a laptop's GPU) busy.
@@ -519,6 +521,10 @@
     if (stale) {
       stale = false;
       renderer.render(scene, camera);
+      state.drawn += 1;
+      state.still = 0;
+    } else {
+      state.still += 1;
     }
     requestAnimationFrame(loop);
   })();
