@@ -572,3 +572,30 @@ def test_train_ears_writes_through_no_link_nor_over_an_input(quick_training, hom
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "which facecap keeps for itself" in err[0], err
     assert len(quick_training) == renders and not (store / "artifacts").exists()
+
+
+@pytest.mark.slow
+def test_a_terminated_run_ends_with_one_line_and_exit_143(media, tmp_path, home):
+    """``facecap reconstruct`` sent SIGTERM in its pose stage (while COLMAP works): one line
+    that says so, exit 143 (128 + the signal, as a shell reports it), no native stack trace
+    (pycolmap's glog would print one) and no Python traceback on the terminal."""
+    (tmp_path / "cheap.yaml").write_text(CHEAP_POSES)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API")}
+    env.update(FACECAP_HOME=str(home), PREFECT_HOME=str(tmp_path / "ph"))
+    command = [sys.executable, "-m", "facecap", "reconstruct", str(media["orbit"]), "--out",
+               str(tmp_path / "out"), "--store", str(tmp_path / "store"), "--config",
+               str(tmp_path / "cheap.yaml"), "--until", "poses"]
+    proc = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    scratch, deadline = home / "scratch", time.monotonic() + 240
+    while time.monotonic() < deadline and proc.poll() is None:
+        if any(scratch.glob("*/work/poses-*")):
+            break
+        time.sleep(0.1)
+    assert proc.poll() is None, "the run ended before its pose stage"
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    lines = [line for line in err.strip().splitlines() if line.strip()]
+    assert proc.returncode == 143, err
+    assert lines and lines[-1] == "facecap: terminated", err
+    assert "Traceback" not in err and "*** SIGTERM" not in err and "stack trace" not in err, err
