@@ -39,7 +39,6 @@ from facecap_core.nonrigid.solver import NicpSystem
 from facecap_core.render import RaycastScene, vertex_normals
 from facecap_core.template import INNER_LANDMARKS, Template
 
-
 STIFFNESS_RANGE = (1e-3, 1e4)
 """The stiffness values the solver works with (the template is scaled to unit radius)."""
 WEIGHT_MAX = 1e4
