@@ -193,7 +193,7 @@ def test_shuffled_photos_get_every_camera_in_sweep_order(tmp_path, ict4_sweep):
 
     kf = load_keyframes(keyframes_main(folder, tmp_path / "kf"))
     assert kf.ordered is False and kf.indices == list(range(len(taken)))
-    steps = estimate_poses(folder, kf, tmp_path / "work", PoseConfig(sfm_width=640))
+    steps, _ = estimate_poses(folder, kf, tmp_path / "work", PoseConfig(sfm_width=640))
     final = steps["pba"]
     assert sorted(final.frame_indices) == kf.indices  # every photo registered
     order = [video_index[i] for i in final.frame_indices]

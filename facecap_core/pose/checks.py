@@ -31,6 +31,7 @@ import numpy as np
 from facecap_core.assets import packaged_ict_model
 from facecap_core.camera import Intrinsics
 from facecap_core.errors import InputError
+from facecap_core.geometry import umeyama
 
 FOV_RANGE_DEG = (35.0, 100.0)
 """Fields of view (degrees, across the image's long side) a phone camera has: a 2× telephoto
@@ -188,15 +189,8 @@ def face_shape_error(landmarks, reference) -> tuple[int, float]:
     ok = inner[np.all(np.isfinite(L[inner]), axis=1)]
     if len(ok) < 4:
         return len(ok), float("inf")
-    a, b = L[ok], ref[ok]
-    a0, b0 = a - a.mean(0), b - b.mean(0)
-    # Umeyama: the rotation, then the scale, taking a onto b.
-    U, s, Vt = np.linalg.svd(b0.T @ a0)
-    d = np.sign(np.linalg.det(U @ Vt))
-    S = np.diag([1.0, 1.0, d])
-    rot = U @ S @ Vt
-    scale = np.trace(np.diag(s) @ S) / max(float((a0 ** 2).sum()), 1e-300)
-    residual = b0 - scale * a0 @ rot.T
+    scale, rot, t = umeyama(L[ok], ref[ok], with_scale=True)
+    residual = ref[ok] - (scale * L[ok] @ rot.T + t)
     eyes = float(np.linalg.norm(ref[42:48].mean(0) - ref[36:42].mean(0)))
     return len(ok), float(np.sqrt((residual ** 2).sum(1).mean()) / eyes)
 

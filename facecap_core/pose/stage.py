@@ -273,12 +273,14 @@ def photo_order(video: str | Path, keyframes: Keyframes):
 
 
 def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
-                   config: PoseConfig | None = None, progress: bool = False) -> dict[str, Poses]:
+                   config: PoseConfig | None = None, progress: bool = False
+                   ) -> tuple[dict[str, Poses], list | None]:
     """The cameras of ``keyframes`` after each step: {"sfm", "geometric", "pba"} (the last
     two as configured, and only when they pass the camera solve's checks: a refinement that
-    leaves them wrong is dropped). Keyframes SfM cannot register are left out (the cameras
-    file lists them); too few registered raises InputError, a solve that fails the checks
-    CameraSolveError. Photos are put in sweep order."""
+    leaves them wrong is dropped), and the photo numbers the checks held them to (None: a
+    video, or photos whose names give no order). Keyframes SfM cannot register are left out
+    (the cameras file lists them); too few registered raises InputError, a solve that fails
+    the checks CameraSolveError. Photos are put in sweep order."""
 
     config = config or PoseConfig()
     work = Path(work_dir)
@@ -305,7 +307,7 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
         refined = checked(refined, "photometric bundle adjustment", keyframes, numbers, names)
         if refined is not None:
             current = steps["pba"] = refined
-    return steps
+    return steps, numbers
 
 
 def main(video: str | Path, keyframes_json: str | Path, out_dir: str | Path,
@@ -320,7 +322,7 @@ def main(video: str | Path, keyframes_json: str | Path, out_dir: str | Path,
     # COLMAP's scratch (keyframe PNGs, database: ~100 MB at 720p) stays out of the artifact,
     # which every later stage downloads.
     with tempfile.TemporaryDirectory(prefix="facecap-poses-") as work:
-        steps = estimate_poses(video, keyframes, work, config, progress)
+        steps, numbers = estimate_poses(video, keyframes, work, config, progress)
     final = list(steps.values())[-1]
     dropped = [{"frame_index": int(i), "reason": "not registered by structure from motion "
                 "(too few features matched to the other views)"}
@@ -330,7 +332,7 @@ def main(video: str | Path, keyframes_json: str | Path, out_dir: str | Path,
                     len(dropped), len(keyframes.indices))
     log.info("cameras of %d keyframes by %s in %.1f s", len(final.frame_indices),
              " + ".join(steps), time.perf_counter() - start)
-    solve = solve_figures(final, keyframes, photo_order(video, keyframes)[1])
+    solve = solve_figures(final, keyframes, numbers)
     return write_outputs(final, out, method=list(steps)[-1], dropped=dropped, solve=solve,
                          wall_seconds=round(time.perf_counter() - start, 2),
                          cpu_seconds=round(time.process_time() - cpu, 2))

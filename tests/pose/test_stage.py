@@ -129,7 +129,7 @@ def test_pose_stage_calibrates_every_keyframe(capture, tmp_path):
     kf_json = keyframes_main(capture.video, tmp_path / "kf")
     kf = load_keyframes(kf_json)
     intr_gt, gt = load_gt_cameras(capture.gt_cameras)
-    steps = estimate_poses(capture.video, kf, tmp_path / "work", PoseConfig(sfm_width=640))
+    steps, _ = estimate_poses(capture.video, kf, tmp_path / "work", PoseConfig(sfm_width=640))
     errors = {}
     for name, poses in steps.items():
         assert poses.frame_indices == kf.indices
