@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -319,12 +318,6 @@ def _check_places(out: Path, root: Path | None, subject: str, store: ArtifactSto
                              "(--out); nothing was removed")
 
 
-def _holds_a_record(folder: Path) -> bool:
-    """Whether a results record lies in ``folder`` or a plain folder below it (no link
-    followed)."""
-    return any(RECORD_NAME in files for _, _, files in os.walk(folder, followlinks=False))
-
-
 def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
                 out: Path | None) -> Removal:
     """What forgetting ``subject`` removes: every artifact derived from the subject's
@@ -359,7 +352,8 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
                              "name and --out")
         # Only what facecap can prove it wrote there: the files its records name, as written.
         removal.files, removal.kept = remove_results(results, dry_run=True)
-        if removal.kept and not _holds_a_record(results):
+        # A record is facecap's own file: remove_results takes every one it finds.
+        if removal.kept and not any(f.name == RECORD_NAME for f in removal.files):
             raise InputError(
                 f"{results} holds no record of a facecap result, so nothing in it can be shown "
                 "to be facecap's (results written before facecap kept records, or files of "
