@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import sys
 import tempfile
 from datetime import UTC, datetime, timedelta
@@ -104,7 +103,7 @@ def _heatmap_paths(heatmap: str, protocols: tuple[str, ...], inputs: tuple) -> d
     folder facecap keeps for itself, a name that is one of the inputs."""
     import cv2
 
-    from facecap.tasks.outputs import check_output_place
+    from facecap.tasks.outputs import check_output_place, check_result_names
     from facecap.tasks.runner import default_store_url
 
     given = Path(heatmap)
@@ -115,22 +114,9 @@ def _heatmap_paths(heatmap: str, protocols: tuple[str, ...], inputs: tuple) -> d
                          f"{suffix}; give a path ending in .png")
     _check_folder_path(given.parent, f"--heatmap {heatmap}")
     check_output_place(given.parent, default_store_url(), option="--heatmap")
-    for path in paths.values():
-        for source in inputs:
-            if source is not None and _same_file(path, Path(source)):
-                raise InputError(f"the heat map {path} would replace the input {source}; "
-                                 "give another --heatmap")
+    check_result_names(given.parent, [path.name for path in paths.values()], inputs,
+                       option="--heatmap")
     return paths
-
-
-def _same_file(a: Path, b: Path) -> bool:
-    """Whether the entry ``a`` (not what a link there points to: a link is replaced, not
-    followed) is the file ``b`` or a hard link to it."""
-    try:
-        found, source = os.lstat(a), os.stat(b)
-    except OSError:
-        return False
-    return (found.st_dev, found.st_ino) == (source.st_dev, source.st_ino)
 
 
 def _check_folder_path(folder: Path, option: str) -> None:

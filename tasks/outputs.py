@@ -396,10 +396,12 @@ def _inside(path: Path, folder: Path) -> bool:
 
 
 def check_result_names(out: str | os.PathLike, names: Iterable[str],
-                       inputs: Iterable[str | os.PathLike | None] = ()) -> None:
+                       inputs: Iterable[str | os.PathLike | None] = (),
+                       option: str = "--out") -> None:
     """Refuse, before any work, an output folder where one of the result ``names`` (relative
-    paths) is a folder, or the very file of an input (a hard link or a link to it): the
-    writer would refuse it only once the work is done, and the work would be lost."""
+    paths) is a folder, or the very file of an input (a hard link to it; a link there is
+    replaced, not followed): the writer would refuse it only once the work is done, and the
+    work would be lost. ``option`` is what the user gave the place as."""
     out = Path(out)
     sources = []
     for source in inputs:
@@ -414,11 +416,25 @@ def check_result_names(out: str | os.PathLike, names: Iterable[str],
             continue
         if stat.S_ISDIR(found.st_mode):
             raise InputError(f"{out / name} is a folder where facecap writes a result; remove "
-                             "it or give another --out")
+                             f"it or give another {option}")
         for source, source_stat in sources:
             if os.path.samestat(found, source_stat):
                 raise InputError(f"the result {out / name} would replace the input {source}; "
-                                 "give another --out")
+                                 f"give another {option}")
+
+
+def check_results_folder(out: str | os.PathLike, store: str | None, names: Iterable[str],
+                         inputs: Iterable[str | os.PathLike | None] = (),
+                         option: str = "--out") -> None:
+    """Refuse, before any work, a folder that results ``names`` cannot be written into:
+    one :func:`check_output_place` refuses, a file, or one where a result's name is a
+    folder or an input (:func:`check_result_names`)."""
+    inputs = list(inputs)
+    check_output_place(out, store, inputs, option)
+    if Path(out).exists() and not Path(out).is_dir():
+        raise InputError(f"the output folder {out} is a file; give the path of a folder "
+                         f"({option})")
+    check_result_names(out, names, inputs, option)
 
 
 def check_output_place(out: str | os.PathLike, store: str | None,

@@ -32,7 +32,7 @@ from facecap.ear_training.render import (
     render_key,
     save_dataset,
 )
-from facecap.tasks.outputs import ResultWriter, check_output_place, check_result_names
+from facecap.tasks.outputs import ResultWriter, check_results_folder
 from facecap.tasks.runner import default_store_url
 from facecap.tasks.scratch import process_scratch
 from facecap_core.config import load_yaml
@@ -172,11 +172,8 @@ def train(out_dir: str | Path, config: EarTrainingConfig | None = None,
                          "FACECAP_ICT_MODEL to PATH/ict_face_model.npz")
     out = Path(out_dir)
     inputs = (ict_model, *extra_inputs)
-    check_output_place(out, default_store_url(), [p for p in inputs if p is not None],
-                       option="--out")
-    if out.exists() and not out.is_dir():
-        raise InputError(f"the output folder {out} is a file; give the path of a folder (--out)")
-    check_result_names(out, [*MODEL_FILES, "training.json", "dataset.npz"], inputs)
+    check_results_folder(out, default_store_url(),
+                         [*MODEL_FILES, "training.json", "dataset.npz"], inputs)
     # Made in this process's scratch, then written as the reconstruction writes its results:
     # all at once, never through a link planted in ``out``, never over an input.
     with tempfile.TemporaryDirectory(dir=process_scratch()) as scratch:

@@ -30,7 +30,7 @@ from facecap.synthetic.sensor import (
     turn_image,
 )
 from facecap.synthetic.subjects import Subject, make_subject
-from facecap.tasks.outputs import ResultWriter, check_output_place, check_result_names
+from facecap.tasks.outputs import ResultWriter, check_results_folder
 from facecap.tasks.runner import default_store_url
 from facecap.tasks.scratch import process_scratch
 from facecap_core.camera import (
@@ -205,14 +205,11 @@ def check_synth_output(out: Path, inputs: list[str | os.PathLike]) -> None:
     """Refuse, before any frame is rendered, an output folder that lies in the artifact
     store or facecap's own folders, or where a result would replace an input or a link
     stands for the ``gt`` folder."""
-    check_output_place(out, default_store_url(), [p for p in inputs if Path(p).is_dir()])
-    if out.exists() and not out.is_dir():
-        raise InputError(f"the output folder {out} is a file; give the path of a folder (--out)")
     gt = out / "gt"
     if gt.is_symlink() or (gt.exists() and not gt.is_dir()):
         raise InputError(f"{gt} is a link or a file where facecap writes the ground truth "
                          "folder; remove it or give another --out")
-    check_result_names(out, SYNTH_OUTPUTS, inputs)
+    check_results_folder(out, default_store_url(), SYNTH_OUTPUTS, inputs)
 
 
 def synthesize(config: SynthConfig, out_dir: str | Path, progress: bool = True,
