@@ -13,7 +13,6 @@ from __future__ import annotations
 import base64
 import html
 import json
-import math
 from collections.abc import Callable
 from pathlib import Path
 from urllib.parse import quote
@@ -21,7 +20,7 @@ from urllib.parse import quote
 import cv2
 import numpy as np
 
-from facecap.flows.page import PAGE_HEAD, PAGE_NAME, keep_page, stored_link
+from facecap.flows.page import PAGE_HEAD, PAGE_NAME, finite_number, keep_page, stored_link
 from facecap.tasks.lifecycle import report_keys
 from facecap.tasks.outputs import write_results
 from facecap_core.dataset import SUMMARY_NAMES
@@ -65,7 +64,7 @@ def _history(out: Path) -> tuple[dict[str, list[float]], set[str]]:
         except (OSError, ValueError):
             continue  # check_history refuses a damaged history before a run: not this page's
         for name, score in _mapping(doc.get("captures")).items():
-            median = _number(_mapping(_mapping(score).get("accuracy")).get("median"))
+            median = finite_number(_mapping(_mapping(score).get("accuracy")).get("median"))
             if median is not None:
                 series.setdefault(name, []).append(median)
         if i == len(files) - 1:
@@ -79,17 +78,6 @@ def _mapping(value) -> dict:
     """``value`` if it is a JSON object, else an empty one: what a results folder holds is
     anyone's to write, so every value read from it is checked before use."""
     return value if isinstance(value, dict) else {}
-
-
-def _number(value) -> float | None:
-    """``value`` if it is a finite number (not a boolean), else None."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    try:
-        value = float(value)
-    except OverflowError:  # an integer past the floats
-        return None
-    return value if math.isfinite(value) else None
 
 
 def _count(value) -> int | None:
@@ -151,10 +139,11 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
     for subject, capture in sorted(captures):
         name = f"{subject}/{capture}"
         folder = out / subject / capture
-        # A link anywhere on the way (the subject's folder, the capture's, the report) would
-        # show what lies outside OUT: such a row shows nothing of it.
+        # A link on the way (the subject's folder, the capture's, the report, the mesh) would
+        # show what lies outside OUT: such a row shows nothing of it (_thumbnail passes over
+        # a preview that is a link).
         inside = not any(p.is_symlink() for p in (out / subject, folder, folder / "report.json",
-                                                  folder / "preview.png", folder / "mesh.ply"))
+                                                  folder / "mesh.ply"))
         try:
             report = (_mapping(json.loads((folder / "report.json").read_text())) if inside
                       else {})
@@ -179,11 +168,11 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
         picture = f'<a href="{html.escape(href)}">{image}</a>' if href and thumb else image
         accuracy = _mapping(_mapping(_mapping(fig.get("evaluation")).get("similarity"))
                             .get("accuracy"))
-        median = _number(accuracy.get("median"))
+        median = finite_number(accuracy.get("median"))
         if median is None:
             median = (series.get(name) or [None])[-1]
-        rough = _number(_mapping(fig.get("roughness")).get("bent_share_pct"))
-        scale = _number(fig.get("metric_scale"))
+        rough = finite_number(_mapping(fig.get("roughness")).get("bent_share_pct"))
+        scale = finite_number(fig.get("metric_scale"))
         keyframes = _count(fig.get("keyframes"))
         cells = [
             _cell(picture),

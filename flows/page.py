@@ -266,18 +266,28 @@ def parts_summary(parts: dict) -> str:
     return "; ".join(said)
 
 
+def finite_number(value) -> float | None:
+    """``value`` if it is a finite number (not a boolean), else None: what a figure read from
+    a report (anyone's to write) may be shown as."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        value = float(value)
+    except OverflowError:  # an integer past the floats
+        return None
+    return value if math.isfinite(value) else None
+
+
 def _mm(value, signed: bool = False) -> str:
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or \
-            not math.isfinite(value):
+    value = finite_number(value)
+    if value is None:
         return "–"
     return f"{value:+.2f} mm" if signed else f"{value:.2f} mm"
 
 
 def _pct(share) -> str:
-    if not isinstance(share, (int, float)) or isinstance(share, bool) or \
-            not math.isfinite(share):
-        return "–"
-    return f"{100 * share:.0f} %"
+    share = finite_number(share)
+    return "–" if share is None else f"{100 * share:.0f} %"
 
 
 def warnings(report: dict) -> list[tuple[str, str]]:
