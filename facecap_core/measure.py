@@ -15,9 +15,7 @@ distance alike: a distance ``d`` is stated ``d ± d·σ``.
 
 from __future__ import annotations
 
-import json
 import math
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -198,19 +196,13 @@ def landmark_measurements(vertices: np.ndarray, faces: np.ndarray, landmark_ids,
             for key, name, i, j in PRESETS}
 
 
-def figures(fitting_folder: str | Path, sigma_pct: float | None) -> dict:
-    """``{"measurements": ...}``: the fitting stage's measurements (``fit.json``, made with
-    the mesh) under the metric scale's ``sigma_pct``; {} without them."""
-    path = Path(fitting_folder) / "fit.json"
-    if not path.is_file():
-        return {}
-    found = json.loads(path.read_text()).get("measurements")
-    if not isinstance(found, dict) or not found:
-        return {}
-    return {"measurements": {
-        key: {**m, "sigma_pct": sigma_pct,
-              **{side: with_sigma(m[side]["mm"], sigma_pct) for side in ("straight", "surface")}}
-        for key, m in found.items()}}
+def under_scale(measurements: dict, sigma_pct: float | None) -> dict:
+    """The fitting stage's ``measurements`` (made with the mesh, :func:`landmark_measurements`)
+    with the metric scale's 1σ, ``sigma_pct`` (the coarse stage's)."""
+    return {key: {**m, "sigma_pct": sigma_pct,
+                  **{side: with_sigma(m[side]["mm"], sigma_pct)
+                     for side in ("straight", "surface")}}
+            for key, m in measurements.items()}
 
 
 def summary(measurements: dict) -> str:

@@ -63,7 +63,7 @@ from facecap_core.coarse import CoarseConfig
 from facecap_core.config import build
 from facecap_core.errors import InputError
 from facecap_core.evaluation.stage import ACCURACY_NPY
-from facecap_core.measure import figures as measure_figures
+from facecap_core.measure import under_scale
 from facecap_core.photos import list_photos
 from facecap_core.pipeline import PipelineConfig, load_pipeline_config
 from facecap_core.settings import settings, time_limit
@@ -353,9 +353,9 @@ def _figures(store: str, runs: dict[str, tuple[str, bool]]) -> dict:
     for stage in STAGES:
         if stage.figures and stage.name in runs:
             fig.update(stage.figures(st.get(runs[stage.name][0])))
-    if "fitting" in runs:  # the anatomical distances on the mesh, for datasets to compare
-        fig.update(measure_figures(st.get(runs["fitting"][0]),
-                                   (fig.get("scale") or {}).get("sigma_pct")))
+    if fig.get("measurements"):  # the anatomical distances, under the metric scale's 1σ
+        fig["measurements"] = under_scale(fig["measurements"],
+                                          (fig.get("scale") or {}).get("sigma_pct"))
     return fig
 
 

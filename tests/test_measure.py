@@ -8,13 +8,14 @@ import json
 import numpy as np
 import trimesh
 
+from facecap_core.fitting.stage import figures as fitting_figures
 from facecap_core.measure import (
     PRESETS,
     SurfacePaths,
     distance_text,
-    figures,
     landmark_measurements,
     summary,
+    under_scale,
 )
 
 
@@ -60,14 +61,16 @@ def test_round_a_cylinder_the_surface_distance_is_the_unrolled_one():
 
 def test_the_presets_of_a_fitted_mesh_are_its_landmarks_distances(tmp_path):
     """``figures.measurements``: the fitting stage's measurements of its mesh (in
-    ``fit.json``) under the scale's 1σ: each preset's straight distance is its two
-    landmarks', the surface one no shorter; a fit.json without them gives none."""
+    ``fit.json``, its figures) under the scale's 1σ: each preset's straight distance is its
+    two landmarks', the surface one no shorter; a fit.json without them gives none."""
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=80.0)
     ids = np.flatnonzero(sphere.vertices[:, 2] > 30)[:68]
     points = sphere.vertices[ids]
-    (tmp_path / "fit.json").write_text(json.dumps({"measurements": landmark_measurements(
-        sphere.vertices, sphere.faces, ids, None)}))
-    found = figures(tmp_path, 4.0)["measurements"]
+    (tmp_path / "fit.json").write_text(json.dumps({"timing": {}, "measurements":
+                                                   landmark_measurements(sphere.vertices,
+                                                                         sphere.faces, ids,
+                                                                         None)}))
+    found = under_scale(fitting_figures(tmp_path)["measurements"], 4.0)
     assert list(found) == [key for key, *_ in PRESETS]
     for key, name, i, j in PRESETS:
         m = found[key]
@@ -78,5 +81,5 @@ def test_the_presets_of_a_fitted_mesh_are_its_landmarks_distances(tmp_path):
         assert abs(m["straight"]["sigma_mm"] - 0.04 * straight) < 1e-3
     assert summary(found).startswith(f"Outer eye corners {found['outer_eyes']['straight']['mm']:.1f} mm ± ")
     assert distance_text({"mm": 63.21, "sigma_mm": 2.53}, 4.0) == "63.2 mm ± 2.5 mm (±4.0 %, 1σ)"
-    (tmp_path / "fit.json").write_text(json.dumps({"steps": []}))
-    assert figures(tmp_path, 4.0) == {}
+    (tmp_path / "fit.json").write_text(json.dumps({"timing": {}}))
+    assert "measurements" not in fitting_figures(tmp_path)

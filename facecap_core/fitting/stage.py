@@ -73,7 +73,9 @@ def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str |
 
 def figures(folder: str | Path) -> dict:
     """Headline figures of a fitting artifact: its time, the mesh checks, the face's
-    roughness and each part's support by the cloud (:mod:`facecap_core.fitting.quality`)."""
+    roughness, each part's support by the cloud (:mod:`facecap_core.fitting.quality`) and
+    the anatomical distances on the mesh (:mod:`facecap_core.measure`, without the scale's
+    uncertainty, which the capture flow adds)."""
     if not (Path(folder) / FIT_JSON).is_file():
         return {}
     fit = json.loads((Path(folder) / FIT_JSON).read_text())
@@ -87,6 +89,8 @@ def figures(folder: str | Path) -> dict:
     if fit.get("parts"):
         fig["parts"] = fit["parts"]
         fig["landmarks_to_cloud_mm"] = fit.get("landmarks_to_cloud_mm")
+    if fit.get("measurements"):
+        fig["measurements"] = fit["measurements"]
     return fig
 
 
