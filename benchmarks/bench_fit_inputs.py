@@ -43,10 +43,12 @@ import trimesh
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_fitting import pick_keyframes  # noqa: E402
 
 from facecap.synthetic import load_gt_cameras, synthesize  # noqa: E402
 from facecap.synthetic.config import SynthConfig  # noqa: E402
-from facecap_core.camera import camera_center  # noqa: E402
 from facecap_core.evaluation import score  # noqa: E402
 from facecap_core.fitting import FittingConfig, fit, keyframes_from_video  # noqa: E402
 from facecap_core.meshio import load_landmarks, load_mesh  # noqa: E402
@@ -118,20 +120,13 @@ class Inputs:
         return self.truth + noise_mm * self.landmark_unit + bias * self.bias
 
 
-def pick_keyframes(poses: list[dict], count: int = 9) -> list[int]:
-    yaw = np.array([np.degrees(np.arctan2(*camera_center(p["R"], p["t"])[[0, 2]]))
-                    for p in poses])
-    wanted = np.linspace(yaw.min(), yaw.max(), count)
-    return sorted({int(poses[int(np.argmin(np.abs(yaw - w)))]["index"]) for w in wanted})
-
-
 def run_subject(subject: str, out: Path, axes: list[str], config: FittingConfig) -> list[dict]:
     folder = capture_for(subject, out)
     gt = load_mesh(folder / "gt" / "mesh.ply", "ground-truth mesh")
     gt_v, gt_f = np.asarray(gt.vertices, float), np.asarray(gt.faces, np.int64)
     gt_lm = load_landmarks(folder / "gt" / "landmarks.json")
     intr, poses = load_gt_cameras(folder / "gt" / "cameras.json")
-    keyframes = keyframes_from_video(folder / "video.mp4", intr, poses, pick_keyframes(poses))
+    keyframes = keyframes_from_video(folder / "video.mp4", intr, poses, pick_keyframes(poses, 9))
     inputs = Inputs(gt_v, gt_f, gt_lm, zlib.crc32(subject.encode()))
     template = Template.default()
     base = {axis: AXES[axis][1] for axis in AXES}

@@ -54,6 +54,13 @@ RAKING_LIGHT /= np.linalg.norm(RAKING_LIGHT)
 """Towards the light, in the camera's frame (x right, y down, z forwards): from the left."""
 
 
+def _grey(shade: np.ndarray, white: int, valid: np.ndarray, shape) -> np.ndarray:
+    """The mesh in grey (``shade`` 0-1 times ``white``) where a ray hit it, white around it,
+    as an RGB image of ``shape``."""
+    image = np.where(valid[..., None], (shade[..., None] * white).astype(np.uint8), 255)
+    return np.broadcast_to(image, shape).astype(np.uint8)
+
+
 def render_beside(out: Path, capture: Path, picks: int = 2) -> Path | None:
     """The mesh shaded in the cameras of the most frontal and the most profile keyframe,
     each beside its photo: the photo, a blend, the grey mesh lit from the camera, and the
@@ -84,16 +91,13 @@ def render_beside(out: Path, capture: Path, picks: int = 2) -> Path | None:
         hits = scene.cast_camera(cams.intrinsics, cams.R[k], cams.t[k])
         n = interpolate(normals, mesh.faces, hits.triangle, hits.bary)
         n_cam = n @ np.asarray(cams.R[k]).T
-        shade = np.clip(-n_cam[..., 2], 0, 1) * 0.8 + 0.2
-        render = np.where(hits.valid[..., None], (shade[..., None] * 230).astype(np.uint8), 255)
-        render = np.broadcast_to(render, photo.shape).astype(np.uint8)
+        render = _grey(np.clip(-n_cam[..., 2], 0, 1) * 0.8 + 0.2, 230, hits.valid, photo.shape)
         blend = np.where(hits.valid[..., None], (0.5 * photo + 0.5 * render).astype(np.uint8),
                          photo)
         # Raking light: grey, lit from the image's left at 20° above the surface it faces,
         # so a lump or a crease of a fraction of a millimetre throws a shadow.
-        raking = np.clip(n_cam @ RAKING_LIGHT, 0, 1) * 0.9 + 0.06
-        raking = np.where(hits.valid[..., None], (raking[..., None] * 235).astype(np.uint8), 255)
-        raking = np.broadcast_to(raking, photo.shape).astype(np.uint8)
+        raking = _grey(np.clip(n_cam @ RAKING_LIGHT, 0, 1) * 0.9 + 0.06, 235, hits.valid,
+                       photo.shape)
         rows.append(np.hstack([photo, blend, render, raking]))
     path = out / "compare.png"
     cv2.imwrite(str(path), cv2.cvtColor(np.vstack(rows), cv2.COLOR_RGB2BGR))

@@ -36,6 +36,11 @@ ROOT = Path(__file__).resolve().parents[1]
 BASE = {"width": 640, "height": 360, "fps": 30.0}
 """The clean reference: 640×360 at 30 fps, the size ``make demo`` renders; on 2 cores a
 render costs ~0.3 s a frame at this size (4K: ~20–40 s a frame, hence its shorter capture)."""
+PHONE = {"hfov_deg": 50.0, "skin_detail": 0.2, "bayer": True, "read_noise": 0.02,
+         "shot_noise": 0.03, "defocus_px": 0.7, "sharpen": 0.8, "specular": 0.25, "crf": 28}
+"""A phone's sensor, lens and codec on smooth skin (the phone_* conditions): a colour filter
+array and its demosaicing, noise of a high ISO, a slightly soft lens, the phone's sharpening,
+specular skin and H.264 at a phone's bitrate."""
 CONDITIONS = {
     # name: (SynthConfig overrides on top of BASE, what it is)
     "clean": ({}, "reference: landscape, global shutter, H.264, textured room and skin"),
@@ -51,16 +56,12 @@ CONDITIONS = {
     # the face ~180 px wide, skin with little fine texture, a colour filter array and its
     # demosaicing, noise of a high ISO, a slightly soft lens, the phone's sharpening, specular
     # skin and H.264 at a phone's bitrate.
-    "phone_512": ({"width": 512, "height": 512, "hfov_deg": 50.0, "skin_detail": 0.2,
-                   "bayer": True, "read_noise": 0.02, "shot_noise": 0.03, "defocus_px": 0.7,
-                   "sharpen": 0.8, "specular": 0.25, "crf": 28},
+    "phone_512": ({"width": 512, "height": 512, **PHONE},
                   "phone-like: 512×512, smooth skin, Bayer + demosaic, high-ISO noise, soft "
                   "lens, sharpening, specular skin, crf 28"),
     # The size of the real mannequin sweep's frames: 240×320 portrait, the phone's processing
     # and compression of phone_512, so a face ~120 px wide.
-    "phone_240": ({"width": 240, "height": 320, "hfov_deg": 50.0, "skin_detail": 0.2,
-                   "bayer": True, "read_noise": 0.02, "shot_noise": 0.03, "defocus_px": 0.7,
-                   "sharpen": 0.8, "specular": 0.25, "crf": 28},
+    "phone_240": ({"width": 240, "height": 320, **PHONE},
                   "phone-like at 240×320 (portrait): phone_512's sensor, lens and codec"),
     # 4K renders at ~20–40 s a frame here: half the sweep (±47.5°) in half the time, at
     # the others' angular speed, so tracking sees the same motion between frames.

@@ -1,9 +1,9 @@
 """How well each part of the face is supported, without a reference.
 
 Per part of the face (:data:`PARTS`, cut once on the template's face region, so they are the
-same vertices on every fit): how far the fitted mesh lies from its own fused cloud (signed: positive where
-the mesh stands out of the cloud), how much of the part has cloud under it, how noisy the
-cloud is there, how far the part's detected 3D landmarks lie from the cloud's surface, and
+same vertices on every fit): how far the fitted mesh lies from its own fused cloud (signed:
+positive where the mesh stands out of the cloud), how much of the part has cloud under it,
+how noisy the cloud is there, how far the part's detected 3D landmarks lie from the cloud's surface, and
 how bent its edges are. A part with little cloud under it is shaped by the template and the
 landmarks, not by the capture: it says so (``supported`` false).
 
@@ -51,11 +51,10 @@ def part_masks(template: Template) -> dict[str, np.ndarray]:
     V = template.vertices
     L = template.landmark_points
     face = np.asarray(template.regions["face"], bool)
-    ids = np.arange(68)
     part_of = np.full(68, "cheeks", dtype=object)
     for part, members in LANDMARK_PARTS.items():
         part_of[list(members)] = part
-    distance, nearest = cKDTree(L[ids]).query(V)
+    distance, nearest = cKDTree(L).query(V)
     eye_corners = np.linalg.norm(L[36] - L[45])
     R, _ = head_frame(L)
     above_brows = (V @ R[1]) > (L[17:27] @ R[1]).max()
