@@ -18,7 +18,6 @@ eye's outline, or when the diameter is implausible for the eye's width.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -26,10 +25,8 @@ from scipy import ndimage
 
 from facecap_core.camera import CameraSet, camera_center
 from facecap_core.face import Detection
+from facecap_core.landmarks.config import LandmarkConfig
 from facecap_core.landmarks.triangulate import box_size, triangulate
-
-if TYPE_CHECKING:  # the landmark stage imports this module
-    from facecap_core.landmarks.stage import LandmarkConfig
 
 __all__ = ["IrisFit", "detect_irises", "eye_opening", "pupil_centre", "RIGHT_EYE",
            "LEFT_EYE", "DETECTOR"]
