@@ -27,7 +27,7 @@ def main() -> None:
     parser.add_argument("--results", default="out/demo/result")
     parser.add_argument("--loads", type=int, default=5)
     args = parser.parse_args()
-    from facecap.flows.page import build_page, mesh_glb
+    from facecap.pages.capture import build_page, mesh_glb
     from tests.browser import look_at_page
 
     folder = Path(args.results)

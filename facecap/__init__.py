@@ -2,14 +2,15 @@
 consistent 3D face mesh, at dataset scale.
 
 The installed package holds the command line (``facecap.cli``) above the Prefect flows
-(``facecap.flows``), their deployments (``facecap.deploy``) and the tasks over the artifact
-store (``facecap.tasks``); the science is ``facecap_core``. Layers import downwards only:
-cli → deploy → flows → tasks → facecap_core.
+(``facecap.flows``), their deployments (``facecap.deploy``), the results pages
+(``facecap.pages``) and the tasks over the artifact store (``facecap.tasks``); the science is
+``facecap_core``. Layers import downwards only: cli → deploy → flows → pages → tasks →
+facecap_core.
 """
 
 from pathlib import Path
 
-# In a checkout the flows, tasks and deployments are the repository's top-level folders
+# In a checkout the flows, pages, tasks and deployments are the repository's top-level folders
 # (where Prefect's entrypoints and the compose stack find them), which the install places
 # inside this package. Where this package is the checkout's folder (the working directory of
 # a worker or of a command run in the repository comes first on sys.path) they are found

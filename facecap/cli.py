@@ -26,7 +26,7 @@ from facecap_core.errors import FacecapError, InputError
 def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
     """The stage table, the accuracy table (after ``baseline_rows``) and, last, where the
     mesh, the report and the preview are."""
-    from facecap.flows.page import run_summary
+    from facecap.pages.figures import run_summary
     from facecap.tasks.graph import is_keyframe_row
     from facecap_core.evaluation import paper_table
 
@@ -157,7 +157,7 @@ def _serve_pages(host: str, port: int) -> None:
     """Serve a local store's pages beside the deployments, and have the served runs link to
     them (unless FACECAP_PAGES_URL names a server already)."""
 
-    from facecap.flows.page_server import address, page_server, serve_in_background
+    from facecap.pages.server import address, page_server, serve_in_background
     from facecap.tasks.runner import check_store, default_store_url
     from facecap_core.settings import env_name, settings
 

@@ -159,7 +159,7 @@ def forget(args) -> int:
     planned = lifecycle.plan_forget(store, args.subject, root, out)
     pages = {}
     if out is not None and not args.dry_run and (out / "index.html").is_file():
-        from facecap.flows.dataset_page import dataset_page_without
+        from facecap.pages.dataset import dataset_page_without
 
         # Its thumbnails show the faces: made now, without the subject's rows, so that a
         # results folder whose page cannot be made stops the forget before anything goes.
@@ -235,7 +235,7 @@ def train_ears(args) -> int:
 def pages(args) -> int:
     """``facecap pages``: serve the store's pages until interrupted."""
 
-    from facecap.flows.page_server import address, page_server
+    from facecap.pages.server import address, page_server
     from facecap.tasks.runner import check_store, default_store_url
 
     store = check_store(args.store or default_store_url())

@@ -7,7 +7,7 @@ The surface distance is the shortest path over the mesh found on a graph of its 
 an edge slides along it to where the path is shortest (the path keeps crossing the same
 edges, so it stays on the surface). The figure is the length of a path on the mesh: never
 under the true geodesic, never under the straight line; on a plane it is the straight line
-within 0.1 %. The results page (``flows/viewer/viewer.js``) does the same for two clicks.
+within 0.1 %. The results page (``pages/viewer/viewer.js``) does the same for two clicks.
 
 The metric scale's uncertainty (``report.json`` ``figures.scale.sigma_pct``, 1σ) scales every
 distance alike: a distance ``d`` is stated ``d ± d·σ``.

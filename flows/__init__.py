@@ -1,2 +1,2 @@
-"""Prefect flows of facecap: a capture, a dataset, the nightly evaluation; their pages and
-the links to them from the UI. Installed as ``facecap.flows``."""
+"""Prefect flows of facecap: a capture, a dataset, the nightly evaluation; the links to their
+pages (:mod:`facecap.pages`) from the UI. Installed as ``facecap.flows``."""

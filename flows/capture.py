@@ -6,7 +6,7 @@ only the stages that read it and those after them), fans the depth maps out over
 (the PatchMatch kernels release the GIL, so ``mvs.workers`` threads use that many cores of
 a worker without a second process or API server), and exports the results to ``out``::
 
-    index.html              the results as one page to look at in a browser (flows.page)
+    index.html              the results as one page to look at in a browser (pages.capture)
     mesh.ply, mesh.obj      fitted mesh (mm, template topology, per-vertex colour);
     mesh.glb                the same as binary glTF (Blender, three.js, 3D viewers)
     cameras.json            metric cameras (mm) of the keyframes; colmap/ the pose stage's
@@ -37,9 +37,11 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from pydantic import BaseModel
 from tqdm import tqdm
 
-from facecap.flows.page import GLB_NAME, build_page, mesh_glb, run_summary, store_page
 from facecap.flows.service import guard
 from facecap.flows.ui import mesh_preview, publish_capture
+from facecap.pages.capture import GLB_NAME, build_page, mesh_glb
+from facecap.pages.figures import run_summary
+from facecap.pages.stored import store_page
 from facecap.tasks.graph import (
     BY_NAME,
     EXPORTED,
@@ -248,7 +250,7 @@ def _export(store: str, keys: dict[str, str], writer: ResultWriter, scratch: Pat
 
 
 def _page(store: str, keys: dict[str, str], report: dict, results: dict[str, Path]) -> bytes:
-    """``index.html`` of the run (:mod:`facecap.flows.page`), the heat map on the mesh from the
+    """``index.html`` of the run (:mod:`facecap.pages.capture`), the heat map on the mesh from the
     evaluation's metric protocol."""
 
 

@@ -32,9 +32,9 @@ from facecap.flows.capture import (
     config_file,
     reconstruct_capture,
 )
-from facecap.flows.dataset_page import rewrite_dataset_page
 from facecap.flows.service import guard
 from facecap.flows.ui import publish_dataset_page
+from facecap.pages.dataset import rewrite_dataset_page
 from facecap.tasks.outputs import check_output_place, write_results
 from facecap.tasks.stages import capture_time_limit_message
 from facecap_core.dataset import SUMMARY_NAMES, CaptureEntry, mesh_consistency, scan_dataset

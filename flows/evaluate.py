@@ -18,9 +18,9 @@ from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.events import emit_event
 from prefect.runtime import flow_run
 
-from facecap.flows.dataset_page import rewrite_dataset_page
 from facecap.flows.service import guard
 from facecap.flows.ui import publish_dataset_page
+from facecap.pages.dataset import rewrite_dataset_page
 from facecap.tasks.outputs import check_output_place, write_results
 from facecap.tasks.runner import run_leases
 from facecap.tasks.stages import call_ingest, call_stage

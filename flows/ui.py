@@ -25,14 +25,9 @@ from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
 from prefect.events import emit_event
 
-from facecap.flows.dataset_page import store_dataset_page
-from facecap.flows.page import (
-    PAGE_NAME,
-    RESULTS_LINK_SECONDS,
-    figure_rows,
-    run_summary,
-    stored_link,
-)
+from facecap.pages.dataset import store_dataset_page
+from facecap.pages.figures import figure_rows, run_summary
+from facecap.pages.stored import PAGE_NAME, RESULTS_LINK_SECONDS, stored_link
 from facecap.tasks.lifecycle import report_keys
 from facecap.tasks.store import open_store
 from facecap_core.evaluation import mesh_render
@@ -135,7 +130,7 @@ def page_link(store, key: str | None, folder: Path) -> tuple[str, str]:
 
 
 def results_link(report: dict, out: Path) -> tuple[str, str]:
-    """``(link, where)`` to a capture run's page (:mod:`facecap.flows.page`): :func:`page_link` to
+    """``(link, where)`` to a capture run's page (:mod:`facecap.pages.capture`): :func:`page_link` to
     the page its report names, or to ``index.html`` in the output folder."""
 
     page, _ = report_keys(report)
@@ -222,7 +217,7 @@ def dataset_link_key(out: Path) -> str:
 
 def publish_dataset_page(out: Path, store: str) -> None:
     """Link the Prefect UI to the dataset page of ``out`` (just rewritten): a copy kept in
-    the store whose links open the captures' pages (:func:`facecap.flows.dataset_page.
+    the store whose links open the captures' pages (:func:`facecap.pages.dataset.
     store_dataset_page`), for :data:`RESULTS_LINK_SECONDS`; else the page on disk."""
 
 

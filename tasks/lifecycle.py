@@ -212,9 +212,9 @@ def _run_reports(folder: Path, paths: Iterable[Path] | None = None) -> Iterator[
 
 
 def report_keys(doc: dict) -> tuple[str | None, list[str]]:
-    """The artifact keys a run report names: its page's (:func:`facecap.flows.page.store_page`; None
-    without one) and its stages', leaving out whatever is not a key (a results folder is
-    anyone's to write)."""
+    """The artifact keys a run report names: its page's
+    (:func:`facecap.pages.stored.store_page`; None without one) and its stages', leaving out
+    whatever is not a key (a results folder is anyone's to write)."""
     def key(row) -> str | None:
         value = row.get("key") if isinstance(row, dict) else None
         return value if isinstance(value, str) and KEY_PATTERN.fullmatch(value) else None

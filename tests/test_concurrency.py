@@ -117,7 +117,7 @@ def test_two_workers_compute_each_artifact_once(runs):
     assert computed, "the workers computed nothing"
     assert len(computed) == len(set(computed)), "an artifact was computed twice"
     new = set(committed(together["store"])) - together["before"]
-    # Each run's page (flows.page.store_page) says how that run went: one per capture run
+    # Each run's page (pages.stored.store_page) says how that run went: one per capture run
     # and dataset run, not a computation to share.
     pages = {key for key in new if key.startswith("page-")}
     assert len(pages) >= 2

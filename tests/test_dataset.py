@@ -142,7 +142,7 @@ def test_the_dataset_page_checks_and_escapes_what_out_holds(tmp_path):
     page is written all the same."""
     import cv2
 
-    from facecap.flows.dataset_page import rewrite_dataset_page
+    from facecap.pages.dataset import rewrite_dataset_page
 
     out, outside = tmp_path / "out", tmp_path / "x"
     picture = cv2.imencode(".png", np.full((40, 120, 3), 200, np.uint8))[1].tobytes()

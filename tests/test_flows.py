@@ -212,8 +212,8 @@ def test_the_ui_link_opens_the_capture_page(first_run, tmp_path, monkeypatch):
     server of a folder store): the face is drawn, the heat map of its accuracy changes the
     picture, the cameras show, the figures are the report's, no console error."""
     from facecap.flows.capture import _export, _page
-    from facecap.flows.page import PAGE_NAME, store_page
-    from facecap.flows.page_server import address, page_server, serve_in_background
+    from facecap.pages.server import address, page_server, serve_in_background
+    from facecap.pages.stored import PAGE_NAME, store_page
     from facecap.tasks.outputs import ResultWriter
     from tests.browser import look_at_page
     from tests.test_page import SHOTS
@@ -248,7 +248,7 @@ def test_the_ui_link_opens_the_capture_page(first_run, tmp_path, monkeypatch):
 
 def test_without_a_page_server_the_ui_link_names_the_page_on_disk(first_run, tmp_path,
                                                                      monkeypatch):
-    from facecap.flows.page import store_page
+    from facecap.pages.stored import store_page
 
     monkeypatch.delenv("FACECAP_PAGES_URL", raising=False)
     report = _capture_report(first_run)  # its page kept: only the server is missing
@@ -385,9 +385,9 @@ def test_the_ui_link_opens_the_dataset_page_and_its_rows_open_the_captures(first
     from prefect import flow
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
 
-    from facecap.flows.page import store_page
-    from facecap.flows.page_server import address, page_server, serve_in_background
     from facecap.flows.ui import dataset_link_key, publish_dataset_page
+    from facecap.pages.server import address, page_server, serve_in_background
+    from facecap.pages.stored import store_page
 
     store = open_store(first_run["store"])
     report = _capture_report(first_run)

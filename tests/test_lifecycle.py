@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from facecap.cli import main
-from facecap.flows.page import store_page
+from facecap.pages.stored import store_page
 from facecap.tasks.graph import stage_key
 from facecap.tasks.lifecycle import derived, forget, prune, prune_unreferenced
 from facecap.tasks.outputs import RECORD_NAME, write_results
@@ -291,7 +291,7 @@ def test_a_page_goes_with_its_face(world, tmp_path):
     """The pages kept for the UI's links show faces: a subject's capture pages and the
     dataset page that lists them go when the subject is forgotten; the page of an earlier
     run that no report names goes with a prune of what is unreferenced."""
-    from facecap.flows.dataset_page import store_dataset_page
+    from facecap.pages.dataset import store_dataset_page
 
     store = open_store(world["store"])
     alice = world["keys"]["alice"]
@@ -379,7 +379,7 @@ def test_forget_makes_every_rewrite_before_it_removes_anything(world, tmp_path, 
     """A damaged report.json elsewhere under OUT does not stop the dataset page from being
     written again without the subject; a summary that cannot be rewritten (the evaluation
     history a link out of OUT) stops the forget before anything is removed."""
-    from facecap.flows.dataset_page import rewrite_dataset_page
+    from facecap.pages.dataset import rewrite_dataset_page
     from tests.test_bad_inputs import assert_one_line_error, facecap
 
     out, store = world["out"], world["store"]

@@ -13,7 +13,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 INSTALLED_AS = {"facecap_core": "facecap_core", "facecap": "facecap", "tasks": "facecap/tasks",
-                "flows": "facecap/flows", "deploy": "facecap/deploy"}
+                "pages": "facecap/pages", "flows": "facecap/flows", "deploy": "facecap/deploy"}
 """The repository's folders and where the wheel puts them."""
 
 
@@ -57,7 +57,7 @@ def test_the_wheel_holds_every_module_and_data_file(wheel):
                     expected.add(f"{installed}/{relative}")
     expected = {n for n in expected if "__pycache__" not in n and "/prefect.yaml" not in n}
     assert expected - names == set()
-    assert "facecap/flows/viewer/three.bundle.min.js" in names
+    assert "facecap/pages/viewer/three.bundle.min.js" in names
     assert "facecap_core/data/ict_face_model_trimmed.npz" in names
 
 

@@ -1,4 +1,4 @@
-"""The capture page (``index.html``, :mod:`flows.page`) and ``mesh.glb``, looked at in headless
+"""The capture page (``index.html``, :mod:`pages.capture`) and ``mesh.glb``, looked at in headless
 Chromium (:mod:`tests.browser`): the face is drawn, the heat map and the cameras change the
 picture, the figures shown are the report's, no console error. A synthetic head here (a
 sphere in two colours, a ring of cameras); the page of a real capture run is looked at in
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from facecap.flows.page import build_page, mesh_glb
+from facecap.pages.capture import build_page, mesh_glb
 from tests.browser import look_at_page, settled
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -152,7 +152,7 @@ def _dataset_results(out: Path, results: dict[str, Path]) -> None:
 
 
 def test_the_dataset_page_lists_each_capture_with_its_status_and_history(results, tmp_path):
-    from facecap.flows.dataset_page import build_dataset_page
+    from facecap.pages.dataset import build_dataset_page
     from tests.browser import chromium
 
     out = tmp_path / "results"
@@ -193,7 +193,7 @@ def test_the_dataset_page_loses_a_forgotten_subject(results, tmp_path):
     thumbnail of that subject's face."""
     import shutil
 
-    from facecap.flows.dataset_page import build_dataset_page, rewrite_dataset_page
+    from facecap.pages.dataset import build_dataset_page, rewrite_dataset_page
 
     out = tmp_path / "results"
     _dataset_results(out, results)
@@ -417,7 +417,7 @@ def test_the_stage_table_has_a_header_and_says_a_reused_stage_took_no_time(resul
 def test_the_dataset_page_says_a_capture_stopped_before_its_mesh(results, tmp_path):
     """A capture run with ``--until keyframes`` is neither done nor failed: its row says
     where it stopped."""
-    from facecap.flows.dataset_page import build_dataset_page
+    from facecap.pages.dataset import build_dataset_page
     from tests.browser import chromium
 
     out = tmp_path / "results"
@@ -491,7 +491,7 @@ def test_a_scored_capture_s_thumbnail_is_its_front_view(results, tmp_path):
     bar): its row shows the front view, square, not the whole strip shrunk."""
     import cv2
 
-    from facecap.flows.dataset_page import THUMB_WIDTH, build_dataset_page
+    from facecap.pages.dataset import THUMB_WIDTH, build_dataset_page
     from facecap_core.evaluation import COLORBAR_HEIGHT
     from tests.browser import chromium
 
@@ -546,7 +546,7 @@ def test_each_part_s_support_by_its_cloud_is_said_in_words(results):
     """``figures.parts`` (the fitting stage's reference-free figures) is one figure: each
     supported part's distance from its cloud, the cloud under it and its landmarks, and the
     parts the cloud does not support named as the template's shape."""
-    from facecap.flows.page import figure_rows
+    from facecap.pages.figures import figure_rows
 
     parts = {"nose": {"supported": True, "supported_share": 0.72, "mesh_to_cloud_mm": -0.309,
                       "mesh_to_cloud_abs_mm": 0.748, "cloud_noise_mm": 0.1816,

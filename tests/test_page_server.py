@@ -1,4 +1,4 @@
-"""``facecap pages`` (:mod:`flows.page_server`) and the links it answers
+"""``facecap pages`` (:mod:`pages.server`) and the links it answers
 (:mod:`tasks.store.links`): a link opens the one file it was made for, until it expires, and
 nothing else opens."""
 
@@ -12,7 +12,7 @@ from urllib.parse import parse_qs, urlencode, urlsplit
 
 import pytest
 
-from facecap.flows.page_server import address, page_server, serve_in_background
+from facecap.pages.server import address, page_server, serve_in_background
 from facecap.tasks.store import ArtifactNotFoundError, artifact_key, open_store
 from facecap.tasks.store.base import scheme
 from facecap.tasks.store.links import SECRET_NAME, link

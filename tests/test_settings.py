@@ -62,7 +62,7 @@ def test_every_variable_the_code_names_is_a_setting():
     """A FACECAP_* variable named in the code is a setting, so it is validated and
     documented (``FACECAP_MAX_...`` abbreviates the limits)."""
     named = set()
-    for package in ("facecap_core", "facecap", "tasks", "flows", "deploy"):
+    for package in ("facecap_core", "facecap", "tasks", "pages", "flows", "deploy"):
         for source in (ROOT / package).rglob("*.py"):
             named |= set(re.findall(r"FACECAP_[A-Z0-9_]*[A-Z0-9]", source.read_text()))
     unknown = {name for name in named

@@ -205,8 +205,8 @@ def test_the_results_link_is_a_presigned_url_of_the_page(store, prefix, tmp_path
     import urllib.parse
     import urllib.request
 
-    from facecap.flows.page import PAGE_NAME, store_page
     from facecap.flows.ui import RESULTS_LINK_SECONDS, results_link
+    from facecap.pages.stored import PAGE_NAME, store_page
 
     page = b"<!doctype html><title>the page</title>"
     report = {"store": store.url, "stages": {"fitting": {"key": mesh_key()}}}

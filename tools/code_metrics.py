@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("facecap_core", "facecap", "tasks", "flows", "deploy")
+PACKAGES = ("facecap_core", "facecap", "tasks", "pages", "flows", "deploy")
 LAYERS = (
     # The shared helpers: every facecap_core module that is not in a stage below (camera,
     # geometry, meshio, render, template, face, video, photos, config, the non-rigid
@@ -38,6 +38,9 @@ LAYERS = (
     ("facecap_core.pipeline", 9),
     # Above the science: the tasks over the store, the flows, their deployments.
     ("tasks", 10),
+    # The results pages and the server of their links: over the tasks' store, under the
+    # flows and the command line that make and serve them.
+    ("pages", 10.5),
     ("flows", 11),
     ("deploy", 12),
     # The synthetic world and the ear training: beside the orchestration, never imported by
@@ -51,8 +54,10 @@ LAYERS = (
 """(module prefix, layer): a module's layer is that of its longest prefix here; a stage the
 list lacks takes its place from the pipeline's order (:func:`layers`)."""
 
-FORBIDDEN = {"facecap_core": ("prefect",), "facecap.synthetic": ("tasks", "flows", "deploy"),
-             "facecap.ear_training": ("tasks", "flows", "deploy")}
+FORBIDDEN = {"facecap_core": ("prefect",),
+             "facecap.synthetic": ("tasks", "pages", "flows", "deploy"),
+             "facecap.ear_training": ("tasks", "pages", "flows", "deploy"),
+             "pages": ("flows", "deploy")}
 """Besides the layers: what a package never imports (a third-party name, or a module of the
 repository's, by prefix)."""
 OUTPUT_DISCIPLINE = ("tasks.outputs", "tasks.scratch", "tasks.runner")
@@ -61,7 +66,7 @@ same: the results writer, the scratch folder and the store's address, so that ``
 ``train-ears`` write their results as ``reconstruct`` does (never through a link, never over
 an input, never in the store)."""
 
-UNINSTALLED = ("tasks", "flows", "deploy")
+UNINSTALLED = ("tasks", "pages", "flows", "deploy")
 """Top-level names that exist only in a checkout (installed as ``facecap.tasks``, ...): an
 import of one of them would load a second copy of the module, or fail once installed."""
 
@@ -89,7 +94,7 @@ def product_files() -> list[Path]:
 
 def _canonical(name: str) -> str:
     """The repository's folders are installed under ``facecap.``: one name for one module."""
-    for package in ("tasks", "flows", "deploy"):
+    for package in UNINSTALLED:
         if name == f"facecap.{package}" or name.startswith(f"facecap.{package}."):
             return name[len("facecap."):]
     return name

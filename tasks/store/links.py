@@ -1,7 +1,7 @@
 """Links that open one file of a folder store's artifact over HTTP, for a while, to whoever
 has them: for a local store, what S3's presigned URLs are for a bucket.
 
-``facecap pages`` (:mod:`facecap.flows.page_server`) serves them. A link names the artifact, the
+``facecap pages`` (:mod:`facecap.pages.server`) serves them. A link names the artifact, the
 file and the second it expires, and carries an HMAC-SHA256 of the three under a secret that
 only this machine's facecap holds (``$FACECAP_HOME/link-secret``, made on first use, readable
 by its owner only): the server answers a link it signed until it expires, and nothing else,

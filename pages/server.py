@@ -1,6 +1,6 @@
 """``facecap pages``: the results pages of a local store, over HTTP, to whoever has a link.
 
-The Prefect UI links each capture run to its page (``index.html``, :mod:`facecap.flows.page`), and
+The Prefect UI links each capture run to its page (``index.html``, :mod:`facecap.pages.capture`), and
 each dataset run to its dataset page; a browser cannot open a ``file://`` address from a web
 page, so a store in a folder needs a server. It answers ``GET /artifacts/<key>/<file>`` with a
 link :mod:`facecap.tasks.store.links` signed (what S3's presigned URLs are for a bucket) and nothing

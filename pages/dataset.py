@@ -3,7 +3,7 @@
 Written by the dataset flow when its captures are done and again by each nightly evaluation:
 a thumbnail of each capture (its preview), its figures (keyframes, metric scale, surface,
 accuracy), its status (done, failed and why, regressed), a link to its own page
-(``<subject>/<capture>/index.html``, :mod:`facecap.flows.page`) and the history of its accuracy
+(``<subject>/<capture>/index.html``, :mod:`facecap.pages.capture`) and the history of its accuracy
 over the nightly evaluations as a small plot. The table sorts by any column (a click on its
 heading). Self-contained like the capture pages: it opens from disk.
 """
@@ -20,7 +20,9 @@ from urllib.parse import quote
 import cv2
 import numpy as np
 
-from facecap.flows.page import PAGE_HEAD, PAGE_NAME, finite_number, keep_page, stored_link
+from facecap.pages.capture import PAGE_HEAD
+from facecap.pages.figures import finite_number
+from facecap.pages.stored import PAGE_NAME, keep_page, stored_link
 from facecap.tasks.lifecycle import report_keys
 from facecap.tasks.outputs import write_results
 from facecap_core.dataset import SUMMARY_NAMES
@@ -32,7 +34,6 @@ THUMB_WIDTH = 160
 def _thumbnail(preview: Path) -> str:
     """The capture's preview, its front view cut out and shrunk, as a data URI ('' without,
     or where a link stands for it: the page shows only what lies in OUT)."""
-
     if preview.is_symlink() or not preview.is_file():  # a failed capture has none
         return ""
     image = cv2.imread(str(preview), cv2.IMREAD_COLOR)
@@ -194,7 +195,6 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
 
 def _dataset_contents(out: Path) -> tuple[list[tuple[str, str]], dict[str, str]]:
     """The captures with results in ``out`` and those ``dataset.json`` records as failed."""
-
     captures = sorted((subject.name, capture.name) for subject in out.iterdir()
                       if subject.is_dir() and not subject.is_symlink()
                       and subject.name not in SUMMARY_NAMES and _plain_name(subject.name)
@@ -227,15 +227,13 @@ def rewrite_dataset_page(out: Path) -> None:
     """``OUT/index.html`` from what ``out`` holds now (after a dataset run, an evaluation or
     ``facecap forget``): the captures with results there and the failures ``dataset.json``
     records."""
-
     write_results(out, {"index.html": build_dataset_page(out, *_dataset_contents(out))})
 
 
 def store_dataset_page(out: Path, store) -> str:
     """Keep a copy of the dataset page in the store whose links open each capture's page
-    from there (:func:`facecap.flows.page.stored_link`, a day), for the link from the Prefect UI;
+    from there (:func:`facecap.pages.stored.stored_link`, a day), for the link from the Prefect UI;
     returns its key. Made from the captures' stored pages: ``forget`` removes it with them."""
-
     inputs: dict[str, str] = {}
 
     def link(out: Path, subject: str, capture: str, report: dict) -> tuple[str | None, bool]:
