@@ -1,5 +1,5 @@
 """Writing poses: ``cameras.json`` (full-resolution pixels, OpenCV convention) and a COLMAP
-text model that COLMAP's GUI opens."""
+text model that COLMAP's GUI opens (written by pycolmap)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from scipy.spatial.transform import Rotation
 
 from facecap_core.pose.colmap_sfm import Poses
+
+# Imported where used: pycolmap only where a COLMAP model is written.
 
 
 def write_cameras_json(poses: Poses, path: str | Path, **meta) -> Path:
@@ -30,59 +31,57 @@ def write_cameras_json(poses: Poses, path: str | Path, **meta) -> Path:
     return path
 
 
-def _quaternion(R: np.ndarray) -> np.ndarray:
-    """(w, x, y, z) of a rotation matrix, w >= 0."""
+def colmap_reconstruction(poses: Poses, names: list[str] | None = None):
+    """A pycolmap Reconstruction of ``poses``: one RADIAL camera, image i+1 is keyframe i
+    (named ``names[i]``), point n+1 is sparse point n, each image's 2D points in the order
+    of their sparse points (COLMAP pixels: the image edge at 0, so +0.5 on ours)."""
+    import pycolmap
 
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    q = np.array([w, x, y, z])
-    return -q if w < 0 else q
-
-
-def write_colmap_text(poses: Poses, out_dir: str | Path, names: list[str] | None = None) -> Path:
-    """A COLMAP text model (cameras.txt, images.txt, points3D.txt) of ``poses``: one RADIAL
-    camera, image i+1 is keyframe i, point n+1 is sparse point n (COLMAP pixels: the image
-    edge at 0, so +0.5 on ours)."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     intr = poses.intrinsics
-    f = 0.5 * (intr.fx + intr.fy)
-    (out / "cameras.txt").write_text(
-        "# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[] (f, cx, cy, k1, k2)\n"
-        f"1 RADIAL {intr.width} {intr.height} "
-        + " ".join(repr(float(v)) for v in (f, intr.cx + 0.5, intr.cy + 0.5, intr.k1, intr.k2))
-        + "\n")
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(
+        model="RADIAL", width=intr.width, height=intr.height, camera_id=1,
+        params=[0.5 * (intr.fx + intr.fy), intr.cx + 0.5, intr.cy + 0.5, intr.k1, intr.k2]))
     names = names or [f"frame_{i:06d}.png" for i in poses.frame_indices]
     obs = np.asarray(poses.observations, float).reshape(-1, 4)
     point = obs[:, 0].astype(np.int64)
     view = obs[:, 1].astype(np.int64)
-    order = np.lexsort((point, view))
+    by_view = np.lexsort((point, view))
     slot = np.empty(len(obs), np.int64)  # index of each observation within its image
-    tracks: list[list[str]] = [[] for _ in range(len(poses.points))]
-    lines = ["# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
-             "# POINTS2D[] as (X, Y, POINT3D_ID)"]
     for k, (R, t) in enumerate(zip(poses.R, poses.t)):
-        rows = order[view[order] == k]
+        rows = by_view[view[by_view] == k]
         slot[rows] = np.arange(len(rows))
-        q = _quaternion(np.asarray(R))
-        lines.append(f"{k + 1} " + " ".join(repr(float(v)) for v in (*q, *np.asarray(t)))
-                     + f" 1 {names[k]}")
-        lines.append(" ".join(f"{obs[r, 2] + 0.5:.4f} {obs[r, 3] + 0.5:.4f} {point[r] + 1}"
-                              for r in rows))
-        for r in rows:
-            tracks[point[r]].append(f"{k + 1} {slot[r]}")
-    (out / "images.txt").write_text("\n".join(lines) + "\n")
-    pts = ["# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)"]
+        image = pycolmap.Image(name=names[k], keypoints=obs[rows, 2:4] + 0.5, camera_id=1,
+                               image_id=k + 1)
+        cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(R, float)),
+                                          np.asarray(t, float))
+        rec.add_image_with_trivial_frame(image, cam_from_world)
+    by_point = np.lexsort((view, point))
+    bounds = np.searchsorted(point[by_point], np.arange(len(poses.points) + 1))
+    grey = np.full(3, 200, np.uint8)
     for n, X in enumerate(poses.points):
-        pts.append(f"{n + 1} " + " ".join(repr(float(v)) for v in X) + " 200 200 200 0 "
-                   + " ".join(tracks[n]))
-    (out / "points3D.txt").write_text("\n".join(pts) + "\n")
+        rows = by_point[bounds[n]:bounds[n + 1]]
+        track = pycolmap.Track([pycolmap.TrackElement(int(view[r]) + 1, int(slot[r]))
+                                for r in rows])
+        # Ids are given in order from 1, so point n is n + 1 as the docstring says.
+        rec.add_point3D(np.asarray(X, float), track, grey)
+    return rec
+
+
+def write_colmap_text(poses: Poses, out_dir: str | Path, names: list[str] | None = None) -> Path:
+    """The COLMAP text model of ``poses`` (:func:`colmap_reconstruction`) in ``out_dir``:
+    cameras.txt, images.txt, points3D.txt, and the trivial rigs.txt and frames.txt that
+    COLMAP 3.12 and later read (older ones ignore them)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    colmap_reconstruction(poses, names).write_text(out)
     return out
 
 
 def write_outputs(poses: Poses, out_dir: str | Path, **meta) -> Path:
     """``cameras.json``, ``points.ply``, ``sparse.npz`` (points (N, 3) and visibility
-    (keyframes, N) bool, in cameras.json keyframe order) and ``colmap/`` (cameras, images,
-    points3D .txt)."""
+    (keyframes, N) bool, in cameras.json keyframe order) and ``colmap/`` (the COLMAP text
+    model: :func:`write_colmap_text`)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_cameras_json(poses, out / "cameras.json", seconds=round(poses.seconds, 2), **meta)

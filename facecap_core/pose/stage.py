@@ -78,8 +78,10 @@ class PoseConfig(StrictModel):
 
 POINTS = "points.ply"
 SPARSE = "sparse.npz"
-COLMAP_MODEL = ("colmap/cameras.txt", "colmap/images.txt", "colmap/points3D.txt")
-"""The COLMAP text model of the keyframes (the pose stage's own units)."""
+COLMAP_MODEL = ("colmap/cameras.txt", "colmap/images.txt", "colmap/points3D.txt",
+                "colmap/rigs.txt", "colmap/frames.txt")
+"""The COLMAP text model of the keyframes (the pose stage's own units), as pycolmap writes
+it."""
 
 log = logging.getLogger(__name__)
 
@@ -353,7 +355,7 @@ def run(inputs: Folders, out: Path, config: PoseConfig, params: dict) -> None:
     main(capture_in(inputs["video"]), inputs["keyframes"] / KEYFRAMES_JSON, out, config)
 
 
-STAGE = Stage("poses", version="4", inputs=("video", "keyframes"),
+STAGE = Stage("poses", version="5", inputs=("video", "keyframes"),
               work_seconds=106.8,
               section="poses", run=run, outputs=(CAMERAS_JSON, SPARSE, *COLMAP_MODEL),
               optional_outputs=(POINTS,),

@@ -13,7 +13,7 @@ from facecap_core.pose.geometric import triangulate
 from facecap_core.pose.io import write_colmap_text, write_outputs
 from facecap_core.pose.stage import PoseConfig, estimate_poses, track_hosts
 from facecap_core.video import read_frames
-from tests.tolerances import expect_equal_cameras, expect_exact_cameras
+from tests.tolerances import EPS, expect_equal_cameras, expect_exact_cameras
 
 
 def _ring(n=8, seed=0):
@@ -112,11 +112,29 @@ def test_colmap_text_model_reads_back(tmp_path):
     rows = [(n, k, *project(points[n:n + 1], R[k], t[k], intr)[0][0])
             for k in range(len(R)) for n in range(len(points))]
     poses = Poses(intr, list(range(0, 80, 10)), R, t, points, 0.0, np.array(rows))
-    rec = pycolmap.Reconstruction(str(write_colmap_text(poses, tmp_path)))
+    folder = write_colmap_text(poses, tmp_path)
+    assert sorted(p.name for p in folder.iterdir()) == [
+        "cameras.txt", "frames.txt", "images.txt", "points3D.txt", "rigs.txt"]
+    rec = pycolmap.Reconstruction(str(folder))
     assert rec.num_reg_images() == 8 and rec.num_points3D() == 50
     # Exact cameras and points reproject with no error in COLMAP's own model.
     assert rec.compute_mean_reprojection_error() < 1e-3
-    assert next(iter(rec.cameras.values())).params[1] == pytest.approx(321.8)
+    # The text holds 17 significant digits: every number reads back as written.
+    assert list(rec.cameras[1].params) == [500, 321.8, 178.7, -0.05, 0.01]
+    for k in range(len(R)):
+        image = rec.images[k + 1]
+        assert image.name == f"frame_{10 * k:06d}.png"
+        # (the rotation goes through a quaternion: a few roundings)
+        np.testing.assert_allclose(image.cam_from_world().rotation.matrix(), R[k],
+                                   rtol=0, atol=10 * EPS)
+        assert np.array_equal(image.cam_from_world().translation, t[k])
+        xy = np.array([p.xy for p in image.points2D])
+        assert np.array_equal(xy, poses.observations[poses.observations[:, 1] == k, 2:] + 0.5)
+        assert [p.point3D_id for p in image.points2D] == list(range(1, 51))
+    for n in range(len(points)):
+        assert np.array_equal(rec.points3D[n + 1].xyz, points[n])
+        assert [(e.image_id, e.point2D_idx) for e in rec.points3D[n + 1].track.elements] == [
+            (k + 1, n) for k in range(len(R))]
 
 
 @pytest.fixture(scope="module")
