@@ -1,4 +1,5 @@
-"""Shared fixtures: the ICT Face Model the tests render and fit, and a live Prefect server."""
+"""Shared fixtures: the ICT Face Model the tests render and fit, Prefect's test server for
+flows run in the tests' process, and a live Prefect server."""
 
 from __future__ import annotations
 
@@ -35,6 +36,20 @@ def ict4_sweep(tmp_path_factory, ict_model):
     config = SynthConfig(subject="ict:4", ict_model=ict_model, width=640, height=360,
                          duration_s=3.0, seed=4)
     return synthesize(config, tmp_path_factory.mktemp("ict4-sweep"), progress=False)
+
+
+@pytest.fixture(scope="module")
+def prefect_server() -> str:
+    """Prefect's test harness (a server on a temporary database, set as this process's
+    API) for the flows a module runs in the tests' process; yields its API URL. One per
+    module, not per session: the harness sets the process's Prefect settings while it
+    runs, and other modules run facecap with no server, or with their own."""
+    from prefect.settings import PREFECT_API_URL
+    from prefect.testing.utilities import prefect_test_harness
+
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    with prefect_test_harness(server_startup_timeout=120):
+        yield PREFECT_API_URL.value()
 
 
 @pytest.fixture(scope="session")

@@ -754,15 +754,6 @@ def test_a_read_only_store(media, kept, tmp_path):
 # --------------------------------------------------------------------------- in a flow
 
 
-@pytest.fixture(scope="module")
-def prefect_server():
-    from prefect.testing.utilities import prefect_test_harness
-
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    with prefect_test_harness(server_startup_timeout=120):
-        yield
-
-
 CHEAP_POSES = "keyframes: {keyframe_angle_deg: 10}\nposes: {method: geometric, use_tracks: false}\n"
 """Fewer keyframes and no photometric refinement: the pose stage in ~5 s on 224x128."""
 

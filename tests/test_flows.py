@@ -27,17 +27,6 @@ KEYFRAMES = list(range(5, 13))
 
 
 @pytest.fixture(scope="module")
-def prefect_server(tmp_path_factory):
-    import os
-
-    from prefect.testing.utilities import prefect_test_harness
-
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    with prefect_test_harness(server_startup_timeout=120):
-        yield
-
-
-@pytest.fixture(scope="module")
 def capture(tmp_path_factory, ict_model):
     from facecap.synthetic import synthesize
 
