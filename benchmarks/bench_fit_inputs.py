@@ -46,9 +46,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_fitting import pick_keyframes  # noqa: E402
+from captures import capture_for  # noqa: E402
 
-from facecap.synthetic import load_gt_cameras, synthesize  # noqa: E402
-from facecap.synthetic.config import SynthConfig  # noqa: E402
+from facecap.synthetic import load_gt_cameras  # noqa: E402
 from facecap_core.evaluation import score  # noqa: E402
 from facecap_core.fitting import FittingConfig, fit, keyframes_from_video  # noqa: E402
 from facecap_core.meshio import load_landmarks, load_mesh  # noqa: E402
@@ -68,15 +68,6 @@ GROUPS = {"brows": range(17, 27), "nose": range(27, 36), "eyes": range(36, 48),
           "mouth": range(48, 68)}
 DEFAULT_SUBJECTS = ["james", "ict:1201"]
 """A real scan and an ICT identity that no calibration uses (docs/fitting.md, the split)."""
-
-
-def capture_for(subject: str, out: Path) -> Path:
-    folder = out / "captures" / subject.replace(":", "_")
-    if not (folder / "gt" / "render.json").is_file():
-        print(f"rendering {subject} ...", flush=True)
-        synthesize(SynthConfig(subject=subject, width=640, height=360, duration_s=1.5),
-                   folder, progress=False)
-    return folder
 
 
 class Inputs:
@@ -121,7 +112,7 @@ class Inputs:
 
 
 def run_subject(subject: str, out: Path, axes: list[str], config: FittingConfig) -> list[dict]:
-    folder = capture_for(subject, out)
+    folder = capture_for(subject, out / "captures", width=640, height=360, duration_s=1.5)
     gt = load_mesh(folder / "gt" / "mesh.ply", "ground-truth mesh")
     gt_v, gt_f = np.asarray(gt.vertices, float), np.asarray(gt.faces, np.int64)
     gt_lm = load_landmarks(folder / "gt" / "landmarks.json")

@@ -34,9 +34,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from facecap.synthetic import load_gt_cameras, synthesize  # noqa: E402
+from captures import capture_for  # noqa: E402
+
+from facecap.synthetic import load_gt_cameras  # noqa: E402
 from facecap.synthetic.cloud import mvs_like_cloud  # noqa: E402
-from facecap.synthetic.config import SynthConfig  # noqa: E402
 from facecap_core.camera import camera_center  # noqa: E402
 from facecap_core.evaluation import PROTOCOLS, paper_table, score, score_json  # noqa: E402
 from facecap_core.fitting import FittingConfig, fit, keyframes_from_video, write_mesh  # noqa: E402
@@ -47,18 +48,6 @@ from facecap_core.template import Template  # noqa: E402
 BARS = {"accuracy": 0.3, "completion": 0.4}
 ROWS = ("mean template", "landmarks only", "w/o edges", "w/o ear landmarks", "full")
 DEFAULT_ICT = Path(__file__).resolve().parents[2] / "shared/data/ict_face_model/ict_face_model.npz"
-
-
-def capture_for(subject: str, out: Path, width: int, height: int, seconds: float,
-                ict_model: str | None):
-    """Render (or reuse) the capture of a subject; returns its folder."""
-    folder = out / "captures" / f"{subject.replace(':', '_')}_{width}x{height}_{seconds:g}s"
-    if not (folder / "gt" / "render.json").is_file():
-        config = SynthConfig(subject=subject, width=width, height=height, duration_s=seconds,
-                             ict_model=ict_model)
-        print(f"rendering {subject} into {folder} ...", flush=True)
-        synthesize(config, folder, progress=False)
-    return folder
 
 
 def pick_keyframes(poses: list[dict], count: int) -> list[int]:
@@ -86,7 +75,8 @@ def run(subjects: list[str], out: Path, width: int, height: int, seconds: float,
     records = {p: {r: [] for r in rows} for p in PROTOCOLS}
     timings, notes = [], []
     for subject in subjects:
-        folder = capture_for(subject, out, width, height, seconds, ict_model)
+        folder = capture_for(subject, out / "captures", ict_model, width=width, height=height,
+                             duration_s=seconds)
         gt = load_mesh(folder / "gt" / "mesh.ply", "ground-truth mesh")
         gt_v, gt_f = np.asarray(gt.vertices, float), np.asarray(gt.faces, np.int64)
         gt_lm = load_landmarks(folder / "gt" / "landmarks.json")

@@ -21,7 +21,6 @@ run's frame by the similarity that best maps the true camera centres onto the es
 from __future__ import annotations
 
 import argparse
-import os
 import resource
 import time
 import zlib
@@ -31,10 +30,10 @@ from pathlib import Path
 import numba
 import numpy as np
 import trimesh
+from captures import capture_for
 from scipy.spatial import cKDTree
 
-from facecap.synthetic import load_gt_cameras, synthesize
-from facecap.synthetic.config import SynthConfig
+from facecap.synthetic import load_gt_cameras
 from facecap.synthetic.ground_truth import coarse_from_gt, even_keyframes, gt_depth, load_views
 from facecap_core.evaluation import distances, region_sphere
 from facecap_core.meshio import load_landmarks, load_mesh
@@ -48,17 +47,6 @@ from facecap_core.pipeline import MVSConfig
 
 BARS = {"depth_median_mm": 0.5, "coverage_pct": 90.0, "accuracy_median_mm": 0.5,
         "completion_pct": 95.0, "s_per_map": 10.0}
-
-
-def capture_for(subject: str, out: Path, width: int, height: int, ict_model: str | None):
-    """The subject's capture, rendered once and reused."""
-    folder = out / "captures" / f"{subject.replace(':', '_')}_{width}x{height}"
-    if not (folder / "gt" / "render.json").is_file():
-        config = SynthConfig(subject=subject, width=width, height=height,
-                             ict_model=ict_model or os.environ.get("FACECAP_ICT_MODEL"))
-        print(f"rendering {subject} at {width}x{height} into {folder} ...", flush=True)
-        synthesize(config, folder, progress=False)
-    return folder
 
 
 def depth_scores(maps, views, V, F, centre, radius):
@@ -112,7 +100,8 @@ def consistent_and_fused(maps, views, config):
     return geo, cloud
 
 def run_subject(subject, args, config, out):
-    folder = capture_for(subject, out, args.width, args.height, args.ict_model)
+    folder = capture_for(subject, out / "captures", args.ict_model, width=args.width,
+                         height=args.height)
     gt = load_mesh(folder / "gt" / "mesh.ply")
     V, F = np.asarray(gt.vertices, float), np.asarray(gt.faces)
     centre, radius = region_sphere(load_landmarks(folder / "gt" / "landmarks.json"))

@@ -32,19 +32,6 @@ ROWS = (("Mean template", None), ("Coarse (landmarks)", None),
 BAR_S, GOAL_S = 600, 300
 
 
-def capture_for(subject: str, captures: Path, ict_model: str | None, fps: int = 60,
-                seconds: float = 8) -> Path:
-    from facecap.synthetic import synthesize
-    from facecap.synthetic.config import SynthConfig
-
-    folder = captures / f"{subject.replace(':', '_')}_1280x720_{fps}fps_{seconds:g}s"
-    if not (folder / "gt" / "render.json").is_file():
-        print(f"rendering {subject} into {folder} ...", flush=True)
-        synthesize(SynthConfig(subject=subject, fps=fps, duration_s=seconds,
-                               ict_model=ict_model), folder, progress=False)
-    return folder
-
-
 def _config_file(out: Path, name: str, values: dict) -> str:
     path = out / f"config_{name}.yaml"
     path.write_text(yaml.safe_dump(values))
@@ -107,6 +94,8 @@ def depth_speedup(store: str, report: dict, maps: int, scratch: Path) -> dict:
 
 def run(subjects, out: Path, captures: Path, store: str, ict_model, speedup_maps: int,
         fps: int = 60, seconds: float = 8) -> str:
+    from captures import capture_for
+
     from facecap.flows.capture import reconstruct_capture
     from facecap_core.baselines import mean_template
     from facecap_core.evaluation import paper_table, score_json
@@ -115,7 +104,7 @@ def run(subjects, out: Path, captures: Path, store: str, ict_model, speedup_maps
     rows = {name: {"similarity": [], "metric": []} for name, _ in ROWS}
     lines, speed = [], None
     for subject in subjects:
-        folder = capture_for(subject, captures, ict_model, fps, seconds)
+        folder = capture_for(subject, captures, ict_model, fps=fps, duration_s=seconds)
         gt = folder / "gt"
         result = out / subject.replace(":", "_")
         t0 = time.perf_counter()
