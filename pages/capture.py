@@ -6,13 +6,12 @@ vertex against the scan (as colours of the heat map, with its colour bar in mm),
 the fused cloud, the keyframe cameras as frusta, the figures of ``report.json`` in words and
 the stages' times, and the viewer: the three.js bundle vendored in ``pages/viewer`` (MIT,
 ``pages/viewer/LICENSE-three.txt``; rebuilt by ``tools/viewer/build.sh``) and
-``pages/viewer/viewer.js``.
+``pages/viewer/viewer.js``. The HTML is ``templates/capture.html.j2``'s.
 """
 
 from __future__ import annotations
 
 import base64
-import html
 import json
 from importlib import resources
 from pathlib import Path
@@ -21,8 +20,10 @@ import cv2
 import numpy as np
 import open3d as o3d
 import trimesh
+from markupsafe import Markup
 
 from facecap.pages.figures import figure_rows, run_summary, warnings
+from facecap.pages.render import render
 from facecap.tasks.graph import is_keyframe_row
 from facecap_core.frames import frame_name
 
@@ -116,37 +117,31 @@ def _cloud(cloud_ply: Path, seed: int = 0) -> dict:
     return {"positions": _b64(points), "colours": _b64(colours), "count": int(len(points))}
 
 
-def _stage_rows(report: dict) -> str:
+def _stage_rows(report: dict) -> tuple[list[dict], dict | None]:
     """The stage table's rows: each stage computed by this run with its seconds, or reused
-    (with the seconds it took when it was computed, which this run did not spend)."""
+    (with the seconds it took when it was computed, which this run did not spend); and the
+    depth maps as one row (how many this run computed of how many, and their seconds summed)
+    if the run has any."""
     rows, depth = [], []
     for name, info in report.get("stages", {}).items():
         if is_keyframe_row(name):
             depth.append(info)
             continue
-        seconds = info.get("seconds") or 0
-        if info.get("cached"):
-            cells = ("reused", f'<span class="muted">({seconds:.1f} s when computed)</span>')
-        else:
-            cells = ("computed", f"{seconds:.1f} s")
-        rows.append(f'<tr data-stage="{html.escape(name)}"><td>{html.escape(name)}</td>'
-                    f"<td>{cells[0]}</td><td>{cells[1]}</td></tr>")
-    if depth:
-        computed = [i for i in depth if not i.get("cached")]
-        seconds = sum(i.get("seconds") or 0 for i in computed)
-        time = (f"{seconds:.1f} s summed over the maps (made side by side)" if computed
-                else '<span class="muted">reused</span>')
-        rows.append(f'<tr data-stage="depth"><td>depth</td><td>{len(computed)} of '
-                    f"{len(depth)} maps computed</td><td>{time}</td></tr>")
-    return "\n".join(rows)
+        rows.append({"name": name, "cached": bool(info.get("cached")),
+                     "seconds": f"{info.get('seconds') or 0:.1f}"})
+    if not depth:
+        return rows, None
+    computed = [i for i in depth if not i.get("cached")]
+    seconds = sum(i.get("seconds") or 0 for i in computed)
+    return rows, {"computed": len(computed), "maps": len(depth), "seconds": f"{seconds:.1f}"}
 
 
-def _ticks() -> str:
+def _ticks() -> list[tuple[str, str]]:
     """The colour bar's labels: every mm from 0 to :data:`HEAT_MAX_MM`, the last one "and
-    more", each at its place on the bar."""
+    more", each with its place on the bar (% of its width)."""
     count = int(HEAT_MAX_MM)
-    return "".join(f'<span style="left: {100 * k / count:g}%">'
-                   f"{f'≥ {k} mm' if k == count else k}</span>" for k in range(count + 1))
+    return [(f"{100 * k / count:g}", f"≥ {k} mm" if k == count else str(k))
+            for k in range(count + 1)]
 
 
 def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
@@ -171,53 +166,22 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
     if "cameras.json" in results and centre is not None:
         data["cameras"], data["view_direction"], data["view_up"] = _cameras(
             results["cameras.json"], centre, frames)
-    title = f"{report.get('subject', '')} / {report.get('capture', '')}"
-    figures = "\n".join(f'<dt>{html.escape(label)}</dt><dd data-figure="{html.escape(key)}">'
-                        f"{html.escape(text)}</dd>" for key, label, text in figure_rows(report))
-    warned = warnings(report)
-    warning_list = ('<ul id="warnings">' + "".join(
-        f'<li data-warning="{html.escape(key)}">{html.escape(text)}</li>' for key, text in warned)
-        + "</ul>") if warned else ""
+    made = [name for name in report.get("stages", {}) if not is_keyframe_row(name)]
+    if any(is_keyframe_row(name) for name in report.get("stages", {})):
+        made.append("depth")
+    stages, depth = _stage_rows(report)
     viewer = resources.files("facecap.pages") / "viewer"
-    if glb:
-        buttons = ['<button data-mode="colour">Colour</button>',
-                   '<button data-mode="plain">Plain</button>']
-        if "accuracy" in data:
-            buttons.append('<button data-mode="accuracy">Accuracy</button>')
-        for name, label in (("cloud", "Cloud"), ("cameras", "Cameras")):
-            if name in data:
-                buttons.append(f'<button data-toggle="{name}" aria-pressed="false">{label}'
-                               "</button>")
-        if "cloud" in data:  # off, the cloud is seen alone
-            buttons.append('<button data-toggle="mesh" aria-pressed="true">Mesh</button>')
-        buttons += ['<button data-toggle="wireframe" aria-pressed="false">Wireframe</button>',
-                    '<button id="measure-button" aria-pressed="false">Measure</button>',
-                    '<label id="light">Light <input type="range" min="-90" max="90" '
-                    'value="0" step="5" aria-label="the light\'s side"></label>']
-        view = VIEW.format(buttons="\n".join(buttons), ticks=_ticks(),
-                           presets=_preset_buttons(data["measure"]))
-        no_mesh = ""
-    else:
-        until = str(report.get("until", ""))
-        made = [name for name in report.get("stages", {}) if not is_keyframe_row(name)]
-        if any(is_keyframe_row(name) for name in report.get("stages", {})):
-            made.append("depth")
-        view = ""
-        no_mesh = ('<p class="note" id="no-mesh">This run made no mesh: it stopped after '
-                   f"{html.escape(until)} (<code>--until {html.escape(until)}</code>), so there "
-                   "is no face to turn. It made: "
-                   f"{html.escape(', '.join(made)) if made else 'nothing'} (below). Run it "
-                   "again without <code>--until</code> for the mesh: what it made is "
-                   "reused.</p>")
-    page = TEMPLATE.format(
-        title=html.escape(title), view=view, main_class="" if glb else ' class="no-view"',
-        summary=html.escape(run_summary(report)), no_mesh=no_mesh, warnings=warning_list,
-        bar=_colour_bar(), figures=figures, stages=_stage_rows(report),
-        three=(viewer / "three.bundle.min.js").read_text() if glb else "",
-        data=json.dumps(data).replace("</", "<\\/"),
-        viewer=((viewer / "viewer.js").read_text() if glb
-                else 'window.facecap = {ready: false, reason: "no mesh"};'))
-    return page.encode("utf-8")
+    return render(
+        "capture.html.j2", glb=bool(glb),
+        title=f"{report.get('subject', '')} / {report.get('capture', '')}",
+        summary=run_summary(report), until=str(report.get("until", "")), made=made,
+        warnings=warnings(report), figures=figure_rows(report), stages=stages, depth=depth,
+        accuracy="accuracy" in data, cloud="cloud" in data, cameras="cameras" in data,
+        presets=data["measure"]["presets"] if glb else [], ticks=_ticks(), bar=_colour_bar(),
+        data=data,
+        # The page's own scripts, markup by construction.
+        three=Markup((viewer / "three.bundle.min.js").read_text()) if glb else "",
+        viewer=Markup((viewer / "viewer.js").read_text()) if glb else "")
 
 
 def _measure_data(report: dict) -> dict:
@@ -234,134 +198,3 @@ def _measure_data(report: dict) -> dict:
                             "surface": m.get("surface")})
     return {"sigma_pct": sigma if isinstance(sigma, (int, float)) else None,
             "presets": presets}
-
-
-def _preset_buttons(measure: dict) -> str:
-    return "".join(f'<button data-preset="{html.escape(p["key"])}">{html.escape(p["name"])}'
-                   "</button>" for p in measure["presets"])
-
-
-PAGE_HEAD = """<!doctype html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<link rel="icon" href="data:,">
-<title>{title} · facecap</title>
-"""
-"""The start of facecap's pages (a format string of ``title``): a phone's width, and no
-request for an icon that is not there."""
-
-VIEW = """<div id="view">
-  <canvas id="canvas"></canvas>
-  <div id="controls">
-{buttons}
-  <div class="break"></div>
-  <div id="measure" hidden>
-    <div>Click two points on the face: the distance between them, straight and along the
-      surface, ± the metric scale's uncertainty.</div>
-    <div class="presets">{presets}</div>
-    <output id="measure-result"></output>
-  </div>
-  </div>
-  <figure id="keyframe" hidden><img alt=""><figcaption></figcaption></figure>
-  <div id="colourbar" hidden>
-    <div>Accuracy, metric protocol: each vertex's distance to the scan, in the mesh's own
-      millimetres</div>
-    <div class="ramp"></div>
-    <div class="ticks">{ticks}</div>
-    <div><i class="grey"></i> not scored (outside the face and the ears)</div>
-  </div>
-</div>"""
-"""The 3D view of a page with a mesh: the canvas, the mode and toggle buttons, the keyframe a
-click on a camera opens and the heat map's colour bar."""
-
-TEMPLATE = PAGE_HEAD + """<style>
-  body {{ margin: 0; font: 15px/1.45 system-ui, sans-serif; color: #222; background: #fff; }}
-  main {{ display: flex; min-height: 100vh; }}
-  /* The view keeps the screen's height and stays on it while the figures beside it scroll:
-     its colour bar is always in sight, and the wheel over it zooms the face, as in any 3D
-     viewer, without taking the page's scrolling away from anything. */
-  #view {{ position: sticky; top: 0; align-self: flex-start; flex: 1 1 auto; min-width: 0;
-           height: 100vh; }}
-  #canvas {{ width: 100%; height: 100%; display: block; touch-action: none; }}
-  #controls {{ position: absolute; top: 8px; left: 8px; display: flex; flex-wrap: wrap;
-               align-items: flex-start; gap: 6px; }}
-  button {{ font: inherit; padding: 6px 12px; border: 1px solid #999; border-radius: 6px;
-            background: #fff; cursor: pointer; }}
-  button[aria-pressed="true"] {{ background: #2060c0; color: #fff; border-color: #2060c0; }}
-  #colourbar {{ position: absolute; bottom: 10px; left: 10px; right: 10px; max-width: 400px;
-                padding: 6px 10px 4px; font-size: 13px; line-height: 1.3;
-                background: rgba(255, 255, 255, 0.88); border-radius: 6px; }}
-  #colourbar .ramp {{ height: 12px; margin: 4px 0 0; border-radius: 3px;
-                      background: linear-gradient(to right, {bar}); }}
-  #colourbar .ticks {{ position: relative; height: 18px; }}
-  #colourbar .ticks span {{ position: absolute; transform: translateX(-50%);
-                            white-space: nowrap; }}
-  #colourbar .ticks span:first-child {{ transform: none; }}
-  #colourbar .ticks span:last-child {{ transform: translateX(-100%); }}
-  #colourbar i.grey {{ display: inline-block; width: 12px; height: 12px; border-radius: 2px;
-                       background: rgb(170, 170, 170); vertical-align: -1px; }}
-  aside {{ flex: 0 0 420px; box-sizing: border-box; padding: 12px 20px;
-           overflow-wrap: anywhere; }}
-  main.no-view aside {{ flex: 1 1 auto; max-width: 760px; }}
-  @media (max-width: 899px) {{
-    /* A narrow screen: the view above the figures. */
-    main {{ flex-direction: column; }}
-    #view {{ position: relative; align-self: stretch; flex: none; height: 70vh; }}
-    aside {{ flex: none; }}
-  }}
-  h1 {{ font-size: 20px; margin: 4px 0 8px; }}
-  dt {{ font-weight: 600; margin-top: 8px; }}
-  dd {{ margin: 0; }}
-  table {{ border-collapse: collapse; margin-top: 12px; font-size: 14px; }}
-  th {{ text-align: left; border-bottom: 1px solid #999; }}
-  th, td {{ padding: 2px 10px 2px 0; }}
-  td:first-child {{ overflow-wrap: normal; }}
-  .muted {{ color: #777; }}
-  .note {{ color: #a04000; }}
-  #warnings {{ margin: 8px 0; padding: 8px 12px 8px 28px; background: #fff0e0;
-               border: 1px solid #e0a060; border-radius: 6px; color: #7a3000; }}
-  #light {{ display: flex; align-items: center; gap: 4px; padding: 2px 8px;
-            background: rgba(255, 255, 255, 0.88); border-radius: 6px; }}
-  #light input {{ width: 90px; }}
-  #controls .break {{ flex-basis: 100%; height: 0; }}
-  #measure {{ max-width: 380px; padding: 6px 10px; box-sizing: border-box;
-              font-size: 13px; line-height: 1.35; background: rgba(255, 255, 255, 0.9);
-              border-radius: 6px; }}
-  #measure[hidden] {{ display: none; }}
-  #measure .presets {{ display: flex; flex-wrap: wrap; gap: 4px; margin: 4px 0; }}
-  #measure .presets button {{ padding: 2px 8px; font-size: 13px; }}
-  #measure output {{ display: block; font-weight: 600; }}
-  #keyframe {{ position: absolute; right: 8px; top: 52px; margin: 0; max-width: 45%;
-               background: #fff; padding: 6px; border: 1px solid #999; border-radius: 6px;
-               cursor: pointer; }}
-  #keyframe img {{ width: 100%; display: block; }}
-  #keyframe figcaption {{ font-size: 13px; }}
-</style>
-</head>
-<body>
-<main{main_class}>
-{view}
-<aside>
-  <h1>{title}</h1>
-  <p>{summary}</p>
-  {no_mesh}
-  {warnings}
-  <dl>
-{figures}
-  </dl>
-  <table id="stages">
-  <thead><tr><th>stage</th><th>this run</th><th>time</th></tr></thead>
-  <tbody>
-{stages}
-  </tbody>
-  </table>
-</aside>
-</main>
-<script>{three}</script>
-<script id="facecap-data" type="application/json">{data}</script>
-<script>{viewer}</script>
-</body>
-</html>
-"""

@@ -3,15 +3,15 @@
 Written by the dataset flow when its captures are done and again by each nightly evaluation:
 a thumbnail of each capture (its preview), its figures (keyframes, metric scale, surface,
 accuracy), its status (done, failed and why, regressed), a link to its own page
-(``<subject>/<capture>/index.html``, :mod:`facecap.pages.capture`) and the history of its accuracy
-over the nightly evaluations as a small plot. The table sorts by any column (a click on its
-heading). Self-contained like the capture pages: it opens from disk.
+(``<subject>/<capture>/index.html``, :mod:`facecap.pages.capture`) and the history of its
+accuracy over the nightly evaluations as a small plot. The table sorts by any column (a click
+on its heading). Self-contained like the capture pages: it opens from disk. The HTML is
+``templates/dataset.html.j2``'s.
 """
 
 from __future__ import annotations
 
 import base64
-import html
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -20,8 +20,8 @@ from urllib.parse import quote
 import cv2
 import numpy as np
 
-from facecap.pages.capture import PAGE_HEAD
 from facecap.pages.figures import finite_number
+from facecap.pages.render import render
 from facecap.pages.stored import PAGE_NAME, keep_page, stored_link
 from facecap.tasks.lifecycle import report_keys
 from facecap.tasks.outputs import write_results
@@ -93,26 +93,20 @@ def _plain_name(name: object) -> bool:
             and not name.startswith("."))
 
 
-def _sparkline(values: list[float]) -> str:
-    """An inline SVG of the values (newest on the right), with the newest as a dot."""
+def _sparkline(values: list[float]) -> dict | None:
+    """What the inline plot of the values (newest on the right, the newest as a dot) draws:
+    its size, the line's points and the dot's place (None without a value)."""
     if not values:
-        return ""
+        return None
     w, h, pad = 120, 28, 3
     v = np.asarray(values, float)
     low, high = float(v.min()), float(v.max())
     span = high - low or 1.0
     xs = np.linspace(pad, w - pad, len(v)) if len(v) > 1 else np.array([w / 2])
     ys = h - pad - (v - low) / span * (h - 2 * pad)
-    points = " ".join(f"{x:.1f},{y:.1f}" for x, y in zip(xs, ys, strict=True))
-    return (f'<svg width="{w}" height="{h}" role="img" aria-label="accuracy median over '
-            f'{len(v)} evaluations, now {v[-1]:.3f} mm"><polyline fill="none" '
-            f'stroke="#2060c0" stroke-width="1.5" points="{points}"/><circle cx="{xs[-1]:.1f}" '
-            f'cy="{ys[-1]:.1f}" r="2.5" fill="#2060c0"/></svg>')
-
-
-def _cell(text: str, sort: str | float | None = None) -> str:
-    key = "" if sort is None else f' data-sort="{html.escape(str(sort))}"'
-    return f"<td{key}>{text}</td>"
+    return {"width": w, "height": h, "count": len(v), "now": float(v[-1]),
+            "points": " ".join(f"{x:.1f},{y:.1f}" for x, y in zip(xs, ys, strict=True)),
+            "x": f"{xs[-1]:.1f}", "y": f"{ys[-1]:.1f}"}
 
 
 def _relative_link(out: Path, subject: str, capture: str, report: dict
@@ -152,45 +146,34 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
             report = {}
         fig = _mapping(report.get("figures"))
         if name in failed:
-            status, order = f"failed: {html.escape(str(failed[name]))}", 0
+            status, order = f"failed: {failed[name]}", 0
         elif name in regressed:
             status, order = "regressed", 1
         elif report and not (folder / "mesh.ply").is_file():
             # A run stopped before the mesh (--until): what it made is not a result.
-            until = html.escape(str(report.get("until") or "an earlier stage"))
+            until = report.get("until") or "an earlier stage"
             status, order = f"stopped after {until}: no mesh", 3
         elif report:
             status, order = "done", 2
         else:
             status, order = "not run", 4
         href, face = link(out, subject, capture, report)
-        thumb = _thumbnail(folder / "preview.png") if face and inside else ""
-        image = f'<img src="{thumb}" width="{THUMB_WIDTH}" alt="">' if thumb else ""
-        picture = f'<a href="{html.escape(href)}">{image}</a>' if href and thumb else image
         accuracy = _mapping(_mapping(_mapping(fig.get("evaluation")).get("similarity"))
                             .get("accuracy"))
         median = finite_number(accuracy.get("median"))
         if median is None:
             median = (series.get(name) or [None])[-1]
-        rough = finite_number(_mapping(fig.get("roughness")).get("bent_share_pct"))
-        scale = finite_number(fig.get("metric_scale"))
-        keyframes = _count(fig.get("keyframes"))
-        cells = [
-            _cell(picture),
-            _cell(f'<a href="{html.escape(href)}">{html.escape(name)}</a>' if href
-                  else html.escape(name), name),
-            _cell(status, order),
-            _cell(str(keyframes) if keyframes is not None else "–", keyframes),
-            _cell(f"{scale:.4g}" if scale is not None else "–", scale),
-            _cell(f"{rough:.1f} %" if rough is not None else "–", rough),
-            _cell(f"{median:.3f} mm" if median is not None else "–", median),
-            _cell(_sparkline(series.get(name, [])), (series.get(name) or [None])[-1]),
-        ]
-        css = ' class="bad"' if order < 2 else ""
-        rows.append(f'<tr data-capture="{html.escape(name)}"{css}>' + "".join(cells) + "</tr>")
-    title = html.escape(out.resolve().name)
-    return DATASET_TEMPLATE.format(title=title, count=len(captures), rows="\n".join(rows),
-                                   failed=len(failed), regressed=len(regressed)).encode()
+        rows.append({
+            "name": name, "href": href, "status": status, "order": order,
+            "thumbnail": _thumbnail(folder / "preview.png") if face and inside else "",
+            "keyframes": _count(fig.get("keyframes")),
+            "scale": finite_number(fig.get("metric_scale")),
+            "rough": finite_number(_mapping(fig.get("roughness")).get("bent_share_pct")),
+            "median": median, "history": _sparkline(series.get(name, [])),
+            "latest": (series.get(name) or [None])[-1]})
+    return render("dataset.html.j2", title=out.resolve().name, count=len(captures),
+                  failed=len(failed), regressed=len(regressed), rows=rows,
+                  thumb_width=THUMB_WIDTH)
 
 
 def _dataset_contents(out: Path) -> tuple[list[tuple[str, str]], dict[str, str]]:
@@ -249,53 +232,3 @@ def store_dataset_page(out: Path, store) -> str:
         return (stored_link(store, page, PAGE_NAME) if page in held else None), True
 
     return keep_page(store, inputs, build_dataset_page(out, *_dataset_contents(out), link=link))
-
-
-DATASET_TEMPLATE = PAGE_HEAD + """<style>
-  body {{ margin: 16px; font: 15px/1.45 system-ui, sans-serif; color: #222; }}
-  table {{ border-collapse: collapse; }}
-  th {{ text-align: left; cursor: pointer; border-bottom: 2px solid #999; padding: 4px 10px; }}
-  td {{ padding: 4px 10px; border-bottom: 1px solid #ddd; vertical-align: middle; }}
-  tr.bad td {{ background: #fff0e8; }}
-  .wrap {{ overflow-x: auto; }}
-</style>
-</head>
-<body>
-<h1>{title}</h1>
-<p>{count} captures; {failed} failed; {regressed} regressed in the last evaluation. Accuracy:
-median distance to the scan (similarity protocol). A click on a heading sorts by it.</p>
-<div class="wrap"><table id="captures">
-<thead><tr><th></th><th>capture</th><th>status</th><th>keyframes</th>
-<th>metric scale (mm per unit)</th><th>surface (edges bent &gt; 20°)</th>
-<th>accuracy median</th><th>accuracy over the nightly evaluations</th></tr></thead>
-<tbody>
-{rows}
-</tbody>
-</table></div>
-<script>
-(function () {{
-  const table = document.getElementById("captures");
-  table.querySelectorAll("th").forEach((th, column) => th.addEventListener("click", () => {{
-    const rows = Array.from(table.tBodies[0].rows);
-    const value = (row) => {{
-      const cell = row.cells[column];
-      const key = cell.dataset.sort;
-      if (key === undefined || key === "None" || key === "") return null;
-      const number = Number(key);
-      return Number.isNaN(number) ? key : number;
-    }};
-    const down = th.dataset.order !== "up";
-    th.dataset.order = down ? "up" : "down";
-    rows.sort((a, b) => {{
-      const x = value(a), y = value(b);
-      if (x === null) return 1;
-      if (y === null) return -1;
-      return (x < y ? -1 : x > y ? 1 : 0) * (down ? 1 : -1);
-    }});
-    rows.forEach((row) => table.tBodies[0].appendChild(row));
-  }}));
-}})();
-</script>
-</body>
-</html>
-"""

@@ -1,11 +1,12 @@
 """``facecap pages``: the results pages of a local store, over HTTP, to whoever has a link.
 
-The Prefect UI links each capture run to its page (``index.html``, :mod:`facecap.pages.capture`), and
-each dataset run to its dataset page; a browser cannot open a ``file://`` address from a web
-page, so a store in a folder needs a server. It answers ``GET /artifacts/<key>/<file>`` with a
-link :mod:`facecap.tasks.store.links` signed (what S3's presigned URLs are for a bucket) and nothing
-else: the file is read from the store and checked against its manifest, an expired link gets
-410 and any other request 404, the same answer whether or not the artifact exists.
+The Prefect UI links each capture run to its page (``index.html``,
+:mod:`facecap.pages.capture`), and each dataset run to its dataset page; a browser cannot open
+a ``file://`` address from a web page, so a store in a folder needs a server. It answers
+``GET /artifacts/<key>/<file>`` with a link :mod:`facecap.tasks.store.links` signed (what S3's
+presigned URLs are for a bucket) and nothing else: the file is read from the store and
+checked against its manifest, an expired link gets 410 and any other request 404, the same
+answer whether or not the artifact exists.
 """
 
 from __future__ import annotations

@@ -51,13 +51,15 @@ def test_the_wheel_holds_every_module_and_data_file(wheel):
     expected = set()
     for folder, installed in INSTALLED_AS.items():
         for path in (ROOT / folder).rglob("*"):
-            if path.is_file() and path.suffix in (".py", ".js", ".json", ".npz", ".svm", ".dat"):
+            if path.is_file() and path.suffix in (".py", ".js", ".json", ".npz", ".svm", ".dat",
+                                                  ".j2"):
                 relative = path.relative_to(ROOT / folder).as_posix()
                 if folder == "facecap_core" or "__pycache__" not in relative:
                     expected.add(f"{installed}/{relative}")
     expected = {n for n in expected if "__pycache__" not in n and "/prefect.yaml" not in n}
     assert expected - names == set()
     assert "facecap/pages/viewer/three.bundle.min.js" in names
+    assert "facecap/pages/templates/capture.html.j2" in names
     assert "facecap_core/data/ict_face_model_trimmed.npz" in names
 
 
