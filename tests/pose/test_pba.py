@@ -6,6 +6,7 @@ import pytest
 
 from facecap_core.camera import Intrinsics, project, rotation_matrix, undistort
 from facecap_core.pose import pba
+from facecap_core.pose.pba import kernels, normal, problem
 from tests.tolerances import expect_exact_cameras
 
 
@@ -15,7 +16,7 @@ def _smooth_images(rng, count: int):
         np.float32), (0, 0), 2.0)) for _ in range(count)]
     gx, gy = nb.typed.List(), nb.typed.List()
     for im in imgs:
-        a, b = pba._gradients(im)
+        a, b = problem.gradients(im)
         gx.append(a)
         gy.append(b)
     return imgs, gx, gy
@@ -30,24 +31,24 @@ def test_kernel_residuals_match_a_direct_warp():
     t = [np.zeros(3), np.array([-20.0, 1.0, 2.0])]
     uv = rng.uniform([40, 40], [280, 200], (50, 2))
     rho = 1.0 / rng.uniform(300, 600, 50)
-    R_rel, t_rel = pba._relative(R, t)
+    R_rel, t_rel = normal.relative_poses(R, t)
     n = len(uv)
     stats = np.zeros(3)
-    pba._accumulate(np.zeros(n, np.int64), uv, rho, np.arange(n + 1, dtype=np.int64),
-                    np.ones(n, np.int64), nb.typed.List(imgs), gx, gy, np.ones((n, 8)),
-                    np.zeros((2, 6)), 9, np.zeros((2, 6)), 0.0, 240, R_rel, t_rel,
-                    np.zeros((2, 2)),
-                    np.array([intr.fx, intr.cx, intr.cy, intr.k1, intr.k2]), 1e9, 1e9, False, True,
-                    np.zeros((13, 13)), np.zeros(13), np.zeros(n), np.zeros(n),
-                    np.zeros((n, 21)), np.full((n, 21), -1, np.int64), stats, np.zeros(0))
+    kernels.accumulate(np.zeros(n, np.int64), uv, rho, np.arange(n + 1, dtype=np.int64),
+                       np.ones(n, np.int64), nb.typed.List(imgs), gx, gy, np.ones((n, 8)),
+                       np.zeros((2, 6)), 9, np.zeros((2, 6)), 0.0, 240, R_rel, t_rel,
+                       np.zeros((2, 2)),
+                       np.array([intr.fx, intr.cx, intr.cy, intr.k1, intr.k2]), 1e9, 1e9, False,
+                       True, np.zeros((13, 13)), np.zeros(13), np.zeros(n), np.zeros(n),
+                       np.zeros((n, 21)), np.full((n, 21), -1, np.int64), stats, np.zeros(0))
     residuals = []
-    for d in pba.PATTERN:
+    for d in kernels.PATTERN:
         u = uv + d
         xy = undistort(np.stack([(u[:, 0] - intr.cx) / intr.fx, (u[:, 1] - intr.cy) / intr.fy],
                                 1), intr.k1, intr.k2)
         X = np.concatenate([xy, np.ones((n, 1))], 1) / rho[:, None]
         ut, _ = project(X, R[1], t[1], intr)
-        residuals.append(pba._sample(imgs[1], ut) - pba._sample(imgs[0], u))
+        residuals.append(problem.sample(imgs[1], ut) - problem.sample(imgs[0], u))
     residuals = np.concatenate(residuals)
     assert stats[1] == 8 * n
     np.testing.assert_allclose(stats[0], np.sum(residuals ** 2), rtol=1e-4)
@@ -67,14 +68,14 @@ def test_the_normal_equations_do_not_depend_on_how_the_points_are_split():
     host = rng.integers(0, 3, n)
     targets = np.array([k for h in host for k in range(3) if k != h], np.int64)
     target_start = np.arange(0, 2 * n + 1, 2, dtype=np.int64)
-    R_rel, t_rel = pba._relative(R, t)
-    n_cam, local = pba.N_INTR + 2 * pba.N_FRAME, pba.N_INTR + 3 * pba.N_FRAME
+    R_rel, t_rel = normal.relative_poses(R, t)
+    n_cam, local = kernels.N_INTR + 2 * kernels.N_FRAME, kernels.N_INTR + 3 * kernels.N_FRAME
 
     def system(chunks, jacobians=True):
         out = [np.zeros((n_cam, n_cam)), np.zeros(n_cam), np.zeros(n), np.zeros(n),
                np.zeros((n, local)), np.full((n, local), -1, np.int64), np.zeros(3),
                np.zeros(8 * len(targets))]
-        pba._accumulate_in_chunks(
+        normal.accumulate_in_chunks(
             host, uv, rho, target_start, targets, nb.typed.List(imgs), gx, gy,
             np.ones((n, 8)), np.zeros((3, 6)), 9,
             np.zeros((3, 6)), 0.0, 240, R_rel, t_rel, np.zeros((3, 2)),
@@ -106,7 +107,7 @@ def test_sparse_points_are_hosted_at_their_depth():
                               rng.uniform(300, 500, 40)])
     points[0, 0] = 1e4  # outside every image: dropped
     hosts = np.array([0, 1] * 20)
-    host, uv, rho = pba._points_from_sparse(points, hosts, R, t, intr, (240, 320))
+    host, uv, rho = problem.points_from_sparse(points, hosts, R, t, intr, (240, 320))
     assert len(host) == 39 and set(host) == {0, 1}
     for k in (0, 1):
         sel = np.flatnonzero((hosts == k) & (np.arange(40) > 0))
@@ -422,7 +423,7 @@ def test_the_tracks_under_a_rolling_shutter_recover_the_cameras():
     start_t = [tr @ (r.T @ x) for tr, r, x in zip(turned, R, t)]
     costs = {}
     for model in (0.0, readout):
-        cost, R_, t_, intr_, _ = pba._adjust_to_tracks(
+        cost, R_, t_, intr_, _ = normal.adjust_to_tracks(
             turned, start_t, intr_v, points.copy(), obs_start, frames, xy, intr.height,
             velocity_of, model, 1.0, 40)
         costs[model] = cost
