@@ -19,13 +19,14 @@ from facecap import console, tools
 from facecap.flows import local_server
 from facecap_core.errors import FacecapError, InputError
 
-# Imported where used: each command imports what it runs, so that `facecap --help` and a bad
-# argument answer at once, without loading Prefect or the science.
+# Imported where used: Prefect, once the arguments are parsed (main imports flows.service),
+# so that `facecap --help` and a bad argument answer without it; every other import says why.
 
 
 def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
     """The stage table, the accuracy table (after ``baseline_rows``) and, last, where the
     mesh, the report and the preview are."""
+    # Could be at the top: the run before this has loaded all three.
     from facecap.pages.figures import run_summary
     from facecap.tasks.graph import is_keyframe_row
     from facecap_core.evaluation import paper_table
@@ -48,6 +49,7 @@ def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
               f"±{scale['sigma_pct']:.1f} % (1 sigma) from {' + '.join(scale['used'])}{dropped}")
     ears = report.get("figures", {}).get("ears")
     if ears:
+        # Could be at the top: the run has loaded the coarse stage.
         from facecap_core.coarse import ears_summary
 
         print(f"  ears       {ears_summary(ears)}")
@@ -65,12 +67,14 @@ def _print_report(report: dict, out: Path, baseline_rows: tuple = ()) -> None:
 def _check_store(args) -> None:
     """The store opens and answers before any flow starts (a bad URL, a file where its
     folder should be, missing credentials, a server that is down)."""
+    # Could be at the top: main has loaded the runner (through flows.service).
     from facecap.tasks.runner import check_store, default_store_url
 
     check_store(args.store or default_store_url())
 
 
 def _cmd_reconstruct(args) -> int:
+    # Prefect's flow engine (a second or so): only for the commands that run a flow.
     from facecap.flows.capture import preflight, with_ipd
 
     # The config is read and validated here, once; the flow and its stages get the model.
@@ -78,6 +82,7 @@ def _cmd_reconstruct(args) -> int:
                                 args.out, args.store), args.ipd_mm)
     _check_store(args)
     console.prefect_env()
+    # Loaded above already (preflight): named again where the flow runs.
     from facecap.flows.capture import reconstruct_capture
 
     report = reconstruct_capture(args.video, args.out, config=config, scan=args.scan,
@@ -88,6 +93,7 @@ def _cmd_reconstruct(args) -> int:
 
 
 def _cmd_dataset(args) -> int:
+    # The flows add Prefect's flow engine (a second or so); the other three are light.
     from facecap.flows.capture import check_output_folder
     from facecap.flows.dataset import check_dataset_output
     from facecap.tasks.outputs import check_output_place
@@ -99,6 +105,7 @@ def _cmd_dataset(args) -> int:
     check_output_folder(Path(args.out))
     _check_store(args)
     console.prefect_env()
+    # Loaded above already: named again where the flow runs.
     from facecap.flows.dataset import reconstruct_dataset, summary_line
 
     summary = reconstruct_dataset(args.root, args.out, config=args.config, store=args.store,
@@ -111,6 +118,7 @@ def _cmd_dataset(args) -> int:
 
 
 def _cmd_evaluate_dataset(args) -> int:
+    # The flow adds Prefect's flow engine (a second or so); the dataset scan is light.
     from facecap.flows.evaluate import check_history
     from facecap_core.dataset import scan_dataset
 
@@ -118,6 +126,7 @@ def _cmd_evaluate_dataset(args) -> int:
     check_history(Path(args.out))
     _check_store(args)
     console.prefect_env()
+    # Loaded above already: named again where the flow runs.
     from facecap.flows.evaluate import _table, evaluate_dataset, scale_error_pct
 
     result = evaluate_dataset(args.root, args.out, store=args.store)
@@ -133,6 +142,7 @@ def _cmd_evaluate_dataset(args) -> int:
 
 
 def _cmd_serve(args) -> int:
+    # Loaded already: main imports flows.service (Prefect) once the arguments are parsed.
     from facecap.flows.service import INPUT_ROOTS_ENV, OUTPUT_ROOT_ENV
     from facecap_core.settings import settings
 
@@ -145,7 +155,7 @@ def _cmd_serve(args) -> int:
         os.environ[OUTPUT_ROOT_ENV] = str(Path(args.out).resolve())
     console.prefect_env("INFO")  # a server's console is its log
     _serve_pages(args.pages_host, args.pages_port)
-    from facecap.deploy.serve import serve
+    from facecap.deploy.serve import serve  # Every flow, Prefect's serve: only for `serve`
 
     print(f"serving reconstruct-dataset, reconstruct-capture and nightly-evaluation "
           f"({args.cron}, {args.timezone}); Ctrl-C stops")
@@ -157,6 +167,7 @@ def _serve_pages(host: str, port: int) -> None:
     """Serve a local store's pages beside the deployments, and have the served runs link to
     them (unless FACECAP_PAGES_URL names a server already)."""
 
+    # Could be at the top: light, or loaded already (the runner, the settings).
     from facecap.pages.server import address, page_server, serve_in_background
     from facecap.tasks.runner import check_store, default_store_url
     from facecap_core.settings import env_name, settings
@@ -176,7 +187,7 @@ def _serve_pages(host: str, port: int) -> None:
 
 
 def _cmd_alerts(args) -> int:
-    from facecap.deploy.alerts import set_up_alerts
+    from facecap.deploy.alerts import set_up_alerts  # Prefect's automations: only `alerts`
 
     for line in set_up_alerts(webhook=args.webhook, block=args.block):
         print(line)
@@ -184,6 +195,7 @@ def _cmd_alerts(args) -> int:
 
 
 def _cmd_demo(args) -> int:
+    # The synthetic world only for `demo`; the other four the pipeline has loaded.
     from facecap.synthetic import synthesize
     from facecap.synthetic.config import SynthConfig
     from facecap_core.baselines import mean_template
@@ -206,6 +218,7 @@ def _cmd_demo(args) -> int:
     scores = mean_template(Template.default(), gt / "mesh.ply", gt / "landmarks.json")
     rows = [(f"Mean template ({p})", [score_json(s)]) for p, s in scores.items()]
     console.prefect_env()
+    # Prefect's flow engine (a second or so): only `demo` and `reconstruct` run a flow.
     from facecap.flows.capture import reconstruct_capture
 
     report = reconstruct_capture(str(capture_dir / "video.mp4"), str(out / "result"),
@@ -259,6 +272,7 @@ def _port(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     # Long on purpose: a declaration, every command and option in the order --help shows them.
+    # The pipeline (open3d, OpenCV: seconds) on every command, --help too; not on import.
     from facecap.tasks.graph import STEPS, UNTIL_ALIASES
 
     until = [*STEPS, *UNTIL_ALIASES]
@@ -422,6 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _as_user_sees_it(exc: FacecapError, args) -> str:
     """One line, naming the user's video where a stage named the store's copy of it."""
+    # Prefect's flow engine (a second or so), only when an error is shown.
     from facecap.flows.capture import as_user_sees_it
 
     return as_user_sees_it(str(exc), getattr(args, "video", None) or "the video")
@@ -474,6 +489,7 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         print(f"facecap: error: {problem}", file=sys.stderr)
         return 2
+    # After the home check: Prefect (flows.service imports it) warns, then fails, on a bad home.
     from facecap.flows.service import LOCAL_COMMAND
 
     local = LOCAL_COMMAND.set(True)  # one's own machine: any path, any store
@@ -497,6 +513,7 @@ def main(argv: list[str] | None = None) -> int:
               "the limit, or look for what held it up in the run's log", file=sys.stderr)
         return 2
     except _network_errors() as exc:  # the store went away mid-run, after the task's retries
+        # Could be at the top: flows.service has loaded the runner.
         from facecap.tasks.runner import default_store_url, store_unreachable
 
         store = getattr(args, "store", None) or default_store_url()
@@ -510,13 +527,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _time_limits() -> tuple[type[BaseException], ...]:
-    from prefect.flow_engine import FlowRunTimeoutError
+    from prefect.flow_engine import FlowRunTimeoutError  # Looked up only once a command has raised
 
     return (FlowRunTimeoutError,)
 
 
 def _network_errors() -> tuple[type[BaseException], ...]:
-    from facecap.tasks.runner import network_errors
+    from facecap.tasks.runner import network_errors  # Could be at the top: flows.service loaded it
 
     return (ConnectionError, TimeoutError, *network_errors())
 
@@ -547,6 +564,7 @@ def _write_crash_log(exc: BaseException, argv: list[str] | None) -> Path:
     """The traceback of an unexpected exception, in ``$FACECAP_HOME/logs``; raises what
     kept it from being written (no partial log is left)."""
 
+    # Could be at the top: main has loaded all three before any crash is logged.
     from facecap.tasks.runner import facecap_home
     from facecap_core.errors import FacecapError
     from facecap_core.settings import default_home

@@ -12,10 +12,11 @@ from pathlib import Path
 
 from facecap_core.errors import InputError
 
-# Imported where used: each command imports what it runs (see facecap/cli.py).
+# Each import inside a command says why it is there.
 
 
 def assets(args) -> int:
+    # Could be at the top: loaded before any command runs (the runner imports it).
     from facecap_core import assets
 
     folder = assets.menpo3d_data()
@@ -27,6 +28,8 @@ def assets(args) -> int:
 
 
 def synth_config(args):
+    # The synthetic world's package (its scenes, subjects and renderer) only for `synth`;
+    # facecap_core.config is loaded already.
     from facecap.synthetic.config import SynthConfig
     from facecap_core.config import build, load_yaml
 
@@ -41,6 +44,7 @@ def synth_config(args):
 
 
 def synth(args) -> int:
+    # The synthetic world's package (its scenes, subjects and renderer) only for `synth`.
     from facecap.synthetic import synthesize
 
     config = synth_config(args)
@@ -52,6 +56,7 @@ def synth(args) -> int:
 
 
 def evaluate(args) -> int:
+    # Could be at the top: the pipeline, loaded by the parser's stage graph, has all three.
     from facecap_core import evaluation as ev
     from facecap_core.evaluation.stage import scored_per_vertex
     from facecap_core.meshio import load_mesh
@@ -62,6 +67,8 @@ def evaluate(args) -> int:
     scores = ev.evaluate(args.mesh, args.scan, args.scan_landmarks, args.mesh_landmarks,
                          protocols=protocols)
     if heatmaps:
+        # Could be at the top: light (what they import is loaded already; the scratch folder's by
+        # facecap.console).
         from facecap.tasks.outputs import ResultWriter
         from facecap.tasks.scratch import process_scratch
 
@@ -101,6 +108,8 @@ def _heatmap_paths(heatmap: str, protocols: tuple[str, ...], inputs: tuple) -> d
     """The heat map of each protocol, ``STEM_<protocol>SUFFIX`` beside ``heatmap``; refused
     before any scoring where they cannot be written: a suffix OpenCV writes no image for, a
     folder facecap keeps for itself, a name that is one of the inputs."""
+    # Could be at the top: OpenCV (the pipeline's), the outputs' module (light) and the runner
+    # (flows.service's) are loaded already or cost next to nothing.
     import cv2
 
     from facecap.tasks.outputs import check_output_place, check_result_names
@@ -149,6 +158,8 @@ def print_removal(removal, dry_run: bool) -> None:
 
 
 def forget(args) -> int:
+    # Could be at the top: light or loaded already (the runner by flows.service, the scratch
+    # folder's by facecap.console).
     from facecap.tasks import lifecycle
     from facecap.tasks.runner import check_store, default_store_url
     from facecap.tasks.scratch import remove_orphans
@@ -159,6 +170,8 @@ def forget(args) -> int:
     planned = lifecycle.plan_forget(store, args.subject, root, out)
     pages = {}
     if out is not None and not args.dry_run and (out / "index.html").is_file():
+        # Could be at the top: the dataset page's module is light (what it imports is loaded
+        # already).
         from facecap.pages.dataset import dataset_page_without
 
         # Its thumbnails show the faces: made now, without the subject's rows, so that a
@@ -179,6 +192,8 @@ def forget(args) -> int:
 
 
 def _forget_ui(captures: list[str]) -> int:
+    # The UI's module imports Prefect: not at the top, which `facecap --help` loads; by now main has
+    # loaded Prefect (flows.service), httpx and the console.
     import httpx
 
     from facecap.console import prefect_env
@@ -188,6 +203,7 @@ def _forget_ui(captures: list[str]) -> int:
     try:
         return forget_artifacts(captures)
     except (httpx.HTTPError, OSError) as exc:
+        # Prefect's settings: not at the top, which `facecap --help` loads; loaded by now.
         from prefect.settings import PREFECT_API_URL
 
         raise InputError(f"the Prefect server {PREFECT_API_URL.value() or '(local)'} cannot "
@@ -197,6 +213,8 @@ def _forget_ui(captures: list[str]) -> int:
 
 
 def store_prune(args) -> int:
+    # Could be at the top: light or loaded already (the runner by flows.service, the scratch
+    # folder's by facecap.console).
     from facecap.tasks import lifecycle
     from facecap.tasks.runner import check_store, default_store_url
     from facecap.tasks.scratch import remove_orphans
@@ -225,6 +243,8 @@ def store_prune(args) -> int:
 
 
 def train_ears(args) -> int:
+    # The ear trainer's package (its contours and renders; dlib when a model is trained) only for
+    # `train-ears`.
     from facecap.ear_training import train
 
     path = train(args.out, progress=True)
@@ -235,6 +255,7 @@ def train_ears(args) -> int:
 def pages(args) -> int:
     """``facecap pages``: serve the store's pages until interrupted."""
 
+    # Could be at the top: the page server's module is light and the runner is loaded already.
     from facecap.pages.server import address, page_server
     from facecap.tasks.runner import check_store, default_store_url
 

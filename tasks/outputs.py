@@ -460,6 +460,8 @@ def check_output_place(out: str | os.PathLike, store: str | None,
         try:
             own.append(folder.resolve())
         except (RuntimeError, OSError):  # a link loop: the store says what it is
+            # Could be at the top: the store's package is loaded already (tasks.store.remote,
+            # above).
             from facecap.tasks.store import open_store
 
             open_store(store)

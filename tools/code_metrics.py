@@ -3,18 +3,22 @@
     python tools/code_metrics.py            # the figures
     python tools/code_metrics.py --list     # and what each one counts, by file and line
 
-Counts, over the installed packages (``facecap_core``, ``facecap``, ``tasks``, ``flows``,
-``deploy``): imports against the layers (:data:`LAYERS`), import circles between modules
-(every import, at the top or in a function), imports inside functions, files over 450
-lines, functions over 80 lines. ``tests/test_graph.py`` holds the layers and the circles
-at zero.
+Counts, over the installed packages (``facecap_core``, ``facecap``, ``tasks``, ``pages``,
+``flows``, ``deploy``): imports against the layers (:data:`LAYERS`), import circles between modules
+(every import: at the top, in a function, or under ``if TYPE_CHECKING:``), imports inside
+functions and whether each states its reason, files over :data:`LONG_FILE` lines, functions
+over :data:`LONG_FUNCTION` lines. ``tests/test_graph.py`` holds every figure at zero (the long
+files but the ones it lists, each with its reason).
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import io
+import re
 import sys
+import tokenize
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -70,26 +74,34 @@ UNINSTALLED = ("tasks", "pages", "flows", "deploy")
 """Top-level names that exist only in a checkout (installed as ``facecap.tasks``, ...): an
 import of one of them would load a second copy of the module, or fail once installed."""
 
-LONG_FILE = 450
+LONG_FILE = 600
 LONG_FUNCTION = 80
 INNER_REASON = "# Imported where used:"
-"""How a module states why it imports inside functions (an optional or heavy dependency, a
-setting read at import), at the top level; or a comment on the import's line or the one above."""
+"""A module's banner, at the top level, for the third-party dependencies it imports inside
+functions (an optional or heavy one, one whose settings are read at import): it names each
+one it covers (``pycolmap``, ``pillow-heif``, ``Prefect``...). Any other import inside a
+function, and every one of the project's own modules, states its reason in a comment on its
+line or on the lines just above it; a comment above a run of imports speaks for the run."""
 LONG_REASON = "# Long on purpose:"
 """How a function over :data:`LONG_FUNCTION` lines states its reason, at its top."""
+REASON_WORDS = 3
+"""Fewest words of a reason (a comment that only tells a linter something is none)."""
+DIRECTIVE = re.compile(r"\s*(noqa\b|type:\s*ignore|pragma\b|fmt:|isort:|ruff:|pylint:|mypy:)",
+                       re.IGNORECASE)
+"""A comment, or the part of one between two ``#``, meant for a tool, not for a reader."""
 
 
-def module_name(path: Path) -> str:
+def module_name(path: Path, root: Path = ROOT) -> str:
     """``tasks/store/base.py`` → ``tasks.store.base``; a package's ``__init__`` is the package."""
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    parts = list(path.relative_to(root).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts.pop()
     return ".".join(parts)
 
 
-def product_files() -> list[Path]:
-    return sorted(p for package in PACKAGES if (ROOT / package).is_dir()
-                  for p in (ROOT / package).rglob("*.py"))
+def product_files(root: Path = ROOT) -> list[Path]:
+    return sorted(p for package in PACKAGES if (root / package).is_dir()
+                  for p in (root / package).rglob("*.py"))
 
 
 def _canonical(name: str) -> str:
@@ -123,39 +135,36 @@ def imported_modules(node: ast.AST, importer: str, is_package: bool, known: set[
     return out
 
 
-def analyse() -> dict:
-    files = product_files()
-    known = {module_name(p) for p in files}
-    graph: dict[str, set[str]] = {m: set() for m in known}
-    third_party: dict[str, set[str]] = {m: set() for m in known}
-    inner_imports, long_files, long_functions = [], [], []
+def analyse(root: Path = ROOT) -> dict:
+    files = product_files(root)
+    graph, third_party = import_graph(files, root)
+    inner, long_files, long_functions = [], [], []
     for path in files:
         text = path.read_text()
         tree = ast.parse(text)
-        name = module_name(path)
-        rel = path.relative_to(ROOT)
+        rel = str(path.relative_to(root))
+        inner += inner_imports(tree, text, rel)
+        long_functions += functions_over(tree, text, rel)
         lines = text.count("\n")
         if lines > LONG_FILE:
-            long_files.append((str(rel), lines))
-        lines_of = text.split("\n")
-        module_reason = any(line.startswith(INNER_REASON) for line in lines_of)
-        functions = [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
-        for f in functions:
-            length = f.end_lineno - f.lineno + 1
-            if length > LONG_FUNCTION:
-                top = lines_of[f.lineno:f.body[0].end_lineno + 2]
-                said = any(line.strip().startswith(LONG_REASON) for line in top)
-                long_functions.append((f"{rel}:{f.lineno} {f.name}", length, said))
-            for node in ast.walk(f):
-                if isinstance(node, (ast.Import, ast.ImportFrom)):
-                    said = module_reason or any("#" in lines_of[i] for i in (
-                        node.lineno - 1, node.lineno - 2))
-                    inner_imports.append((f"{rel}:{node.lineno}", said))
-        typing_only = {id(n) for block in ast.walk(tree) if _is_type_checking(block)
-                       for n in ast.walk(block)}
-        for node in ast.walk(tree):
-            if id(node) in typing_only:
-                continue
+            long_files.append((rel, lines))
+    return {"layers": layer_violations(graph, third_party), "circles": circles(graph),
+            "inner_imports": sorted(set(inner)),
+            "long_files": long_files, "long_functions": long_functions}
+
+
+def import_graph(files: list[Path], root: Path = ROOT) -> tuple[dict[str, set[str]],
+                                                                 dict[str, set[str]]]:
+    """{module: the project modules it imports} and {module: the top-level names it imports},
+    from every import statement: at the top, in a function, or under ``if TYPE_CHECKING:``
+    (never run, yet the annotation ties the two modules all the same: a circle is a circle,
+    and a layer crossed for a type is crossed)."""
+    known = {module_name(p, root) for p in files}
+    graph: dict[str, set[str]] = {m: set() for m in known}
+    third_party: dict[str, set[str]] = {m: set() for m in known}
+    for path in files:
+        name = module_name(path, root)
+        for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Import):
                 third_party[name].update(a.name.split(".")[0] for a in node.names)
             elif isinstance(node, ast.ImportFrom) and not node.level:
@@ -163,16 +172,118 @@ def analyse() -> dict:
             if isinstance(node, (ast.Import, ast.ImportFrom)):
                 graph[name].update(m for m in imported_modules(node, name, path.name == "__init__.py", known)
                                    if m != name and not name.startswith(m + "."))
-    return {"layers": layer_violations(graph, third_party), "circles": circles(graph),
-            "inner_imports": sorted(set(inner_imports)),
-            "long_files": long_files, "long_functions": long_functions}
+    return graph, third_party
 
 
-def _is_type_checking(node: ast.AST) -> bool:
-    """``if TYPE_CHECKING:``: imports for annotations only, never run."""
-    return isinstance(node, ast.If) and (
-        getattr(node.test, "id", None) == "TYPE_CHECKING"
-        or getattr(node.test, "attr", None) == "TYPE_CHECKING")
+def comments(text: str) -> dict[int, str]:
+    """{line number: its comment, without the ``#``}, from the tokens (a ``#`` in a string is
+    no comment)."""
+    return {token.start[0]: token.string[1:]
+            for token in tokenize.generate_tokens(io.StringIO(text).readline)
+            if token.type == tokenize.COMMENT}
+
+
+def is_reason(comment: str) -> bool:
+    """Whether a comment says something to a reader: at least :data:`REASON_WORDS` words once
+    its linter directives (``noqa``, ``type: ignore``, ``pragma``...) are left out."""
+    said = " ".join(part for part in comment.split("#") if not DIRECTIVE.match(part))
+    return len(re.findall(r"[^\W\d_]{2,}", said)) >= REASON_WORDS
+
+
+def _comment_lines(start: int, step: int, notes: dict[int, str], lines: list[str]) -> list[int]:
+    """The run of comment-only lines from line ``start`` on, going by ``step`` (1 or -1)."""
+    run = []
+    i = start
+    while i in notes and lines[i - 1].lstrip().startswith("#"):
+        run.append(i)
+        i += step
+    return sorted(run)
+
+
+def _banner(notes: dict[int, str], lines: list[str]) -> str:
+    """The module's :data:`INNER_REASON` comment at the top level, with the comment lines
+    that continue it."""
+    marker = INNER_REASON[1:]
+    start = next((i for i, note in sorted(notes.items())
+                  if note.startswith(marker) and lines[i - 1].startswith("#")), None)
+    if start is None:
+        return ""
+    return " ".join(notes[i] for i in _comment_lines(start, 1, notes, lines))[len(marker):]
+
+
+def banner_names(banner: str) -> set[str]:
+    """The words of a banner as module names: lowercase, ``pillow-heif`` as ``pillow_heif``."""
+    return {w.lower().replace("-", "_") for w in re.findall(r"[A-Za-z_][\w-]*", banner)}
+
+
+def _covered_by(named: set[str], node: ast.Import | ast.ImportFrom) -> bool:
+    """Whether a banner's ``named`` modules hold every one ``node`` imports: third-party ones
+    only (the project's own modules each say their own reason: a circle, what they load)."""
+    if isinstance(node, ast.ImportFrom):
+        tops = [(node.module or "").split(".")[0] if not node.level else ""]
+    else:
+        tops = [a.name.split(".")[0] for a in node.names]
+    return all(top and top not in PACKAGES and top.lower() in named for top in tops)
+
+
+def inner_imports(tree: ast.Module, text: str, where: str) -> list[tuple[str, bool]]:
+    """(``file:line``, whether its reason is stated) for each import inside a function.
+
+    Its reason (:func:`is_reason`) is a comment on its lines or on the comment lines just
+    above it (not a function's :data:`LONG_REASON`); an import right after another in the same
+    block shares that one's. Else the module's banner (:data:`INNER_REASON`, itself a reason)
+    names the third-party module it imports."""
+    notes = comments(text)
+    lines = text.split("\n")
+    banner = _banner(notes, lines)
+    named = banner_names(banner) if is_reason(banner) else set()
+    found = []
+    for block in _function_blocks(tree):
+        said_before = False
+        for node in block:
+            if not isinstance(node, (ast.Import, ast.ImportFrom)):
+                said_before = False
+                continue
+            own = " ".join(notes.get(i, "") for i in range(node.lineno, node.end_lineno + 1))
+            above = " ".join(notes[i] for i in _comment_lines(node.lineno - 1, -1, notes, lines)
+                             if not lines[i - 1].strip().startswith(LONG_REASON))
+            said_before = said_before or is_reason(own) or is_reason(above)
+            found.append((f"{where}:{node.lineno}", said_before or _covered_by(named, node)))
+    return found
+
+
+def _function_blocks(tree: ast.Module):
+    """Every list of statements inside a function (its body, an ``if``'s branches, an
+    ``except``'s...), each once."""
+    def blocks(node: ast.AST, inside: bool):
+        inside = inside or isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+        for field in ("body", "orelse", "finalbody", "handlers", "cases"):
+            children = getattr(node, field, None)
+            if not isinstance(children, list):
+                continue
+            if inside and children and isinstance(children[0], ast.stmt):
+                yield children
+            for child in children:
+                yield from blocks(child, inside)
+
+    yield from blocks(tree, False)
+
+
+def functions_over(tree: ast.Module, text: str, where: str) -> list[tuple[str, int, bool]]:
+    """(``file:line name``, length, whether it states its reason) for each function over
+    :data:`LONG_FUNCTION` lines: a :data:`LONG_REASON` comment at its top, itself a reason."""
+    lines = text.split("\n")
+    found = []
+    for f in ast.walk(tree):
+        if not isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        length = f.end_lineno - f.lineno + 1
+        if length > LONG_FUNCTION:
+            top = [line.strip() for line in lines[f.lineno:f.body[0].end_lineno + 2]]
+            said = any(line.startswith(LONG_REASON) and is_reason(line[len(LONG_REASON):])
+                       for line in top)
+            found.append((f"{where}:{f.lineno} {f.name}", length, said))
+    return found
 
 
 def pipeline_rows() -> list[str]:
