@@ -56,7 +56,7 @@ from facecap_core.landmarks.stage import (
     load_ears3d,
     load_landmarks3d,
 )
-from facecap_core.nonrigid.nicp import FittingConfig, fit
+from facecap_core.nonrigid.nicp import NicpConfig, fit
 from facecap_core.stage import Folders, Stage
 from facecap_core.template import INNER_LANDMARKS, Template
 
@@ -331,10 +331,9 @@ def _nicp(placed: Template, landmarks_mm, ear_ids, ear_points_mm, config: Coarse
     L = np.array(landmarks_mm, float)
     L[:17] = placed.landmark_points[:17]  # unused by the fit; keeps the input finite
     L[~np.all(np.isfinite(L), axis=1)] = placed.landmark_points[~np.all(np.isfinite(L), axis=1)]
-    fit_config = FittingConfig(stiffness=list(config.nicp_stiffness),
-                               landmark_weight=list(config.nicp_stiffness),
-                               use_cloud=False, use_edges=False, texture=False,
-                               initial_similarity=False)
+    fit_config = NicpConfig(stiffness=list(config.nicp_stiffness),
+                            landmark_weight=list(config.nicp_stiffness),
+                            use_cloud=False, use_edges=False, initial_similarity=False)
     ears = (ear_ids, ear_points_mm, ear_weights) if len(ear_ids) else None
     return fit(placed, None, L, ear_points=ears, config=fit_config).vertices
 

@@ -29,6 +29,7 @@ from facecap_core.config import StrictModel, build, load_yaml
 from facecap_core.errors import FacecapError
 from facecap_core.evaluation import stage as evaluation_stage
 from facecap_core.fitting import stage as fitting_stage
+from facecap_core.fitting.settings import FittingConfig
 from facecap_core.keyframes import KeyframeConfig
 from facecap_core.landmarks import stage as landmark_stage
 from facecap_core.landmarks.stage import LandmarkConfig
@@ -36,7 +37,6 @@ from facecap_core.mvs import depth, fusion, views
 from facecap_core.mvs.depth import DepthMapConfig
 from facecap_core.mvs.fusion import FusionConfig
 from facecap_core.mvs.views import ViewSelectionConfig
-from facecap_core.nonrigid.nicp import FittingConfig
 from facecap_core.pose import stage as pose_stage
 from facecap_core.pose.stage import PoseConfig
 from facecap_core.stage import Stage

@@ -15,7 +15,7 @@ from facecap.synthetic.cloud import mvs_like_cloud
 from facecap_core.errors import InputError
 from facecap_core.fitting import fit
 from facecap_core.landmarks.ears import CONTOUR_FILE, DETECTOR_FILE, PREDICTOR_FILE
-from facecap_core.nonrigid.nicp import FittingConfig
+from facecap_core.nonrigid.nicp import NicpConfig
 from facecap_core.template import Template, head_frame
 
 SIDES = ("left", "right")
@@ -111,7 +111,7 @@ def fit_template_to_head(template: Template, vertices: np.ndarray, faces: np.nda
     cloud, normals = mvs_like_cloud(vertices, faces, density=2.0, noise_mm=0.0, holes=0.0,
                                     outliers=0.0, normal_jitter_deg=0.0)
     result = fit(template, cloud, landmarks, cloud_normals=normals,
-                 config=FittingConfig(use_edges=False, texture=False))
+                 config=NicpConfig(use_edges=False))
     return result.vertices
 
 

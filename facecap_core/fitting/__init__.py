@@ -11,8 +11,9 @@ local while the landmark weights fall. See docs/fitting.md.
 """
 
 from facecap_core.fitting.run import fit_and_write, keyframes_from_video, load_cloud, write_mesh
+from facecap_core.fitting.settings import FittingConfig
 from facecap_core.nonrigid.constraints import Keyframe, cloud_targets, edge_targets
-from facecap_core.nonrigid.nicp import FitResult, FittingConfig, check_inputs, fit
+from facecap_core.nonrigid.nicp import FitResult, check_inputs, fit
 from facecap_core.nonrigid.solver import NicpSystem
 
 __all__ = ["Keyframe", "FitResult", "FittingConfig", "NicpSystem", "fit", "fit_and_write",

@@ -23,11 +23,12 @@ from scipy.spatial import cKDTree
 from facecap_core.errors import InputError
 from facecap_core.fitting.quality import part_quality
 from facecap_core.fitting.sanity import MeshSanity, check_mesh, relax_folds
+from facecap_core.fitting.settings import FittingConfig
 from facecap_core.landmarks.ears import EAR_VERTEX_IDS
 from facecap_core.measure import landmark_measurements
 from facecap_core.meshio import load_landmarks, save_landmarks
 from facecap_core.nonrigid.constraints import Keyframe
-from facecap_core.nonrigid.nicp import FitResult, FittingConfig, fit
+from facecap_core.nonrigid.nicp import FitResult, fit
 from facecap_core.nonrigid.roughness import face_edges, roughness
 from facecap_core.template import Template
 from facecap_core.texture import vertex_colours

@@ -1,6 +1,6 @@
 """Optimal-step non-rigid ICP of the template to cloud, landmarks, ear points and edges.
 
-:func:`fit` runs the schedule of :class:`~facecap_core.nonrigid.nicp.FittingConfig`: for each
+:func:`fit` runs the schedule of :class:`~facecap_core.nonrigid.nicp.NicpConfig`: for each
 stiffness level (global → local, landmark weight falling with it) up to
 ``iterations_per_level`` optimal steps; each step recomputes the cloud targets (every
 ``recompute_every`` steps) and the silhouette targets (every ``edge_recompute_every``) from
@@ -45,10 +45,12 @@ WEIGHT_MAX = 1e4
 """The largest weight of a landmark (one cloud target weighs ``data_weight``, about 1)."""
 
 
-class FittingConfig(StrictModel):
-    """Non-rigid template fitting: optimal-step NICP (Amberg et al. 2007) to a fused point
+class NicpConfig(StrictModel):
+    """Non-rigid registration: optimal-step NICP (Amberg et al. 2007) to a fused point
     cloud, 3D landmarks, ear points and keyframe silhouettes (Agrawal et al. 2020, "Mesh
-    fitting"). Distances in mm, weights relative to one cloud target."""
+    fitting"). Distances in mm, weights relative to one cloud target. The fitting stage's
+    settings (:class:`facecap_core.fitting.settings.NicpConfig`) are these and what the
+    stage does with the fitted mesh; the coarse stage's deformation uses these alone."""
 
     stiffness: list[float] = Field([50.0, 20.0, 10.0, 5.0, 2.0], max_length=MAX_LEVELS)
     """Stiffness alpha per level, from global (large) to local (small) deformation; the
@@ -128,15 +130,6 @@ class FittingConfig(StrictModel):
     """Template vertices this many edges or fewer from the template's open border never give
     silhouettes (the border is not a real contour)."""
 
-    relax_folds: bool = True
-    """Where the fitted mesh folds over, spikes or cuts through itself (a noisy cloud, a wrong
-    ear point), replace its deformation there by a membrane until it is sound
-    (``facecap_core/fitting/sanity.py``); the figures before and after go to ``fit.json``."""
-    texture: bool = True
-    """Colour the fitted mesh from the keyframes (per-vertex colour) when keyframes are given."""
-    texture_min_cos: float = Field(0.25, ge=0, le=1)
-    """A view colours a vertex only when the vertex faces it at least this much (cos)."""
-
     @model_validator(mode="after")
     def _check_schedule(self):
         if len(self.stiffness) == 0 or len(self.stiffness) != len(self.landmark_weight):
@@ -196,7 +189,7 @@ class FitResult:
 
 def check_inputs(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray | None,
                  ear_points: tuple[np.ndarray, ...] | None,
-                 cloud_normals: np.ndarray | None, config: FittingConfig):
+                 cloud_normals: np.ndarray | None, config: NicpConfig):
     """Validate shapes; raises :class:`InputError` with one line naming the problem."""
     if landmarks is None:
         raise InputError("fitting needs the 68 3D landmarks (iBUG order, mm) of the subject")
@@ -248,7 +241,7 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
         keyframes: list[Keyframe] | tuple = (),
         ear_points: tuple[np.ndarray, ...] | None = None,
         cloud_normals: np.ndarray | None = None,
-        config: FittingConfig | None = None,
+        config: NicpConfig | None = None,
         cloud_errors: np.ndarray | None = None) -> FitResult:
     """Deform ``template`` onto the constraints; returns a :class:`FitResult`.
 
@@ -256,13 +249,13 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
     landmarks (only 17-67 are used), ``keyframes`` images with cameras for the silhouettes,
     ``ear_points`` ``(vertex ids (k,), targets (k, 3)[, weights (k,)])``, the weights each
     point's reliability (1 without them), ``cloud_errors`` (N,) each cloud point's standard
-    error in mm (the fusion stage's; see ``FittingConfig.cloud_noise_mm``). The template is
+    error in mm (the fusion stage's; see ``NicpConfig.cloud_noise_mm``). The template is
     used as given
     (in the subject's frame) unless ``config.initial_similarity``.
     """
     # Long on purpose: the schedule's state (targets, their weights, the edge terms, the noise
     # weight) carries from step to step; split, each part would take and return most of it.
-    config = config or FittingConfig()
+    config = config or NicpConfig()
     check_inputs(template, cloud, landmarks, ear_points, cloud_normals, config)
     if config.use_cloud and cloud_errors is not None and \
             np.shape(cloud_errors) != (len(cloud),):
@@ -376,7 +369,7 @@ def fit(template: Template, cloud: np.ndarray | None, landmarks: np.ndarray,
 
 
 def _noise_weight(point_error: np.ndarray, face_targets: np.ndarray,
-                  config: FittingConfig) -> tuple[float, float]:
+                  config: NicpConfig) -> tuple[float, float]:
     """The cloud's noise over the face (the median error of the points that give the face's
     vertices their targets, mm; nan when the cloud does not say) and the weight of one cloud
     target: ``data_weight``, times the inverse variance relative to ``cloud_noise_mm`` when
