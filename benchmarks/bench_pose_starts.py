@@ -141,8 +141,12 @@ def run_start(folder: Path, keyframes, seed: int, threads: int, work: Path,
     video = folder / "video.mp4"
     config = PoseConfig()
     images = read_frames(video, keyframes.indices, width=config.sfm_width)
+    # The pose stage's own steps, not estimate_poses: the SfM seed is varied on purpose and
+    # is no setting of the stage, and the variants must share one start (with two threads a
+    # second SfM run is another start).
     sfm = run_sfm(images, work / "sfm", keyframes.video_size, overlap=config.match_overlap,
-                  threads=threads, seed=seed)
+                  threads=threads, seed=seed, ordered=keyframes.ordered,
+                  focal_px=keyframes.focal_px, extraction_threads=config.extraction_threads)
     # keyframes.observations rows: keyframe number, track id, x, y.
     obs = np.asarray(keyframes.observations, float)
     held = obs[:, 1].astype(np.int64) % HELD_OUT == 0

@@ -7,8 +7,10 @@
 names the fusion, coarse and frames artifacts in STORE); the fit is redone into a temporary
 folder and its ``mesh.ply`` hashed, so that two versions of the code can be compared for
 the same mesh. ``pba``: CAPTURE is a rendered capture (``video.mp4``, ``gt/``); its
-keyframes, SfM and geometric cameras are computed once and kept in WORK, then PBA alone is
-timed and scored against the true cameras (the cameras' hash printed likewise).
+keyframes and the pose stage's cameras before PBA (``estimate_poses`` with ``method:
+geometric``) are computed once and kept in WORK, then PBA alone (the stage's
+``photometric_refinement``) is timed and scored against the true cameras (the cameras' hash
+printed likewise).
 ``--profile``: cProfile's 25 costliest functions (by own time) of the first repetition.
 Run on a quiet machine; the first repetition includes numba's compilation where the
 kernels' cache is cold.
@@ -59,10 +61,8 @@ def fitting(run_dir: Path, store: Path, repeat: int, profile: bool) -> None:
 def pba(capture: Path, work: Path, repeat: int, profile: bool) -> None:
     from facecap.synthetic import load_gt_cameras
     from facecap_core.keyframes import KeyframeConfig, select_keyframes
-    from facecap_core.pose.colmap_sfm import run_sfm
     from facecap_core.pose.evaluate import pose_errors
-    from facecap_core.pose.geometric import refine_with_tracks
-    from facecap_core.pose.stage import PoseConfig, photometric_refinement
+    from facecap_core.pose.stage import PoseConfig, estimate_poses, photometric_refinement
     from facecap_core.video import read_frames
 
     video = capture / "video.mp4"
@@ -71,11 +71,9 @@ def pba(capture: Path, work: Path, repeat: int, profile: bool) -> None:
     config = PoseConfig()
     if not start.is_file():
         keyframes = select_keyframes(video, KeyframeConfig())
-        images = read_frames(video, keyframes.indices, width=config.sfm_width)
-        sfm = run_sfm(images, work / "sfm", keyframes.video_size, overlap=config.match_overlap,
-                      extraction_threads=config.extraction_threads)
-        geometric = refine_with_tracks(sfm, keyframes.observations, keyframes.indices,
-                                       work / "geometric")
+        steps, _ = estimate_poses(video, keyframes, work / "poses",
+                                  config.model_copy(update={"method": "geometric"}))
+        geometric = list(steps.values())[-1]  # PBA's start, as in the stage
         start.write_bytes(pickle.dumps((keyframes, geometric)))
     keyframes, geometric = pickle.loads(start.read_bytes())
     greys = read_frames(video, geometric.frame_indices, width=config.pba.max_width, grey=True)
