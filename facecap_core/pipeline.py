@@ -28,6 +28,7 @@ from facecap_core.coarse import CoarseConfig
 from facecap_core.config import StrictModel, build, load_yaml
 from facecap_core.errors import FacecapError
 from facecap_core.evaluation import stage as evaluation_stage
+from facecap_core.evaluation.settings import EvaluationConfig
 from facecap_core.fitting import stage as fitting_stage
 from facecap_core.fitting.settings import FittingConfig
 from facecap_core.keyframes import KeyframeConfig
@@ -77,6 +78,8 @@ class PipelineConfig(StrictModel):
     """View selection, depth maps, fusion."""
     fitting: FittingConfig = Field(default_factory=FittingConfig)
     """Non-rigid template fitting and texture."""
+    evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
+    """The scoring protocol against a scan (a run given one)."""
 
 
 def section_model(section: str) -> type[BaseModel]:

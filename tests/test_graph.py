@@ -41,6 +41,7 @@ RECOMPUTED = {
     "mvs.depth": {"depth", "fusion", "fitting", "evaluation"},
     "mvs.fusion": {"fusion", "fitting", "evaluation"},
     "fitting": {"fitting", "evaluation"},
+    "evaluation": {"evaluation"},
 }
 """Stages with new keys when a field of a section changes."""
 KNOWN = set().union(*RECOMPUTED.values())

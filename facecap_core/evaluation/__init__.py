@@ -63,7 +63,6 @@ subject's left (the convention of facecap's data and of :func:`error_heatmap`'s 
 from facecap_core.evaluation.alignment import (
     PROTOCOLS,
     Alignment,
-    EvaluationConfig,
     Protocol,
     align,
     distances,
@@ -94,6 +93,7 @@ from facecap_core.evaluation.scoring import (
     score,
     score_json,
 )
+from facecap_core.evaluation.settings import EvaluationConfig
 from facecap_core.evaluation.stage import EVALUATION_JSON, find_file, main
 
 __all__ = [

@@ -12,12 +12,12 @@ from facecap_core.errors import InputError
 from facecap_core.evaluation.alignment import (
     PROTOCOLS,
     Alignment,
-    EvaluationConfig,
     Protocol,
     Surface,
     align_to_surface,
 )
 from facecap_core.evaluation.region import check_landmarks, ear_region, face_region
+from facecap_core.evaluation.settings import EvaluationConfig
 from facecap_core.meshio import load_landmarks, load_mesh
 
 

@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from facecap_core.errors import InputError
-from facecap_core.evaluation.alignment import PROTOCOLS, EvaluationConfig
+from facecap_core.evaluation.alignment import PROTOCOLS
 from facecap_core.evaluation.figures import error_heatmap
 from facecap_core.evaluation.scoring import evaluate, score_json
+from facecap_core.evaluation.settings import EvaluationConfig
 from facecap_core.fitting.run import MESH_LANDMARKS, MESH_PLY
 from facecap_core.meshio import load_mesh, save_landmarks
 from facecap_core.stage import Folders, Stage
@@ -80,14 +81,15 @@ def figures(folder: str | Path) -> dict:
     return {"evaluation": json.loads(path.read_text())} if path.is_file() else {}
 
 
-def run(inputs: Folders, out: Path, config: None, params: dict) -> None:
-    main(inputs["mesh"], inputs["scan"], out, scan_landmarks=inputs.get("scan_landmarks"))
+def run(inputs: Folders, out: Path, config: EvaluationConfig, params: dict) -> None:
+    main(inputs["mesh"], inputs["scan"], out, scan_landmarks=inputs.get("scan_landmarks"),
+         config=config)
 
 
 HEATMAPS = tuple(f"heatmap_{p}.png" for p in PROTOCOLS)
 ACCURACY = tuple(ACCURACY_NPY.format(protocol=p) for p in PROTOCOLS)
 
 STAGE = Stage("evaluation", version="4", inputs=("mesh", "scan"), work_seconds=3.0,
-              section=None, run=run, outputs=(EVALUATION_JSON, *HEATMAPS, *ACCURACY),
+              section="evaluation", run=run, outputs=(EVALUATION_JSON, *HEATMAPS, *ACCURACY),
               exported=(EVALUATION_JSON, *HEATMAPS), optional=("scan_landmarks",),
               sources={"mesh": "fitting"}, figures=figures)
