@@ -118,11 +118,19 @@ def _cmd_dataset(args) -> int:
 
 
 def _cmd_evaluate_dataset(args) -> int:
-    # The flow adds Prefect's flow engine (a second or so); the dataset scan is light.
+    # The flow's module adds Prefect's flow engine (a second or so); the checks of the
+    # output place and the dataset scan are light.
     from facecap.flows.evaluate import check_history
+    from facecap.tasks.outputs import check_output_place
+    from facecap.tasks.runner import default_store_url
     from facecap_core.dataset import scan_dataset
 
     scan_dataset(args.root)
+    # Before the server starts: where the history goes, then the history itself.
+    check_output_place(args.out, args.store or default_store_url(), (args.root,))
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise InputError(f"the results folder {args.out} is a file; give the folder the "
+                         "dataset's runs wrote (--out)")
     check_history(Path(args.out))
     _check_store(args)
     console.prefect_env()

@@ -20,6 +20,7 @@ import atexit
 import contextlib
 import importlib.util
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -28,6 +29,7 @@ from pathlib import Path
 
 from facecap.tasks.scratch import process_scratch, start_ticks
 from facecap_core.assets import facecap_home
+from facecap_core.errors import InputError
 
 # Imported where used: Prefect reads its settings when first imported; the command line sets them
 # first (facecap/console.py). httpx (Prefect loads it) after the server's start, not before.
@@ -104,6 +106,37 @@ def _uvicorn(port: int, quiet: bool) -> subprocess.Popen:
         return subprocess.Popen(command, env=env, stdout=log, stderr=log)
 
 
+DATABASE_ERROR = re.compile(r"^sqlalchemy\.exc\.\w+: \((?:\w+\.)*\w+\) (.+)$", re.MULTILINE)
+"""How the server's log names the database error its start-up failed on."""
+
+
+def database_problem(log: Path, offset: int) -> str | None:
+    """The database error a failed start wrote into ``log`` past byte ``offset`` (its
+    last), or None."""
+    try:
+        with open(log, "rb") as file:
+            file.seek(offset)
+            text = file.read(MAX_LOG_BYTES).decode("utf-8", "replace")
+    except OSError:
+        return None
+    found = DATABASE_ERROR.findall(text)
+    return found[-1].strip() if found else None
+
+
+def database_error(problem: str) -> InputError:
+    """The line for a server that cannot open its database: not facecap's bug, and not
+    mended by another try (a start stopped while it set a new database up, a damaged file,
+    another program's file)."""
+    from prefect.settings import get_current_settings
+
+    url = get_current_settings().server.database.connection_url
+    where = (url.get_secret_value() if hasattr(url, "get_secret_value") else str(url or ""))
+    where = where.split(":///", 1)[-1] or "its database"
+    return InputError(f"the local Prefect server cannot open its database {where} ({problem}); "
+                      "move that file aside (it holds only the local run history) or set "
+                      "PREFECT_API_URL to a running server, then run again")
+
+
 class _Server:
     """A server process of this command's, on a free port, with the watchdog that stops it
     when the command ends (the watchdog holds the reading end of ``lifeline``)."""
@@ -114,6 +147,8 @@ class _Server:
 
     def __init__(self, quiet: bool):
         self.port = _free_port()
+        log = server_log()
+        self.log_offset = (log.stat().st_size if log.is_file() else 0) if quiet else None
         self.process = _uvicorn(self.port, quiet)
         reading, self.lifeline = os.pipe()
         pid = self.process.pid
@@ -161,10 +196,15 @@ class _Server:
                 server.stop()
                 if server.process.returncode != 3:
                     break
+        problem = (database_problem(server_log(), server.log_offset)
+                   if server.log_offset is not None else None)
+        if problem is not None:
+            raise database_error(problem)
         where = f"; its log: {server_log()}" if quiet else ""
         code = server.process.returncode
-        raise RuntimeError(f"the local Prefect server did not start within {timeout_s:g} s"
-                           + (f" (exit code {code})" if code is not None else "") + where)
+        raise RuntimeError(f"the local Prefect server exited with code {code} before it answered"
+                           + where if code is not None else
+                           f"the local Prefect server did not answer within {timeout_s:g} s" + where)
 
 
 def spawn_local_server(quiet: bool = True) -> None:

@@ -473,6 +473,13 @@ def check_output_place(out: str | os.PathLike, store: str | None,
                              "keeps for itself (the artifact store or its own files); give "
                              f"another {option}")
     for path in inputs:
-        if path is not None and Path(path).is_dir() and Path(path).resolve() == target:
+        if path is None or not Path(path).is_dir():
+            continue
+        folder = Path(path).resolve()
+        if folder == target:
             raise InputError(f"the output folder {out} is the input folder {path}, whose files "
                              f"results could replace; give another {option}")
+        if folder in target.parents:  # a dataset's next scan would take results for captures
+            raise InputError(f"the output folder {out} lies inside the input folder {path}; "
+                             f"results never go among the inputs: give a folder outside it "
+                             f"({option})")

@@ -23,6 +23,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from facecap.flows.local_server import database_problem
 from facecap.tasks.outputs import (
     RECORD_NAME,
     OutputWriteError,
@@ -32,6 +33,7 @@ from facecap.tasks.outputs import (
 )
 from facecap_core.errors import InputError
 from tests import test_bad_inputs
+from tests.media import write_video
 from tests.test_bad_inputs import (
     CHEAP_POSES,
     assert_kept,
@@ -41,9 +43,9 @@ from tests.test_bad_inputs import (
     snapshot,
 )
 
-# The bad-input corpus's fixtures: its media, a FACECAP_HOME, kept results, a test server.
+# The bad-input corpus's fixtures: its media, a FACECAP_HOME, kept results (the test server
+# is conftest's).
 media, home, kept = test_bad_inputs.media, test_bad_inputs.home, test_bad_inputs.kept
-prefect_server = test_bad_inputs.prefect_server
 
 
 def _tree(folder: Path) -> dict[str, str]:
@@ -225,6 +227,8 @@ def test_an_output_folder_in_the_store_or_an_input_folder_is_refused(tmp_path, h
     photos.mkdir()
     with pytest.raises(InputError, match="is the input folder"):
         check_output_place(photos / ".", str(store), (photos,))
+    with pytest.raises(InputError, match="lies inside the input folder"):
+        check_output_place(photos / "anna" / "results", str(store), (photos,))
     check_output_place(tmp_path / "results", str(store), (photos,))  # anywhere else is fine
 
 
@@ -485,6 +489,39 @@ def test_the_local_server_logs_to_a_file_and_dies_with_its_command(tmp_path):
         os.kill(server, signal.SIGKILL)
     assert not alive, "the server outlived its command"
     assert log == str(tmp_path / "home" / "logs" / "server.log")
+
+
+@pytest.mark.slow
+def test_a_server_database_that_cannot_open_is_one_line(tmp_path):
+    """A damaged Prefect database (a first start stopped while it set the database up
+    leaves one, as does a file of another program's) fails every start alike: one line that
+    names the file and what to do, exit 2, not an internal error blaming facecap."""
+    (tmp_path / "ph").mkdir()
+    (tmp_path / "ph" / "prefect.db").write_bytes(b"not a database\n" * 64)
+    root = tmp_path / "root" / "anna"
+    root.mkdir(parents=True)
+    write_video(root / "take.mp4", [np.full((64, 64, 3), 128, np.uint8)] * 4)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API")}
+    env.update(FACECAP_HOME=str(tmp_path / "home"), PREFECT_HOME=str(tmp_path / "ph"),
+               PREFECT_SERVER_ANALYTICS_ENABLED="false")
+    proc = subprocess.run([sys.executable, "-m", "facecap", "evaluate-dataset",
+                           str(tmp_path / "root"), "--out", str(tmp_path / "out")],
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert_one_line_error(proc.returncode, proc.stderr,
+                          ["cannot open its database", str(tmp_path / "ph" / "prefect.db"),
+                           "move that file aside"])
+
+
+def test_the_database_error_is_read_from_this_start_of_the_log(tmp_path):
+    log = tmp_path / "server.log"
+    log.write_text("sqlalchemy.exc.OperationalError: (sqlite3.OperationalError) an old one\n")
+    offset = log.stat().st_size
+    assert database_problem(log, offset) is None
+    with open(log, "a") as file:
+        file.write("Traceback ...\nsqlalchemy.exc.OperationalError: (sqlite3.OperationalError) "
+                   "duplicate column name: state_timestamp\n[SQL: ALTER TABLE flow_run]\n")
+    assert database_problem(log, offset) == "duplicate column name: state_timestamp"
+    assert database_problem(tmp_path / "missing.log", 0) is None
 
 
 # --------------------------------------------------------------------------- train-ears
