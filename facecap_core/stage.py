@@ -97,6 +97,11 @@ class Stage:
     ``points.ply``: none without sparse points); named as :attr:`outputs`."""
     optional: tuple[str, ...] = ()
     """Inputs it reads when they are given."""
+    key_neutral: dict[str, str] = field(default_factory=dict, hash=False)
+    """Settings of its section that change none of its files, ``{dotted name in the section:
+    why}`` (the pose stage's ``threads``: how many threads match features). Its artifact key
+    hashes each at its default whatever the value, so a changed one reuses the stored
+    artifact (``facecap.tasks.graph.config_data``)."""
     sources: dict[str, str] = field(default_factory=dict, hash=False)
     """Inputs named otherwise than the stage that makes them: ``{input name: stage}`` (the
     evaluation's ``mesh`` is the fitting stage's artifact); see :meth:`source`."""

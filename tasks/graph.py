@@ -6,10 +6,14 @@ A stage's artifact key hashes its inputs' keys, the config section it reads (not
 of the config, so a setting of another stage never invalidates it) and its version;
 bump a stage's version when its algorithm changes its output. A setting added to a stage
 that already has results names the value at which the stage does what it did without it
-(:data:`facecap_core.config.KEY_NEUTRAL`): at that value it is left out of the key.
+(:data:`facecap_core.config.KEY_NEUTRAL`): at that value it is left out of the key. A
+setting that changes none of the stage's files (its row's ``key_neutral``) is hashed at its
+default whatever its value.
 """
 
 from __future__ import annotations
+
+from collections.abc import Iterable
 
 from pydantic import BaseModel
 
@@ -26,13 +30,19 @@ RAW_INPUTS = ("video", "scan", "scan_landmarks")
 """Artifacts no stage makes: the capture (a video or a photo folder) and the scan files."""
 
 
-def config_data(config: BaseModel | dict | None) -> dict:
+def config_data(config: BaseModel | dict | None, key_neutral: Iterable[str] = ()) -> dict:
     """A stage's settings as the JSON data its key hashes ({} without settings); a setting
-    at its :data:`KEY_NEUTRAL` value is left out (a mapping is hashed as given)."""
+    at its :data:`KEY_NEUTRAL` value is left out, and one of ``key_neutral`` (dotted names
+    in the section) is its default (a mapping is hashed as given)."""
     if config is None:
         return {}
     if not isinstance(config, BaseModel):
         return dict(config)
+    neutral = [name.split(".") for name in key_neutral]
+    if neutral:
+        defaults = type(config)().model_dump(mode="json")
+        config = type(config).model_validate(_with_defaults(
+            config.model_dump(mode="json"), defaults, neutral))
     data = config.model_dump(mode="json")
     for name, field in type(config).model_fields.items():
         value = getattr(config, name)
@@ -41,6 +51,16 @@ def config_data(config: BaseModel | dict | None) -> dict:
             data.pop(name, None)
         elif isinstance(value, BaseModel):
             data[name] = config_data(value)
+    return data
+
+
+def _with_defaults(data: dict, defaults: dict, names: list[list[str]]) -> dict:
+    """``data`` with the settings at ``names`` (each a path of keys) as in ``defaults``."""
+    for *parents, name in names:
+        node, default = data, defaults
+        for part in parents:
+            node, default = node[part], default[part]
+        node[name] = default[name]
     return data
 
 
@@ -89,5 +109,6 @@ def stage_key(stage: Stage | str, inputs: dict[str, str], config: BaseModel | di
         if stage not in BY_NAME:
             raise ValueError(f"unknown stage {stage!r}")
         stage = BY_NAME[stage]
-    return artifact_key(stage.name, inputs, config_data(config), stage.full_version(), params)
+    return artifact_key(stage.name, inputs, config_data(config, stage.key_neutral),
+                        stage.full_version(), params)
 

@@ -236,7 +236,7 @@ def run_stage(store_url: str, stage: Stage, inputs: dict[str, str], config: Base
                 raise FacecapError(f"stage {stage.name} wrote no files")
             stage.check_outputs(files, params)
             inject_fault(stage.name, work)
-            store.put(key, files, stage=stage.name, inputs=inputs, config=config_data(config),
+            store.put(key, files, stage=stage.name, inputs=inputs, config=config_data(config, stage.key_neutral),
                       version=stage.full_version(), meta={**meta, **(params or {})})
         finally:
             shutil.rmtree(work, ignore_errors=True)

@@ -10,6 +10,7 @@ here from the pipeline's data flow, not derived from the table under test.
 from __future__ import annotations
 
 import ast
+import dataclasses
 import typing
 from pathlib import Path
 
@@ -180,6 +181,10 @@ def test_a_removed_setting_is_refused_by_name():
 @pytest.mark.parametrize("path, field", FIELDS, ids=[path for path, _ in FIELDS])
 def test_a_changed_field_recomputes_exactly_what_depends_on_it(path, field):
     section = section_of(path)
+    # A setting its stage's row lists as key-neutral changes no file: it recomputes nothing.
+    neutral = section is not None and any(
+        stage.section == section and path[len(section) + 1:] in stage.key_neutral
+        for stage in STAGES)
     *parents, name = path.split(".")
     model = section_model(".".join(parents)) if parents else PipelineConfig
     value = other_value(model, name, field)
@@ -187,11 +192,11 @@ def test_a_changed_field_recomputes_exactly_what_depends_on_it(path, field):
     before, after = plan(PipelineConfig()), plan(changed_cfg)
     changed = {row.split("_")[0] if row.startswith("depth_") else row
                for row in before if before[row] != after[row]}
-    assert changed & KNOWN == RECOMPUTED.get(section, set()), (path, value)
+    assert changed & KNOWN == (set() if neutral else RECOMPUTED.get(section, set())), (path, value)
     # Every stage, one added since too: new keys exactly when what its row says it reads
     # changed (its section, or an input's artifact).
     for stage in STAGES:
-        reads_changed = (section is not None and stage.section == section) or any(
+        reads_changed = (section is not None and stage.section == section and not neutral) or any(
             stage.source(name) in changed for name in stage.inputs + stage.optional)
         assert (stage.name in changed) == reads_changed, (stage.name, path)
 
@@ -246,6 +251,19 @@ def test_every_key_neutral_setting_is_left_out_at_its_value(path, field):
     for part in parents:
         keyed = keyed[part]
     assert name not in keyed
+
+
+def test_a_key_neutral_setting_keeps_the_key_at_any_value():
+    """A setting a row lists as key-neutral is hashed at its default: the key is the one
+    without the mark, whatever its value; the stored record says what the key hashed."""
+    stage = dataclasses.replace(BY_NAME["poses"], key_neutral={
+        "threads": "threads of the matching", "pba.iterations": "a nested one"})
+    inputs = {"keyframes": "k" * 64}
+    key = stage_key(stage, inputs, PoseConfig())
+    assert key == stage_key("poses", inputs, PoseConfig())
+    assert stage_key(stage, inputs, PoseConfig(threads=3, pba={"iterations": 3})) == key
+    assert stage_key(stage, inputs, PoseConfig(min_registered=6)) != key
+    assert config_data(PoseConfig(threads=3), stage.key_neutral) == config_data(PoseConfig())
 
 
 def test_until_runs_a_prefix_of_the_graph():
