@@ -115,13 +115,16 @@ def prune_unreferenced(store: ArtifactStore, results: list[Path], before: dateti
     ``before`` spares the artifacts of runs still in progress: they are named by a report
     only when their run ends."""
     for folder in results:
+        if Path(folder).exists() and not Path(folder).is_dir():
+            raise InputError(f"the results folder {folder} is a file; give the --out folders "
+                             "whose results keep their artifacts")
         if not Path(folder).is_dir():
             raise InputError(f"results folder not found: {folder}; give the --out folders "
                              "whose results keep their artifacts")
+        _check_reports_readable(Path(folder))  # a damaged report first: it names the file
         if next(_run_reports(Path(folder)), None) is None:  # a wrong folder keeps nothing
             raise InputError(f"{folder} holds no facecap results (no report.json under it); "
                              "give the results folder the runs wrote (--out)")
-        _check_reports_readable(Path(folder))
     manifests, damaged = _dated_manifests(store)
     named = set().union(*(_reported_keys(Path(folder))[0] for folder in results))
     keep = _up(_made_from(manifests), named)

@@ -16,9 +16,14 @@ Generated inputs, each handed to ``facecap`` in this process as a user would:
   results' (``preview.png``, ``report.json``) and hidden ones;
 * output folders around a photo folder: the store, a folder inside it, the photo folder
   itself, links to the store, to a file, dangling and looping;
-* the other commands that write: ``evaluate --heatmap`` under a file, in the store, with a
-  link to the scan at a heat map's name; ``synth --out`` in the store and over its own
-  subject mesh; ``forget --out`` the file system's root, the dataset folder, the store.
+* the other commands that write, each given a place it must not write (:data:`WRITERS`):
+  ``evaluate --heatmap`` under a file, in the store, with a link or a hard link to the scan
+  at a heat map's name; ``synth --out`` in the store and over its own subject mesh;
+  ``forget --out`` the file system's root, the dataset folder, the store; ``dataset`` and
+  ``evaluate-dataset`` into the store, a file, a link to the store, a folder inside the
+  dataset, over a damaged history; ``train-ears`` into the store, a link loop, over a hard
+  link to its own model; ``store prune`` with a damaged report, a file or the dataset as
+  the results; ``pages`` with a file as the store or no port.
 
 Every run must end either in success or in exit code 2 with exactly one stderr line
 ``facecap: error: ...`` and no traceback; never an internal error. The reconstruct runs are
@@ -70,6 +75,10 @@ def world(tmp_path_factory):
     store.put(key, {"mesh.ply": b"ply of an earlier run"}, stage="fitting",
               inputs={"fusion": "fusion-" + "0" * 32}, config={"a": 1}, version="1")
     (d / "a file").write_text("a file where a folder is expected")
+    (d / "root" / "anna").mkdir(parents=True)
+    shutil.copyfile(video, d / "root" / "anna" / "take.mp4")
+    shutil.copyfile(Path(assets.__file__).parent / "data" / "ict_face_model_trimmed.npz",
+                    d / "ict_model.npz")  # beside the scratch folders: hard links reach it
     (d / "out").mkdir()
     import trimesh
 
@@ -79,7 +88,7 @@ def world(tmp_path_factory):
     (d / "scan_landmarks.json").write_text(json.dumps(landmarks.tolist()))
     return {"dir": d, "video": video, "store": d / "store", "file": d / "a file",
             "out": d / "out", "scan": d / "scan.ply", "scan_landmarks": d / "scan_landmarks.json",
-            "home": d / "home"}
+            "home": d / "home", "root": d / "root", "ict_model": d / "ict_model.npz"}
 
 
 # --------------------------------------------------------------------------- inputs
@@ -292,6 +301,38 @@ WRITERS = {
                                        "{scratch}", "--store", "{store}"], "is the input folder"),
     "forget with --out the store": (["forget", "anna", "--out", "{store}", "--store",
                                      "{store}"], "keeps for itself"),
+    "dataset into the store": (["dataset", "{root}", "--out", "{home}/store/x", "--store",
+                                "{store}"], "keeps for itself"),
+    "dataset inside its root": (["dataset", "{root}", "--out", "{root}/anna/results",
+                                 "--store", "{store}"], "lies inside the input folder"),
+    "dataset over a link to the store": (["dataset", "{root}", "--out", "{scratch}/link",
+                                          "--store", "{store}"], "keeps for itself"),
+    "evaluate-dataset into a file": (["evaluate-dataset", "{root}", "--out", "{file}",
+                                      "--store", "{store}"], "is a file"),
+    "evaluate-dataset inside its root": (["evaluate-dataset", "{root}", "--out", "{root}/r",
+                                          "--store", "{store}"], "lies inside the input folder"),
+    "evaluate-dataset with a damaged history": (["evaluate-dataset", "{root}", "--out",
+                                                 "{scratch}", "--store", "{store}"],
+                                                "is not an evaluation facecap wrote"),
+    "train-ears into the store": (["train-ears", "--out", "{home}/store/artifacts"],
+                                  "keeps for itself"),
+    "train-ears over a hard link to its model": (["train-ears", "--out", "{scratch}"],
+                                                 "would replace the input"),
+    "train-ears into a link loop": (["train-ears", "--out", "{scratch}/link"],
+                                    "leads back to itself"),
+    "prune with a damaged report": (["store", "prune", "--unreferenced", "--out", "{scratch}",
+                                     "--store", "{store}"], "is damaged"),
+    "prune with --out a file": (["store", "prune", "--unreferenced", "--out", "{file}",
+                                 "--store", "{store}"], "is a file"),
+    "prune with --out the dataset": (["store", "prune", "--unreferenced", "--out", "{root}",
+                                      "--store", "{store}"], "holds no facecap results"),
+    "pages with a file as the store": (["pages", "--store", "{file}"], "is a file"),
+    "pages on no port": (["pages", "--port", "70000", "--store", "{store}"],
+                         "not a port number"),
+    "heat map over a hard link to the scan": (["evaluate", "{scan}", "--scan", "{scan}",
+                                               "--scan-landmarks", "{landmarks}", "--protocol",
+                                               "metric", "--heatmap", "{scratch}/h.png"],
+                                              "would replace the input"),
 }
 """The commands other than reconstruct that write, each given a place it must not write."""
 
@@ -307,6 +348,20 @@ def _writer_scratch(case: str, world, scratch: Path) -> None:
     elif case == "forget with --out the dataset":
         (scratch / "anna").mkdir()
         (scratch / "anna" / "take.mp4").write_bytes(b"anna's capture")
+    elif case == "dataset over a link to the store":
+        (scratch / "link").symlink_to(world["store"])
+    elif case in ("train-ears into a link loop",):
+        (scratch / "link").symlink_to(scratch / "link")
+    elif case == "train-ears over a hard link to its model":
+        os.link(world["ict_model"], scratch / "dataset.npz")
+    elif case == "evaluate-dataset with a damaged history":
+        (scratch / "evaluations").mkdir()
+        (scratch / "evaluations" / "20260101T000000000000Z.json").write_text("{damaged")
+    elif case == "prune with a damaged report":
+        (scratch / "anna" / "take").mkdir(parents=True)
+        (scratch / "anna" / "take" / "report.json").write_text("{damaged")
+    elif case == "heat map over a hard link to the scan":
+        os.link(world["scan"], scratch / "h_metric.png")
 
 
 # --------------------------------------------------------------------------- the property
@@ -349,6 +404,46 @@ def _cases(world):
                      photos_argv, out_argv, writer_argv)
 
 
+def writer_inputs(world) -> dict:
+    """What the writing commands read and must leave as it was: the scan, its landmarks, the
+    ICT model, the dataset folder."""
+    return {"scan": world["scan"].read_bytes(), "landmarks": world["scan_landmarks"].read_bytes(),
+            "ict model": world["ict_model"].read_bytes(), "root": snapshot(world["root"])}
+
+
+def check_writer_outcome(case: str, code: int, err: str, world, scratch: Path,
+                         inputs_before: dict) -> None:
+    """A :data:`WRITERS` case ended as it must: refused with its words (or done), the inputs
+    as they were."""
+    words = WRITERS[case][1]
+    assert (code == 0) if words is None else (code == 2 and words in err), (case, err)
+    assert writer_inputs(world) == inputs_before, case
+    if case == "forget with --out the dataset":
+        assert (scratch / "anna" / "take.mp4").read_bytes() == b"anna's capture"
+
+
+@pytest.mark.parametrize("case", sorted(WRITERS))
+def test_each_writing_command_keeps_to_its_folder(case, world, tmp_path, capfd, monkeypatch):
+    """Each case of :data:`WRITERS` every run (the property below draws them at random):
+    one line with its words, nothing written where it must not be."""
+    monkeypatch.setenv("FACECAP_HOME", str(world["home"]))
+    monkeypatch.setenv("FACECAP_ICT_MODEL", str(world["ict_model"]))
+    store_before, inputs_before = snapshot(world["store"]), writer_inputs(world)
+    _writer_scratch(case, world, tmp_path)
+    fill = {"{scan}": world["scan"], "{landmarks}": world["scan_landmarks"],
+            "{home}": world["home"], "{store}": world["store"], "{scratch}": tmp_path,
+            "{file}": world["file"], "{root}": world["root"]}
+    argv = [str(a).replace(k, str(v)) for a in WRITERS[case][0] for k, v in [_field(str(a), fill)]]
+    code = main(argv)
+    _, err = capfd.readouterr()
+    assert "Traceback" not in err, (argv, err)
+    if code == 2:
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("facecap: error: "), (argv, err)
+    check_writer_outcome(case, code, err, world, tmp_path, inputs_before)
+    assert snapshot(world["store"]) == store_before, argv
+
+
 def _field(arg: str, fill: dict) -> tuple[str, str]:
     """The placeholder in ``arg`` and what it stands for ('' for none)."""
     for key, value in fill.items():
@@ -372,9 +467,10 @@ def test_no_input_ends_in_a_traceback(world, tmp_path_factory, capfd, monkeypatc
     monkeypatch.setenv("AWS_CONFIG_FILE", str(world["dir"] / "no-config"))
     monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
     monkeypatch.setenv("FACECAP_HOME", str(world["home"]))
+    monkeypatch.setenv("FACECAP_ICT_MODEL", str(world["ict_model"]))
     s3fs.S3FileSystem.clear_instance_cache()
     before = snapshot(world["store"])
-    scan_before = world["scan"].read_bytes()
+    inputs_before = writer_inputs(world)
 
     @settings(max_examples=EXAMPLES, deadline=None, database=None,
               suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
@@ -398,7 +494,8 @@ def test_no_input_ends_in_a_traceback(world, tmp_path_factory, capfd, monkeypatc
         photos_before = snapshot(photos) if photos.is_dir() else {}
         fill = {"{input}": path, "{photos}": photos, "{out}": out, "{scan}": world["scan"],
                 "{landmarks}": world["scan_landmarks"], "{home}": world["home"],
-                "{store}": world["store"], "{scratch}": scratch, "{file}": world["file"]}
+                "{store}": world["store"], "{scratch}": scratch, "{file}": world["file"],
+                "{root}": world["root"]}
         argv = [str(a).replace(k, str(v)) for a in argv for k, v in [_field(str(a), fill)]]
         code = main(argv)
         _, err = capfd.readouterr()
@@ -412,11 +509,7 @@ def test_no_input_ends_in_a_traceback(world, tmp_path_factory, capfd, monkeypatc
         if kind == "out":
             assert OUT_PLACES[made] in err, (made, err)
         if kind == "writer":
-            words = WRITERS[made][1]
-            assert (code == 0) if words is None else (code == 2 and words in err), (made, err)
-            assert world["scan"].read_bytes() == scan_before, made
-            if made == "forget with --out the dataset":
-                assert (scratch / "anna" / "take.mp4").read_bytes() == b"anna's capture"
+            check_writer_outcome(made, code, err, world, scratch, inputs_before)
         OUTCOMES[f"{kind} {'refused' if code else 'accepted'}"] = \
             OUTCOMES.get(f"{kind} {'refused' if code else 'accepted'}", 0) + 1
         assert (snapshot(photos) if photos.is_dir() else {}) == photos_before, argv
@@ -434,6 +527,7 @@ def test_a_mesh_with_most_vertices_zeroed_is_scored(world, tmp_path, capfd, monk
     (a scale of e^1000) and overflowed; now such a step falls back to the plain one and the
     mesh is scored."""
     monkeypatch.setenv("FACECAP_HOME", str(world["home"]))
+    monkeypatch.setenv("FACECAP_ICT_MODEL", str(world["ict_model"]))
     data = bytearray(world["scan"].read_bytes())
     vertices = data.index(b"end_header\n") + len(b"end_header\n")
     data[vertices + 92:vertices + 1583] = bytes(1491)
