@@ -3,8 +3,9 @@
 The page opens from disk, from a bucket or from a mail attachment: no server, no network.
 It holds the mesh as binary glTF (the same bytes as ``mesh.glb``), the accuracy of each
 vertex against the scan (as colours of the heat map, with its colour bar in mm), a sample of
-the fused cloud, the keyframe cameras as frusta, the figures of ``report.json`` in words and
-the stages' times, and the viewer: the three.js bundle vendored in ``pages/viewer`` (MIT,
+the fused cloud, the keyframe cameras as frusta, the scan it was scored against (beside the
+mesh, :mod:`facecap.pages.scan`), the figures of ``report.json`` in words and the stages'
+times, links to download the results folder's files, and the viewer: the three.js bundle vendored in ``pages/viewer`` (MIT,
 ``pages/viewer/LICENSE-three.txt``; rebuilt by ``tools/viewer/build.sh``) and
 ``pages/viewer/viewer.js``. The HTML is ``templates/capture.html.j2``'s.
 """
@@ -24,6 +25,7 @@ from markupsafe import Markup
 
 from facecap.pages.figures import figure_rows, run_summary, warnings
 from facecap.pages.render import render
+from facecap.pages.scan import stored_scan
 from facecap.tasks.graph import is_keyframe_row
 from facecap_core.frames import frame_name
 
@@ -34,6 +36,13 @@ KEYFRAME_SIDE = 480
 """The keyframe images a click on a camera shows are this many pixels on their long side."""
 MAX_CLOUD_POINTS = 60_000
 """The fused cloud is sampled down to this many points: enough to see it, a few MB at most."""
+DOWNLOADS = (("mesh.ply", "Mesh, PLY with vertex colours"),
+             ("mesh.obj", "Mesh, OBJ"), ("mesh.mtl", "its material, MTL"),
+             ("texture.png", "its texture, PNG"),
+             ("mesh.glb", "Mesh, binary glTF (Blender, Windows 3D Viewer)"),
+             ("report.json", "Report, JSON: every figure of the run"))
+"""The files of the results folder the page links for download, those the run made:
+relative links, to the files beside ``index.html``."""
 
 
 def mesh_glb(mesh_ply: Path) -> bytes:
@@ -144,13 +153,34 @@ def _ticks() -> list[tuple[str, str]]:
             for k in range(count + 1)]
 
 
+def _downloads(results: dict[str, Path]) -> list[dict]:
+    """The download links: each of :data:`DOWNLOADS` the run made (``report.json``, written
+    beside the page, always), with its size where known."""
+    links = []
+    for name, label in DOWNLOADS:
+        if name == "report.json" or (name in results and Path(results[name]).is_file()):
+            size = Path(results[name]).stat().st_size if name in results else None
+            links.append({"name": name, "label": label,
+                          "size": f"{size / 2**20:.1f} MB" if size and size >= 2**20
+                          else f"{size / 2**10:.0f} kB" if size else ""})
+    return links
+
+
+def _scan(vertices: np.ndarray, faces: np.ndarray) -> dict:
+    return {"positions": _b64(np.asarray(vertices, np.float32)),
+            "index": _b64(np.asarray(faces, np.uint32)), "faces": int(len(faces))}
+
+
 def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
-               accuracy_mm: np.ndarray | None = None, frames: Path | None = None) -> bytes:
+               accuracy_mm: np.ndarray | None = None, frames: Path | None = None,
+               scan: tuple[np.ndarray, np.ndarray] | None = None) -> bytes:
     """The page of one capture run: ``report`` (as in ``report.json``), ``results`` (name ->
     this run's file: cameras.json, cloud.ply, ...), the mesh's glTF bytes (None without a
     mesh), the per-vertex accuracy in mm (metric protocol; nan outside the scored regions)
-    if scored, and the frames stage's folder (the keyframe images) if there is one. Without
-    a mesh the page has no 3D view: it says where the run stopped and what it made."""
+    if scored, the frames stage's folder (the keyframe images) if there is one, and the scan
+    (vertices in the mesh's frame, triangles) to show beside the mesh: by default the one
+    the run was scored against, from its store (:func:`facecap.pages.scan.stored_scan`).
+    Without a mesh the page has no 3D view: it says where the run stopped and what it made."""
     data: dict = {"mesh_glb": base64.b64encode(glb).decode("ascii") if glb else None}
     centre = None
     if glb:
@@ -163,6 +193,9 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
         data["cloud"] = _cloud(results["cloud.ply"])
     if glb:
         data["measure"] = _measure_data(report)
+        scan = scan if scan is not None else stored_scan(report)
+        if scan is not None:
+            data["scan"] = _scan(*scan)
     if "cameras.json" in results and centre is not None:
         data["cameras"], data["view_direction"], data["view_up"] = _cameras(
             results["cameras.json"], centre, frames)
@@ -177,6 +210,7 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
         summary=run_summary(report), until=str(report.get("until", "")), made=made,
         warnings=warnings(report), figures=figure_rows(report), stages=stages, depth=depth,
         accuracy="accuracy" in data, cloud="cloud" in data, cameras="cameras" in data,
+        scan="scan" in data, downloads=_downloads(results),
         presets=data["measure"]["presets"] if glb else [], ticks=_ticks(), bar=_colour_bar(),
         data=data,
         # The page's own scripts, markup by construction.

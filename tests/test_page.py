@@ -14,7 +14,7 @@ import pytest
 import trimesh
 
 from facecap.pages.capture import build_page, mesh_glb
-from tests.browser import look_at_page, settled
+from tests.browser import BACKGROUND, look_at_page, settled
 
 ROOT = Path(__file__).resolve().parents[1]
 SHOTS = ROOT / "out" / "test-artifacts" / "page"
@@ -448,7 +448,7 @@ def _shot(page) -> np.ndarray:
 def test_the_inside_of_an_open_mesh_is_drawn(tmp_path):
     """A bowl opening towards the viewer (as the fitted mesh is open at the neck): its inside,
     the triangles' back, is drawn, not a hole."""
-    from tests.browser import BACKGROUND, chromium
+    from tests.browser import chromium
 
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=80.0)
     keep = (sphere.vertices[sphere.faces][:, :, 2] < 10.0).all(axis=1)
@@ -659,3 +659,170 @@ def test_the_light_turns_and_the_wireframe_shows(results, tmp_path):
         wired = _shot(page)
         assert np.abs(wired - raking).mean() > 2.0
         page.screenshot(path=str(SHOTS / "wireframe.png"))
+
+
+def _results_folder(results, folder: Path) -> dict[str, Path]:
+    """A run's results folder as the flow writes it: the mesh, cameras, cloud, ``mesh.glb``
+    and ``report.json`` beside ``index.html``."""
+    import shutil
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in ("mesh.ply", "cameras.json", "cloud.ply"):
+        shutil.copyfile(results[name], folder / name)
+    (folder / "mesh.glb").write_bytes(mesh_glb(folder / "mesh.ply"))
+    (folder / "report.json").write_text(json.dumps(REPORT))
+    made = {name: folder / name for name in ("mesh.ply", "cameras.json", "cloud.ply",
+                                             "mesh.glb")}
+    (folder / "index.html").write_bytes(build_page(REPORT, made, made["mesh.glb"].read_bytes()))
+    return made
+
+
+def _downloaded(page, name: str) -> bytes:
+    """The bytes a click on the download link of ``name`` downloads."""
+    with page.expect_download() as caught:
+        page.click(f"[data-download='{name}']")
+    download = caught.value
+    assert download.suggested_filename == name
+    return Path(download.path()).read_bytes()
+
+
+def test_the_downloads_are_the_files_beside_the_page(results, tmp_path):
+    """Each download link names a file of the results folder beside the page (those the run
+    made: no OBJ here); from disk a click downloads a mesh's bytes, and opens a text file
+    (a browser ignores ``download`` on a file:// page: the page says so)."""
+    from tests.browser import chromium
+
+    folder = tmp_path / "result"
+    _results_folder(results, folder)
+    with chromium() as browser:
+        page = _opened(browser, folder / "index.html")
+        names = page.eval_on_selector_all("[data-download]",
+                                          "links => links.map(a => a.getAttribute('href'))")
+        assert names == ["mesh.ply", "mesh.glb", "report.json"]
+        assert all((folder / name).is_file() for name in names)
+        assert page.is_visible("#downloads ul") and not page.is_visible("#downloads-elsewhere")
+        assert page.is_visible("#downloads-from-disk")
+        for name in ("mesh.ply", "mesh.glb"):
+            assert _downloaded(page, name) == (folder / name).read_bytes()
+        page.click("[data-download='report.json']")
+        page.wait_for_url((folder / "report.json").as_uri())
+        assert json.loads(page.inner_text("body")) == REPORT
+
+
+def test_the_store_s_copy_of_the_page_says_where_its_files_are(results, tmp_path):
+    """Served, the links are checked: from a results folder served whole they stay and a
+    click downloads each file; from the store (a link signed for index.html alone: every
+    other file is 404) they go, and the page says where the files are rather than show dead
+    links."""
+    import functools
+    import threading
+    from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+
+    from tests.browser import chromium
+
+    folder = tmp_path / "result"
+    _results_folder(results, folder)
+
+    def store_s_copy(route):  # the page server's answer to an unsigned file: 404
+        if route.request.url.split("?")[0].endswith("/index.html"):
+            route.fulfill(status=200, body=(folder / "index.html").read_bytes(),
+                          content_type="text/html")
+        else:
+            route.fulfill(status=404, body="no such page")
+
+    whole = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(
+        SimpleHTTPRequestHandler, directory=str(folder)))
+    threading.Thread(target=whole.serve_forever, daemon=True).start()
+    try:
+        with chromium() as browser:
+            for served in (True, False):
+                page = browser.new_page(viewport={"width": 1100, "height": 700})
+                if served:
+                    page.goto(f"http://127.0.0.1:{whole.server_address[1]}/index.html")
+                else:
+                    page.route("http://pages.test/**", store_s_copy)
+                    page.goto("http://pages.test/artifacts/page-0123abcd/index.html"
+                              "?expires=1&signature=x")
+                page.wait_for_function("window.facecap && window.facecap.ready",
+                                       timeout=60_000)
+                page.wait_for_function("window.facecap.downloadsChecked", timeout=10_000)
+                assert page.is_visible("#downloads ul") is served
+                assert page.is_visible("#downloads-elsewhere") is not served
+                assert not page.is_visible("#downloads-from-disk")
+                if served:
+                    for name in ("mesh.ply", "mesh.glb", "report.json"):
+                        assert _downloaded(page, name) == (folder / name).read_bytes()
+                page.close()
+    finally:
+        whole.shutdown()
+
+
+def _bumpy_head(vertices: np.ndarray) -> np.ndarray:
+    """The sphere, stretched and with a nose: a shape an alignment cannot turn on itself."""
+    v = vertices * [1.0, 1.3, 0.85]
+    nose = np.exp(-((v[:, 0] / 15) ** 2 + (v[:, 1] / 20) ** 2)) * (v[:, 2] > 0)
+    return v + nose[:, None] * [0.0, 0.0, 25.0]
+
+
+def test_the_scan_shows_beside_the_reconstruction(results, tmp_path):
+    """Scan beside: the view splits in two through one camera, the scan on the right, where
+    only background was; off again, one view. A page without a scan has no such switch."""
+    from tests.browser import chromium
+
+    sphere = trimesh.load(results["mesh.ply"], process=False)
+    scan = (_bumpy_head(sphere.vertices) + [0.0, 0.0, -10.0], sphere.faces)
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(REPORT, results, mesh_glb(results["mesh.ply"]),
+                                     _accuracy(results), scan=scan))
+    plain_file = tmp_path / "plain.html"
+    plain_file.write_bytes(build_page(REPORT, results, mesh_glb(results["mesh.ply"])))
+    assert page_file.stat().st_size < 15 * 2**20
+    with chromium() as browser:
+        page = _opened(browser, page_file)
+        page.click("[data-mode=accuracy]")
+        one = _shot(page)
+        assert page.evaluate("window.facecap.views") == 1
+        page.click("#scan-button")
+        two = _shot(page)
+        assert page.evaluate("window.facecap.views") == 2
+        assert page.get_attribute("#scan-button", "aria-pressed") == "true"
+        h, w = two.shape[:2]
+        right = two[h // 4: 3 * h // 4, w // 2 + w // 8: w - w // 8]
+        grey = (np.abs(right - 184).max(axis=2) < 60) & \
+            (np.abs(right - BACKGROUND).sum(axis=2) > 30)
+        assert grey.mean() > 0.3, grey.mean()  # the scan, grey, fills the right's middle
+        assert np.abs(two - one).mean() > 5.0
+        page.screenshot(path=str(SHOTS / "scan-beside.png"))
+        page.click("#scan-button")
+        _shot(page)
+        assert page.evaluate("window.facecap.views") == 1
+        page = _opened(browser, plain_file)
+        assert page.query_selector("#scan-button") is None
+        assert page.evaluate("window.facecap.setScan(true)") is False
+
+
+def test_the_scan_is_moved_onto_the_mesh(results, tmp_path):
+    """The scan, turned and moved away in its own frame, is brought back onto the mesh by the
+    inverse of the metric protocol's alignment, and thinned to the page's size."""
+    from facecap.pages.scan import scan_in_mesh_frame, thinned
+    from facecap_core.meshio import save_landmarks
+
+    sphere = trimesh.load(results["mesh.ply"], process=False)
+    head = _bumpy_head(sphere.vertices)
+    mesh_ply = tmp_path / "mesh.ply"
+    trimesh.Trimesh(head, sphere.faces, process=False).export(mesh_ply)
+    angle = np.radians(20)
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0],
+                  [-np.sin(angle), 0, np.cos(angle)]])
+    moved = head @ R.T + [30.0, -12.0, 400.0]
+    scan_ply = tmp_path / "scan.ply"
+    trimesh.Trimesh(moved, sphere.faces, process=False).export(scan_ply)
+    ids = np.flatnonzero(head[:, 2] > 40)[:68]
+    scan_lm = save_landmarks(tmp_path / "scan_landmarks.json", moved[ids])
+    mesh_lm = save_landmarks(tmp_path / "mesh_landmarks.json", head[ids])
+    vertices, faces = scan_in_mesh_frame(mesh_ply, scan_ply, scan_lm, mesh_lm)
+    assert np.abs(vertices - head).max() < 0.5
+    assert np.array_equal(faces, sphere.faces)
+    few, few_faces = thinned(vertices, faces, 1000)
+    assert len(few_faces) <= 1000 and np.ptp(few, axis=0) == pytest.approx(np.ptp(head, axis=0),
+                                                                            rel=0.05)

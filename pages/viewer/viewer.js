@@ -1,8 +1,10 @@
 // The capture page's 3D view: the fitted mesh (glTF) to turn, zoom and light, in its own
 // colours, plain, or coloured by its accuracy against the scan; the fused cloud and the
-// keyframe cameras on demand. Reads the page's JSON (id "facecap-data"); THREE is the
-// vendored three.js bundle. Sets window.facecap = {ready, reason, mode, setMode, toggle,
-// measure, measurement, showPreset, vertexOnScreen, setLight, drawn, still}: ready once the
+// keyframe cameras on demand; the scan the run was scored against beside it (the view split
+// in two, one camera: the reconstruction left, the scan right). Reads the page's JSON (id
+// "facecap-data"); THREE is the vendored three.js bundle. Sets window.facecap = {ready,
+// reason, mode, setMode, toggle, measure, measurement, showPreset, vertexOnScreen, setLight,
+// setScan, split, views, drawn, still}: views is how many views the last frame drew; ready once the
 // mesh is shown, reason when it cannot be; drawn counts the frames drawn, still the frames
 // since the last one (the view has settled when it grows). Measure: two clicks on the mesh (each snapped to the nearest
 // vertex of the triangle hit) give their distance straight and along the surface (the path
@@ -30,24 +32,34 @@
   const controls = new THREE.OrbitControls(camera, canvas);
   controls.enableDamping = true;
   const state = {ready: false, mode: "colour", setMode, toggle, measure: measureVertices,
-                 measurement: null, measuring: false, vertexOnScreen, setLight, drawn: 0,
-                 still: 0};
+                 measurement: null, measuring: false, vertexOnScreen, setLight, setScan,
+                 split: false, views: 0, drawn: 0, still: 0};
   window.facecap = state;
   // Drawn when something changed (a turn, a zoom, a mode, a size), not every frame: an open
   // page idles rather than keeping a core (or a laptop's GPU) busy.
   let stale = true;
   controls.addEventListener("change", () => { stale = true; });
 
+  // The width of one view: the canvas's, or half of it when the scan is beside the mesh.
+  const viewWidth = () => (state.split ? canvas.clientWidth / 2 : canvas.clientWidth);
   function resize() {
     const w = canvas.clientWidth, h = canvas.clientHeight;
     if (canvas.width !== Math.round(w * renderer.getPixelRatio()) ||
         canvas.height !== Math.round(h * renderer.getPixelRatio())) {
       renderer.setSize(w, h, false);
-      camera.aspect = w / Math.max(h, 1);
+      stale = true;
+    }
+    const aspect = viewWidth() / Math.max(h, 1);
+    if (camera.aspect !== aspect) {
+      camera.aspect = aspect;
       camera.updateProjectionMatrix();
       stale = true;
     }
   }
+  // A point of the (left) view, in pixels, and back: the clicks and the tests' aims.
+  const toScreen = (p) => [(p.x + 1) / 2 * viewWidth(), (1 - p.y) / 2 * canvas.clientHeight];
+  const toNdc = (x, y) => new THREE.Vector2(x / viewWidth() * 2 - 1,
+                                            1 - y / canvas.clientHeight * 2);
 
   function buffer(b64, Type) {
     const raw = bytes(b64);
@@ -86,7 +98,7 @@
     const p = new THREE.Vector3(centres[3 * i], centres[3 * i + 1], centres[3 * i + 2]);
     p.project(camera);
     if (p.z > 1) return null;  // behind the viewer
-    return [(p.x + 1) / 2 * canvas.clientWidth, (1 - p.y) / 2 * canvas.clientHeight];
+    return toScreen(p);
   }
   function showKeyframe(i) {
     const figure = document.getElementById("keyframe");
@@ -324,7 +336,7 @@
     const position = mesh.geometry.getAttribute("position");
     const p = new THREE.Vector3().fromBufferAttribute(position, i).project(camera);
     if (p.z > 1) return null;
-    return [(p.x + 1) / 2 * canvas.clientWidth, (1 - p.y) / 2 * canvas.clientHeight];
+    return toScreen(p);
   }
 
   const sigmaPct = data.measure ? data.measure.sigma_pct : null;
@@ -410,8 +422,7 @@
   canvas.addEventListener("pointerup", (e) => {
     if (!state.measuring || !pressed || !mesh.visible) return;
     if (Math.hypot(e.offsetX - pressed[0], e.offsetY - pressed[1]) > 4) return;  // a drag
-    raycaster.setFromCamera(new THREE.Vector2(e.offsetX / canvas.clientWidth * 2 - 1,
-                                              1 - e.offsetY / canvas.clientHeight * 2), camera);
+    raycaster.setFromCamera(toNdc(e.offsetX, e.offsetY), camera);
     const hit = raycaster.intersectObject(mesh, false)[0];
     if (!hit) return;
     const position = mesh.geometry.getAttribute("position"), v = new THREE.Vector3();
@@ -438,6 +449,56 @@
     sky.intensity = 1.6 * (0.35 + 0.65 * Math.cos(r));
     state.light = degrees;
     stale = true;
+  }
+
+  // -- The scan beside the mesh ----------------------------------------------------------------
+  let scanMesh = null;
+  function setScan(on) {
+    if (!scanMesh) return false;
+    state.split = Boolean(on);
+    document.getElementById("scan-button").setAttribute("aria-pressed", String(state.split));
+    document.getElementById("scan-labels").hidden = !state.split;
+    resize();
+    stale = true;
+    return state.split;
+  }
+  function addScan() {
+    if (!data.scan) return;
+    const geometry = new THREE.BufferGeometry();
+    geometry.setAttribute("position", new THREE.BufferAttribute(buffer(data.scan.positions, Float32Array), 3));
+    geometry.setIndex(new THREE.BufferAttribute(buffer(data.scan.index, Uint32Array), 1));
+    geometry.computeVertexNormals();
+    // Grey, as Plain: the two shapes compared under the same light.
+    scanMesh = new THREE.Mesh(geometry, new THREE.MeshStandardMaterial(
+      {color: 0xb8b8b8, roughness: 0.7, side: THREE.DoubleSide}));
+    scanMesh.visible = false;
+    scene.add(scanMesh);
+  }
+
+  function draw() {
+    // One view, or two side by side through the same camera: left what the view shows (the
+    // mesh in its mode, its extras), right the scan alone.
+    const w = canvas.clientWidth, h = canvas.clientHeight;
+    if (!state.split) {
+      renderer.setScissorTest(false);
+      renderer.setViewport(0, 0, w, h);
+      renderer.render(scene, camera);
+      state.views = 1;
+      return;
+    }
+    renderer.setScissorTest(true);
+    renderer.setViewport(0, 0, w / 2, h);
+    renderer.setScissor(0, 0, w / 2, h);
+    renderer.render(scene, camera);
+    const shown = scene.children.filter((o) => o.visible && !o.isLight && o !== camera);
+    for (const object of shown) object.visible = false;
+    scanMesh.visible = true;
+    renderer.setViewport(w / 2, 0, w - w / 2, h);
+    renderer.setScissor(w / 2, 0, w - w / 2, h);
+    renderer.render(scene, camera);
+    scanMesh.visible = false;
+    for (const object of shown) object.visible = true;
+    state.views = 2;
   }
 
   function addExtras() {
@@ -489,6 +550,7 @@
     mesh.scale.set(1, 1, 1);
     scene.add(mesh);
     addExtras();
+    addScan();
     extras.mesh = mesh;  // shown; hidden, the cloud is seen alone (the Mesh switch)
     // The wireframe: the triangles' edges over the surface, on demand.
     extras.wireframe = new THREE.Mesh(geometry, new THREE.MeshBasicMaterial(
@@ -513,6 +575,8 @@
     button.addEventListener("click", () => showPreset(button.dataset.preset));
   const slider = document.querySelector("#light input");
   slider.addEventListener("input", () => setLight(Number(slider.value)));
+  if (data.scan) document.getElementById("scan-button").addEventListener(
+    "click", () => setScan(!state.split));
   for (const button of document.querySelectorAll("[data-toggle]"))
     button.addEventListener("click", () => toggle(button.dataset.toggle));
   (function loop() {
@@ -520,7 +584,7 @@
     controls.update();  // moves the camera on while a turn is damped ("change": stale)
     if (stale) {
       stale = false;
-      renderer.render(scene, camera);
+      draw();
       state.drawn += 1;
       state.still = 0;
     } else {
