@@ -528,6 +528,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"facecap: error: {store_unreachable(store, exc)}", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 - anything else is a bug: say so, keep the trace
+        full = console.full_disk()
+        if full is not None:  # what failed is the disk, not facecap
+            print(f"facecap: error: no space left on the disk of {full} ({type(exc).__name__}: "
+                  f"{' '.join(str(exc).split())[:80]}); free space there and run again (the "
+                  "results already in --out are kept)", file=sys.stderr)
+            return 2
         print(_internal_error(exc, argv), file=sys.stderr)
         return 1
     finally:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from facecap.flows.local_server import start_local_server
 from facecap.tasks.scratch import process_scratch, remove_orphans
+from facecap_core.assets import facecap_home
 from facecap_core.settings import folder_problem
 
 # Imported where used: Prefect reads its settings when first imported; prefect_defaults() sets
@@ -39,6 +40,29 @@ def prefect_home_problem() -> str | None:
              and os.environ["PREFECT_HOME"] else f"Prefect's default folder {value}")
     return (f"{where}: {problem}; set PREFECT_HOME to a writable folder, or unset it for "
             "Prefect's default (~/.prefect)")
+
+
+FULL_BYTES = 2**20
+"""Free space under which a disk counts as full: a write of Prefect's database or of a
+stage's scratch file fails there."""
+
+
+def full_disk() -> str | None:
+    """The folders of facecap's and Prefect's files (``FACECAP_HOME``, ``PREFECT_HOME``) whose
+    disk is full, in words, or None: what an unexpected error is put down to before it is
+    called a bug (Prefect's server answers a full database with "500 Internal Server
+    Error")."""
+    folders = {"FACECAP_HOME": facecap_home(),
+               "PREFECT_HOME": Path(os.environ.get("PREFECT_HOME") or "~/.prefect").expanduser()}
+    full = []
+    for name, folder in folders.items():
+        try:
+            stats = os.statvfs(folder)
+        except OSError:
+            continue
+        if stats.f_bavail * stats.f_frsize < FULL_BYTES:
+            full.append(f"{name} {folder}")
+    return " and ".join(full) or None
 
 
 VERBOSE = False

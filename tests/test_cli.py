@@ -395,6 +395,45 @@ def test_a_bug_on_a_full_disk_is_still_one_line(tmp_path, monkeypatch, capsys):
     assert not list((tmp_path / "home" / "logs").glob("crash-*.log"))  # no empty log left
 
 
+def test_an_error_on_a_full_prefect_disk_is_the_disk(tmp_path, monkeypatch, capsys):
+    """Prefect's server answers a write to its full database with "500 Internal Server
+    Error": with the disk of PREFECT_HOME full, that is one line naming the folder and what
+    to do, exit 2; the same error with space left stays a bug (exit 1)."""
+    import os
+
+    from facecap import cli
+    from facecap_core import evaluation
+
+    def server_error(*args, **kwargs):
+        raise RuntimeError("Server error '500 Internal Server Error' for url .../set_state")
+
+    real_statvfs = os.statvfs
+    prefect_home = tmp_path / "prefect"
+    prefect_home.mkdir()
+
+    def full_prefect_disk(path):
+        stats = real_statvfs(path)
+        if Path(path) != prefect_home:
+            return stats
+        return os.statvfs_result((stats.f_bsize, stats.f_frsize, stats.f_blocks, 0, 0,
+                                  *stats[5:]))
+
+    monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("PREFECT_HOME", str(prefect_home))
+    monkeypatch.setattr(evaluation, "evaluate", server_error)
+    mesh = tmp_path / "m.ply"
+    mesh.write_bytes(b"ply")
+    code = cli.main(["evaluate", str(mesh), "--scan", str(mesh)])
+    assert code == 1 and "internal error" in capsys.readouterr().err  # space left: a bug
+    monkeypatch.setattr(os, "statvfs", full_prefect_disk)
+    code = cli.main(["evaluate", str(mesh), "--scan", str(mesh)])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith(f"facecap: error: no space left on the disk of PREFECT_HOME "
+                          f"{prefect_home} (RuntimeError: Server error '500"), err
+    assert "free space there and run again" in err
+
+
 # --------------------------------------------------------------------------- FACECAP_HOME
 
 
