@@ -5,9 +5,10 @@ It holds the mesh as binary glTF (the same bytes as ``mesh.glb``), the accuracy 
 vertex against the scan (as colours of the heat map, with its colour bar in mm), a sample of
 the fused cloud, the keyframe cameras as frusta, the scan it was scored against (beside the
 mesh, :mod:`facecap.pages.scan`), the figures of ``report.json`` in words and the stages'
-times, links to download the results folder's files, and the viewer: the three.js bundle vendored in ``pages/viewer`` (MIT,
-``pages/viewer/LICENSE-three.txt``; rebuilt by ``tools/viewer/build.sh``) and
-``pages/viewer/viewer.js``. The HTML is ``templates/capture.html.j2``'s.
+times, links to download the results folder's files, and the viewer: the three.js bundle
+vendored in ``pages/viewer`` (MIT, ``pages/viewer/LICENSE-three.txt``; rebuilt by
+``tools/viewer/build.sh``) and ``pages/viewer/viewer.js``. The HTML is
+``templates/capture.html.j2``'s.
 """
 
 from __future__ import annotations
@@ -46,7 +47,12 @@ relative links, to the files beside ``index.html``."""
 
 
 def mesh_glb(mesh_ply: Path) -> bytes:
-    """The mesh as binary glTF with its vertex colours (Blender, three.js, Windows 3D Viewer)."""
+    """The mesh as binary glTF (Blender, three.js, Windows 3D Viewer): the fitting stage's
+    textured ``mesh.glb`` beside ``mesh_ply`` where it made one (split at the UV seams, the
+    template's vertices first), else the mesh with its vertex colours."""
+    textured = Path(mesh_ply).with_name(GLB_NAME)
+    if textured.is_file():
+        return textured.read_bytes()
     mesh = trimesh.load(mesh_ply, process=False, force="mesh")
     return mesh.export(file_type="glb")
 

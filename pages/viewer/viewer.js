@@ -453,17 +453,33 @@
 
   // -- The scan beside the mesh ----------------------------------------------------------------
   let scanMesh = null;
+  const splitBack = {distance: null};  // the view's distance before the view was split
   function setScan(on) {
-    if (!scanMesh) return false;
+    if (!data.scan || !mesh) return false;
+    if (!scanMesh) addScan();  // made when first asked for: the page is ready no later
     state.split = Boolean(on);
     document.getElementById("scan-button").setAttribute("aria-pressed", String(state.split));
     document.getElementById("scan-labels").hidden = !state.split;
     resize();
+    // A half as wide sees less across: step back until the face fits its width, and
+    // forwards again when the view is whole.
+    const offset = camera.position.clone().sub(controls.target);
+    if (state.split) {
+      const fits = mesh.geometry.boundingSphere.radius * 1.1 /
+        (camera.aspect * Math.tan(THREE.MathUtils.degToRad(camera.fov / 2)));
+      if (offset.length() < fits) {
+        splitBack.distance = offset.length();
+        offset.setLength(fits);
+      }
+    } else if (splitBack.distance !== null) {
+      offset.setLength(splitBack.distance);
+      splitBack.distance = null;
+    }
+    camera.position.copy(controls.target).add(offset);
     stale = true;
     return state.split;
   }
   function addScan() {
-    if (!data.scan) return;
     const geometry = new THREE.BufferGeometry();
     geometry.setAttribute("position", new THREE.BufferAttribute(buffer(data.scan.positions, Float32Array), 3));
     geometry.setIndex(new THREE.BufferAttribute(buffer(data.scan.index, Uint32Array), 1));
@@ -550,7 +566,6 @@
     mesh.scale.set(1, 1, 1);
     scene.add(mesh);
     addExtras();
-    addScan();
     extras.mesh = mesh;  // shown; hidden, the cloud is seen alone (the Mesh switch)
     // The wireframe: the triangles' edges over the surface, on demand.
     extras.wireframe = new THREE.Mesh(geometry, new THREE.MeshBasicMaterial(
