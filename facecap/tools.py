@@ -188,6 +188,11 @@ def forget(args) -> int:
     removal = lifecycle.remove(store, planned, args.subject, out, dry_run=args.dry_run,
                                results=pages, first=ui_pages)
     print_removal(removal, args.dry_run)
+    if removal.in_use:  # a subject's data left behind is no success, whoever holds it
+        count = len(removal.in_use)
+        raise InputError(f"a run in progress uses {count} artifact{'s' if count > 1 else ''} "
+                         f"of {args.subject}, kept in the store; run facecap forget "
+                         f"{args.subject} again when that run has ended (the rest is removed)")
     return 0
 
 

@@ -85,6 +85,32 @@ def test_forget_removes_the_subject_and_nothing_else(world):
     assert removal.history_entries == 1
 
 
+def test_forget_during_a_run_of_the_subject_says_what_it_kept(world, capfd):
+    """A run of the subject in progress holds leases on what it reads and makes: forget
+    removes everything else, keeps those, and ends in one line that says so and what to do,
+    exit 2 (not 0: the subject's data is still there); once the run has ended, forget again
+    removes the rest."""
+    from facecap.tasks.runner import lease, run_leases
+    from tests.test_bad_inputs import assert_one_line_error, facecap
+
+    store = open_store(world["store"])
+    alice = world["keys"]["alice"]
+    with run_leases():
+        lease(store, alice["video"])
+        lease(store, alice["keyframes"])
+        code, out, err = facecap(capfd, "forget", "alice", "--root", world["root"],
+                                 "--store", world["store"])
+        assert_one_line_error(code, err, ["a run in progress uses 2 artifacts of alice",
+                                          "again when that run has ended"])
+        assert "kept 2 artifacts that a run in progress uses" in out
+        assert set(store.keys()) == {alice["video"], alice["keyframes"],
+                                     *world["keys"]["bob"].values()}
+    code, _, err = facecap(capfd, "forget", "alice", "--root", world["root"], "--store",
+                           world["store"])
+    assert code == 0, err
+    assert set(store.keys()) == set(world["keys"]["bob"].values())
+
+
 def test_forget_refuses_names_that_are_not_subjects(world, tmp_path):
     store = open_store(world["store"])
     for name in ("", "..", "alice/take1", "../out"):
