@@ -33,11 +33,14 @@ test-fast: install compose-tool browser
 
 install: system-libs $(VENV)/.installed
 
+# The numba kernels are compiled into their on-disk cache here, not in the first capture (~40 s
+# of CPU: facecap_core/precompile.py).
 $(VENV)/.installed: pyproject.toml Makefile
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip setuptools wheel
 	$(PY) -m pip install -q -e '.[test]'
 	$(PY) -m pip install -q --no-deps $(MEDIAPIPE)
+	$(PY) -m facecap_core.precompile
 	@touch $@
 
 # deploy/constraints.txt: the exact versions of this venv, the environment the tests ran in, for
