@@ -4,7 +4,11 @@
 colours it from the keyframes (:func:`facecap_core.texture.vertex_colours`) and writes
 
     mesh.ply     fitted mesh in template topology, mm, per-vertex RGB
-    mesh.obj     the same, vertex colours as ``v x y z r g b``
+    mesh.obj     the same, vertex colours as ``v x y z r g b``; with the default template
+                 also its UVs (``vt``, ``f v/vt``) and ``mtllib mesh.mtl``
+    mesh.mtl, texture.png  the UV texture atlas baked from the keyframes
+                 (:func:`facecap_core.texture.bake_texture`), default template only
+    mesh.glb     binary glTF split at the UV seams, the atlas as baseColorTexture
     landmarks.json  the fitted mesh's 68 landmark points
     fit.json     schedule, per-step log, timing (wall and CPU seconds)
 """
@@ -31,7 +35,19 @@ from facecap_core.nonrigid.constraints import Keyframe
 from facecap_core.nonrigid.nicp import FitResult, fit
 from facecap_core.nonrigid.roughness import face_edges, roughness
 from facecap_core.template import Template
-from facecap_core.texture import vertex_colours
+from facecap_core.texture import (
+    MESH_GLB,
+    MESH_MTL,
+    TEXTURE_PNG,
+    UVLayout,
+    bake_texture,
+    glb_bytes,
+    mtl_text,
+    obj_text,
+    png_bytes,
+    template_uv,
+    vertex_colours,
+)
 from facecap_core.video import read_frames
 
 MESH_PLY = "mesh.ply"
@@ -90,8 +106,11 @@ def keyframes_from_video(video: str | Path, intrinsics, poses: list[dict],
 
 
 def write_mesh(folder: str | Path, vertices: np.ndarray, faces: np.ndarray,
-               colours: np.ndarray | None = None) -> tuple[Path, Path]:
-    """Write ``mesh.ply`` and ``mesh.obj`` (vertex order and faces exactly as given)."""
+               colours: np.ndarray | None = None,
+               texture: tuple[UVLayout, np.ndarray] | None = None) -> tuple[Path, Path]:
+    """Write ``mesh.ply`` and ``mesh.obj`` (vertex order and faces exactly as given); with
+    ``texture`` (the UV layout and its atlas) also ``mesh.mtl``, ``texture.png`` and
+    ``mesh.glb``, and the OBJ carries the UVs."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     mesh = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces, np.int64),
@@ -100,11 +119,19 @@ def write_mesh(folder: str | Path, vertices: np.ndarray, faces: np.ndarray,
         rgba = np.c_[np.asarray(colours, np.uint8), np.full(len(vertices), 255, np.uint8)]
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=rgba)
     ply, obj = folder / MESH_PLY, folder / MESH_OBJ
-    for path, kwargs in ((ply, {"encoding": "binary"}), (obj, {"include_color": True,
-                                                               "include_normals": False,
-                                                               "include_texture": False})):
+    files = {ply: _export(mesh, "ply", {"encoding": "binary"})}
+    if texture is None:
+        files[obj] = _export(mesh, "obj", {"include_color": True, "include_normals": False,
+                                           "include_texture": False})
+    else:
+        layout, atlas = texture
+        # The OBJ last: its material and image are in place when it appears.
+        files = {folder / TEXTURE_PNG: png_bytes(atlas), folder / MESH_MTL: mtl_text().encode(),
+                 folder / MESH_GLB: glb_bytes(vertices, layout, atlas), **files,
+                 obj: obj_text(vertices, faces, colours, layout).encode()}
+    for path, data in files.items():
         tmp = path.with_name(path.name + ".part")
-        tmp.write_bytes(_export(mesh, path.suffix[1:], kwargs))
+        tmp.write_bytes(data)
         tmp.replace(path)
     return ply, obj
 
@@ -187,12 +214,18 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
         log.warning("the fitted mesh keeps %d flipped triangles, %d stretched edges and %d "
                     "self-intersecting triangle pairs (fit.json: sanity)", sanity.flipped,
                     sanity.stretched_edges, sanity.self_intersecting_pairs)
-    colours = None
+    colours, texture, texture_info = None, None, {}
     if config.texture and len(keyframes):
         colours, _ = vertex_colours(result.vertices, result.faces, keyframes,
                                     config.texture_min_cos)
+        layout = template_uv(result.faces)
+        if layout is not None:
+            atlas, texture_info = bake_texture(result.vertices, result.faces, keyframes, layout,
+                                               min_cos=config.texture_min_cos,
+                                               fill_colours=colours)
+            texture = (layout, atlas)
     out = Path(out_dir)
-    ply, _ = write_mesh(out, result.vertices, result.faces, colours)
+    ply, _ = write_mesh(out, result.vertices, result.faces, colours, texture)
     save_landmarks(out / MESH_LANDMARKS, result.template.landmark_points,
                    template=template.name)
     rough = roughness(result.vertices, result.faces,
@@ -204,7 +237,8 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
     measurements = landmark_measurements(result.vertices, result.faces, template.landmarks,
                                          None)
     write_report(out / FIT_JSON, result, config, sanity, relaxed, ears_report, rough,
-                 {**(parts or {}), "measurements": measurements})
+                 {**(parts or {}), "measurements": measurements,
+                  **({"texture": texture_info} if texture_info else {})})
     last = result.log[-1] if result.log else {}
     log.info("fitted %d vertices in %d steps (%.1f s): landmark RMS %.2f mm, %d cloud targets, "
              "last step moved %.3f mm; %.1f %% of the face's edges bent over %g°",

@@ -3,7 +3,8 @@
 Reads the fused ``cloud.ply``, the coarse stage's folder (metric ``cameras.json``,
 ``landmarks3d.json`` with all 68 points in mm, ``ears3d.json``) and the keyframe PNGs, and
 writes what :func:`facecap_core.fitting.run.fit_and_write` writes (``mesh.ply``, ``mesh.obj``,
-``landmarks.json``, ``fit.json``).
+``landmarks.json``, ``fit.json``; with the default template's UVs ``mesh.mtl``,
+``texture.png`` and the textured ``mesh.glb``).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from facecap_core.mvs.fusion import CLOUD
 from facecap_core.nonrigid.constraints import FIT_THREADS, Keyframe
 from facecap_core.stage import Folders, Stage
 from facecap_core.template import Template
+from facecap_core.texture import MESH_GLB, MESH_MTL, TEXTURE_PNG
 
 
 def read_ear_points(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -98,8 +100,10 @@ def run(inputs: Folders, out: Path, config: FittingConfig, params: dict) -> None
     main(inputs["fusion"] / CLOUD, inputs["coarse"], inputs["frames"], out, config)
 
 
-STAGE = Stage("fitting", version="7", inputs=("fusion", "coarse", "frames"),
+STAGE = Stage("fitting", version="8", inputs=("fusion", "coarse", "frames"),
               work_seconds=34.2,
               section="fitting", run=run,
               outputs=(MESH_PLY, MESH_OBJ, MESH_LANDMARKS, FIT_JSON),
-              exported=(MESH_PLY, MESH_OBJ, FIT_JSON), figures=figures)
+              # The UV atlas: the default template's topology and the texture on.
+              optional_outputs=(MESH_MTL, TEXTURE_PNG, MESH_GLB),
+              exported=(MESH_PLY, MESH_OBJ, MESH_MTL, TEXTURE_PNG, FIT_JSON), figures=figures)
