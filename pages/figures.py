@@ -52,6 +52,9 @@ def figure_rows(report: dict) -> list[tuple[str, str, str]]:
                      f"{', '.join(str(d.get('frame_index')) for d in dropped)})"))
     if fig.get("focal_px") is not None:
         rows.append(("focal_px", "Focal length", f"{fig['focal_px']:.1f} px"))
+    solve = solve_summary(fig.get("solve"))
+    if solve:
+        rows.append(("solve", "Camera solve", solve))
     coverage = fig.get("coverage") or {}
     if coverage.get("yaw_span_deg") is not None:
         rows.append(("coverage", "Coverage", f"yaw {coverage['yaw_min_deg']:+.0f}° to "
@@ -115,6 +118,36 @@ def parts_summary(parts: dict) -> str:
         said.append("shaped by the template, not the capture (too little cloud): "
                     + ", ".join(unsupported))
     return "; ".join(said)
+
+
+def solve_summary(solve) -> str:
+    """The camera solve's own figures (the pose stage's ``solve``) in words: what a user
+    checks a solve by (a phone's field of view, the principal point near the image's
+    centre, a reprojection error under a pixel, tracks over several views, the views' turn
+    agreeing with the tracker's); "" without any."""
+    if not isinstance(solve, dict):
+        return ""
+    number = {key: finite_number(solve.get(key)) for key in (
+        "turn_deg", "tracked_turn_deg", "track_length", "largest_step_ratio")}
+    fov = [finite_number(v) for v in solve.get("field_of_view_deg") or []
+           ] if isinstance(solve.get("field_of_view_deg"), list) else []
+    centre = [finite_number(v) for v in solve.get("principal_point_px") or []
+              ] if isinstance(solve.get("principal_point_px"), list) else []
+    error = solve.get("reprojection_px") if isinstance(solve.get("reprojection_px"), dict) else {}
+    parts = []
+    if len(fov) == 2 and None not in fov:
+        parts.append(f"field of view {fov[0]:.0f}° × {fov[1]:.0f}°")
+    if len(centre) == 2 and None not in centre:
+        parts.append(f"principal point ({centre[0]:.1f}, {centre[1]:.1f}) px")
+    if finite_number(error.get("median")) is not None:
+        parts.append(f"reprojection {error['median']:.2f} px median")
+    if number["track_length"] is not None:
+        parts.append(f"points seen by {number['track_length']:.1f} views on average")
+    if number["turn_deg"] is not None:
+        tracked = (f" (the tracker's {number['tracked_turn_deg']:.0f}°)"
+                   if number["tracked_turn_deg"] is not None else "")
+        parts.append(f"views turn {number['turn_deg']:.0f}° along the sweep{tracked}")
+    return "; ".join(parts)
 
 
 def finite_number(value) -> float | None:

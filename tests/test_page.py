@@ -563,6 +563,29 @@ def test_each_part_s_support_by_its_cloud_is_said_in_words(results):
     assert "1.46 mm off the cloud" in page
 
 
+def test_the_camera_solve_is_said_in_words_and_odd_values_are_left_out(results):
+    """The pose stage's ``solve`` figures (field of view, principal point, reprojection
+    error, track length, the views' turn against the tracker's) are one row; a value that
+    is not a finite number (a report is anyone's to write) is left out, not shown."""
+    from facecap.pages.figures import figure_rows
+
+    solve = {"focal_px": 298.6, "principal_point_px": [120.4, 158.7],
+             "field_of_view_deg": [43.7, 56.4], "reprojection_px": {"median": 0.412, "rms": 0.6},
+             "track_length": 4.25, "turn_deg": 143.2, "tracked_turn_deg": 141.0}
+    report = {**REPORT, "figures": {**REPORT["figures"], "solve": solve}}
+    text = dict((key, text) for key, _, text in figure_rows(report))["solve"]
+    assert text == ("field of view 44° × 56°; principal point (120.4, 158.7) px; reprojection "
+                    "0.41 px median; points seen by 4.2 views on average; views turn 143° "
+                    "along the sweep (the tracker's 141°)")
+    odd = {**solve, "principal_point_px": ["<b>", 1], "track_length": float("nan"),
+           "reprojection_px": "x", "tracked_turn_deg": True}
+    report = {**REPORT, "figures": {**REPORT["figures"], "solve": odd}}
+    text = dict((key, text) for key, _, text in figure_rows(report))["solve"]
+    assert text == "field of view 44° × 56°; views turn 143° along the sweep"
+    page = build_page(report, results, mesh_glb(results["mesh.ply"])).decode()
+    assert "views turn 143° along the sweep" in page
+
+
 def _measured_report(results) -> dict:
     """REPORT with ``figures.measurements`` of the sphere: its 68 "landmarks" are vertices on
     its front (the side the cameras see), measured as the capture flow measures a face."""
