@@ -118,20 +118,11 @@ def _cmd_dataset(args) -> int:
 
 
 def _cmd_evaluate_dataset(args) -> int:
-    # The flow's module adds Prefect's flow engine (a second or so); the checks of the
-    # output place and the dataset scan are light.
-    from facecap.flows.evaluate import check_history
-    from facecap.tasks.outputs import check_output_place
+    # The flow's module adds Prefect's flow engine (a second or so).
+    from facecap.flows.evaluate import preflight
     from facecap.tasks.runner import default_store_url
-    from facecap_core.dataset import scan_dataset
 
-    scan_dataset(args.root)
-    # Before the server starts: where the history goes, then the history itself.
-    check_output_place(args.out, args.store or default_store_url(), (args.root,))
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        raise InputError(f"the results folder {args.out} is a file; give the folder the "
-                         "dataset's runs wrote (--out)")
-    check_history(Path(args.out))
+    preflight(args.root, args.out, args.store or default_store_url())  # before the server
     _check_store(args)
     console.prefect_env()
     # Loaded above already: named again where the flow runs.
@@ -528,14 +519,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"facecap: error: {store_unreachable(store, exc)}", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 - anything else is a bug: say so, keep the trace
-        full = console.full_disk()
-        if full is not None:  # what failed is the disk, not facecap
-            print(f"facecap: error: no space left on the disk of {full} ({type(exc).__name__}: "
-                  f"{' '.join(str(exc).split())[:80]}); free space there and run again (the "
-                  "results already in --out are kept)", file=sys.stderr)
-            return 2
-        print(_internal_error(exc, argv), file=sys.stderr)
-        return 1
+        full = console.full_disk_error(exc)  # what failed may be the disk, not facecap
+        print(f"facecap: error: {full}" if full else _internal_error(exc, argv),
+              file=sys.stderr)
+        return 2 if full else 1
     finally:
         LOCAL_COMMAND.reset(local)
 

@@ -47,11 +47,21 @@ FULL_BYTES = 2**20
 stage's scratch file fails there."""
 
 
+def full_disk_error(exc: BaseException) -> str | None:
+    """The error line of ``exc`` when the disk of facecap's or Prefect's files is full, or
+    None: what an unexpected error is put down to before it is called a bug (Prefect's
+    server answers a write to its full database with "500 Internal Server Error")."""
+    full = full_disk()
+    if full is None:
+        return None
+    return (f"no space left on the disk of {full} ({type(exc).__name__}: "
+            f"{' '.join(str(exc).split())[:80]}); free space there and run again (the results "
+            "already in --out are kept)")
+
+
 def full_disk() -> str | None:
     """The folders of facecap's and Prefect's files (``FACECAP_HOME``, ``PREFECT_HOME``) whose
-    disk is full, in words, or None: what an unexpected error is put down to before it is
-    called a bug (Prefect's server answers a full database with "500 Internal Server
-    Error")."""
+    disk is full, in words, or None."""
     folders = {"FACECAP_HOME": facecap_home(),
                "PREFECT_HOME": Path(os.environ.get("PREFECT_HOME") or "~/.prefect").expanduser()}
     full = []

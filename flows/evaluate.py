@@ -84,6 +84,18 @@ def check_history(out: Path) -> dict:
     return previous_evaluation(out / "evaluations", "99999999T999999999999Z")
 
 
+def preflight(root: str, out: str, store: str) -> None:
+    """What ``facecap evaluate-dataset`` checks before its server starts: the dataset, the
+    place of the results folder (where the history goes), that it is a folder, and the
+    history in it."""
+    scan_dataset(root)
+    check_output_place(out, store, (root,))
+    if Path(out).exists() and not Path(out).is_dir():
+        raise InputError(f"the results folder {out} is a file; give the folder the dataset's "
+                         "runs wrote (--out)")
+    check_history(Path(out))
+
+
 @flow(name="evaluate-dataset", flow_run_name=_run_name, log_prints=True,
       timeout_seconds=time_limit("evaluation_timeout_s"))
 def evaluate_dataset(root: str, out: str, store: str | None = None,
