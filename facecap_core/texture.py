@@ -423,19 +423,24 @@ def mtl_text(texture_name: str = TEXTURE_PNG) -> str:
             f"illum 1\nmap_Kd {texture_name}\n")
 
 
-def glb_bytes(vertices: np.ndarray, layout: UVLayout, atlas: np.ndarray) -> bytes:
+def glb_bytes(vertices: np.ndarray, faces: np.ndarray, layout: UVLayout, atlas: np.ndarray
+              ) -> bytes:
     """Binary glTF of the mesh split at the UV seams (the template's vertices first, in
-    order, then the seam copies), its material's ``baseColorTexture`` the atlas (PNG)."""
+    order, then the seam copies), its material's ``baseColorTexture`` the atlas (PNG). The
+    normals are the unsplit mesh's, so shading stays smooth across the seams (a glTF without
+    normals is shaded flat)."""
     import trimesh
     from PIL import Image
 
     v = np.asarray(vertices, float)[layout.vertex]
+    normals = vertex_normals(np.asarray(vertices, float), np.asarray(faces, np.int64))
     material = trimesh.visual.material.PBRMaterial(
         name=MATERIAL, baseColorTexture=Image.fromarray(atlas), metallicFactor=0.0,
         roughnessFactor=0.8, doubleSided=True)
     mesh = trimesh.Trimesh(v, layout.faces, process=False,
+                           vertex_normals=normals[layout.vertex],
                            visual=trimesh.visual.TextureVisuals(uv=layout.uv, material=material))
-    return mesh.export(file_type="glb")
+    return mesh.export(file_type="glb", include_normals=True)
 
 
 def png_bytes(atlas: np.ndarray) -> bytes:

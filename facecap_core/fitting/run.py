@@ -127,7 +127,7 @@ def write_mesh(folder: str | Path, vertices: np.ndarray, faces: np.ndarray,
         layout, atlas = texture
         # The OBJ last: its material and image are in place when it appears.
         files = {folder / TEXTURE_PNG: png_bytes(atlas), folder / MESH_MTL: mtl_text().encode(),
-                 folder / MESH_GLB: glb_bytes(vertices, layout, atlas), **files,
+                 folder / MESH_GLB: glb_bytes(vertices, faces, layout, atlas), **files,
                  obj: obj_text(vertices, faces, colours, layout).encode()}
     for path, data in files.items():
         tmp = path.with_name(path.name + ".part")
