@@ -4,12 +4,13 @@
 // in two, one camera: the reconstruction left, the scan right). Reads the page's JSON (id
 // "facecap-data"); THREE is the vendored three.js bundle. Sets window.facecap = {ready,
 // reason, mode, setMode, toggle, measure, measurement, showPreset, vertexOnScreen, setLight,
-// setScan, split, views, drawn, still}: views is how many views the last frame drew; ready once the
-// mesh is shown, reason when it cannot be; drawn counts the frames drawn, still the frames
-// since the last one (the view has settled when it grows). Measure: two clicks on the mesh (each snapped to the nearest
-// vertex of the triangle hit) give their distance straight and along the surface (the path
-// of facecap_core/measure.py: a Steiner-point graph searched by A*, then straightened along
-// its edges), ± the metric scale's 1σ; the presets measure between two landmarks.
+// setScan, split, views, drawn, still}: ready once the mesh is shown, reason when it cannot
+// be; views is how many views the last frame drew; drawn counts the frames drawn, still the
+// frames since the last one (the view has settled when it grows). Measure: two clicks on the
+// mesh (each snapped to the nearest vertex of the triangle hit) give their distance straight
+// and along the surface (the path of facecap_core/measure.py: a Steiner-point graph searched
+// by A*, then straightened along its edges), ± the metric scale's 1σ; the presets measure
+// between two landmarks.
 (function () {
   "use strict";
   const data = JSON.parse(document.getElementById("facecap-data").textContent);
