@@ -156,6 +156,26 @@ def test_the_textured_obj_and_glb_read_back_with_their_image(tmp_path):
     assert np.allclose(glb.visual.uv, layout.uv, atol=1e-6)
 
 
+def test_the_glb_names_the_vertex_of_each_seam_copy():
+    """On the default template the glTF's vertices are the template's, then the seam copies,
+    each named in the mesh's extras; a copy sits where its vertex does."""
+    import io
+    import json
+    import struct
+
+    from facecap_core.texture import glb_bytes
+
+    template = Template.default()
+    layout = template_uv(template.faces)
+    data = glb_bytes(template.vertices, template.faces, layout, np.zeros((8, 8, 3), np.uint8))
+    length = struct.unpack("<I", data[12:16])[0]
+    extras = json.loads(data[20:20 + length])["meshes"][0]["extras"]
+    n = extras["template_vertices"]
+    assert n == len(template.vertices) and len(extras["seam_vertex"]) == len(layout.uv) - n
+    glb = trimesh.load(io.BytesIO(data), file_type="glb", process=False, force="mesh")
+    assert np.allclose(glb.vertices[n:], template.vertices[extras["seam_vertex"]], atol=1e-4)
+
+
 def test_an_atlas_point_is_its_texel():
     """Sampling the atlas at a mesh point reads the texel at that point's UV."""
     v, f, layout = _plane()
