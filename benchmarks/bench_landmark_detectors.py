@@ -35,10 +35,11 @@ import dlib68  # noqa: E402
 
 from facecap.synthetic import load_gt_cameras  # noqa: E402
 from facecap_core import face  # noqa: E402
-from facecap_core.camera import camera_center, project, read_cameras_json  # noqa: E402
+from facecap_core.camera import camera_center, project  # noqa: E402
 from facecap_core.landmarks.stage import LandmarkConfig  # noqa: E402
 from facecap_core.landmarks.triangulate import box_size, triangulate  # noqa: E402
 from facecap_core.meshio import load_landmarks  # noqa: E402
+from facecap_core.pose.cameras_json import read_cameras_json  # noqa: E402
 from facecap_core.template import INNER_LANDMARKS  # noqa: E402
 from facecap_core.video import iter_frames  # noqa: E402
 

@@ -53,7 +53,6 @@ from facecap_core import coarse  # noqa: E402
 from facecap_core.camera import (  # noqa: E402
     CameraSet,
     camera_center,
-    read_cameras_json,
     rotation_matrix,
 )
 from facecap_core.coarse import CoarseConfig  # noqa: E402
@@ -63,6 +62,7 @@ from facecap_core.landmarks import stage  # noqa: E402
 from facecap_core.landmarks.convention import OFFSETS_FILE, convention_offsets  # noqa: E402
 from facecap_core.landmarks.stage import LandmarkConfig  # noqa: E402
 from facecap_core.meshio import load_landmarks, load_mesh  # noqa: E402
+from facecap_core.pose.cameras_json import read_cameras_json  # noqa: E402
 from facecap_core.template import INNER_LANDMARKS, Template  # noqa: E402
 
 CAPTURES = [ROOT / "out/captures" / f"{s}_1280x720_60fps_8s" for s in ("ict_0", "ict_1", "james")]

@@ -185,11 +185,12 @@ def pipeline_subject(result: Path, config, peer: bool):
     from types import SimpleNamespace
 
     from facecap.tasks.store import open_store
-    from facecap_core.camera import camera_center, read_cameras_json
+    from facecap_core.camera import camera_center
     from facecap_core.geometry import umeyama
     from facecap_core.mvs.depth import load_depth_map
     from facecap_core.mvs.images import load_view
     from facecap_core.mvs.views import read_views
+    from facecap_core.pose.cameras_json import read_cameras_json
 
     report = json.loads((result / "report.json").read_text())
     store, stages = open_store(report["store"]), report["stages"]

@@ -65,8 +65,8 @@ def render_beside(out: Path, capture: Path, picks: int = 2) -> Path | None:
     """The mesh shaded in the cameras of the most frontal and the most profile keyframe,
     each beside its photo: the photo, a blend, the grey mesh lit from the camera, and the
     grey mesh under a raking light from the side (what shows lumps and creases)."""
-    from facecap_core.camera import read_cameras_json
     from facecap_core.meshio import load_mesh
+    from facecap_core.pose.cameras_json import read_cameras_json
     from facecap_core.render import RaycastScene, interpolate, vertex_normals
     from facecap_core.video import read_frames
 
@@ -145,6 +145,7 @@ def split_half(name: str, out: Path, store: Path, config_file: Path | None = Non
     from facecap_core.mvs import depth, fusion, views
     from facecap_core.nonrigid.roughness import face_vertices
     from facecap_core.pipeline import load_pipeline_config
+    from facecap_core.pose.cameras_json import Cameras
     from facecap_core.template import Template
 
     full = out / name
@@ -155,15 +156,14 @@ def split_half(name: str, out: Path, store: Path, config_file: Path | None = Non
             for k in re.findall(r'"([a-z]+-[0-9a-f]{32})"', json.dumps(report))}
     frames, coarse, poses = keys["frames"], keys["coarse"], keys["poses"]
     config = load_pipeline_config(config_file)
-    cameras = json.loads((coarse / "cameras.json").read_text())
+    cameras = Cameras.read(coarse / "cameras.json")
     meshes, rows = [], []
     for half in (0, 1):
         work = out / f"{name}_half{half}"
         shutil.rmtree(work, ignore_errors=True)
         shutil.copytree(coarse, work / "coarse")
-        mine = dict(cameras, keyframes=cameras["keyframes"][half::2])
-        (work / "coarse" / "cameras.json").write_text(json.dumps(mine))
-        cams = work / "coarse" / "cameras.json"
+        mine = cameras.model_copy(update={"keyframes": cameras.keyframes[half::2]})
+        cams = mine.write(work / "coarse" / "cameras.json")
         views_json = views.main(frames, cams, work / "coarse" / "coarse.ply", work / "views",
                                 config.mvs.views, poses / "sparse.npz")
         maps = [depth.main(i, frames, cams, views_json, work / "coarse" / "coarse.ply",
@@ -173,7 +173,7 @@ def split_half(name: str, out: Path, store: Path, config_file: Path | None = Non
         mesh = fitting_stage.main(cloud, work / "coarse", frames, work / "fit", config.fitting)
         meshes.append(load_mesh(mesh))
         fit = json.loads((work / "fit" / "fit.json").read_text())
-        rows.append({"keyframes": len(mine["keyframes"]), "depth_maps": len(maps),
+        rows.append({"keyframes": len(mine.keyframes), "depth_maps": len(maps),
                      "roughness": fit["roughness"], "cloud_noise": fit["cloud_noise"]})
     template = Template.default()
     distance = split_half_distance(meshes[0].vertices, meshes[1].vertices, template.faces,

@@ -85,7 +85,7 @@ def _run(cmd: list[str], log: Path, env: dict) -> tuple[int, float, float]:
 def pose_figures(result: Path, gt_cameras: Path) -> dict | None:
     """Camera errors of the reconstruction's keyframes against the ground truth."""
     from facecap.synthetic import load_gt_cameras
-    from facecap_core.camera import read_cameras_json
+    from facecap_core.pose.cameras_json import read_cameras_json
     from facecap_core.pose.evaluate import pose_errors
 
     if not (result / "cameras.json").is_file():

@@ -23,10 +23,11 @@ import numpy as np
 import open3d as o3d
 
 from facecap.synthetic import load_gt_cameras
-from facecap_core.camera import camera_center, read_cameras_json
+from facecap_core.camera import camera_center
 from facecap_core.evaluation import distances, region_sphere
 from facecap_core.geometry import umeyama
 from facecap_core.meshio import load_landmarks, load_mesh
+from facecap_core.pose.cameras_json import read_cameras_json
 from facecap_core.pose.evaluate import pose_errors
 
 STAGES = ("keyframes", "poses", "landmarks", "depth", "fusion", "fitting", "evaluation")

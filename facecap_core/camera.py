@@ -13,13 +13,9 @@ Conventions (the same everywhere in facecap, and OpenCV's):
 
 from __future__ import annotations
 
-import json
-from dataclasses import asdict, dataclass, field
-from pathlib import Path
+from dataclasses import asdict, dataclass
 
 import numpy as np
-
-from facecap_core.errors import InputError
 
 CAMERAS_JSON = "cameras.json"
 """The keyframe cameras of the pose stage (its own units) and of the coarse stage (mm)."""
@@ -149,49 +145,19 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
 
 @dataclass
 class CameraSet:
-    """A ``cameras.json``: one shared camera and every keyframe's world-to-camera pose, and
-    the document itself (units, metadata)."""
+    """The cameras of a ``cameras.json`` as arrays (its file format:
+    :mod:`facecap_core.pose.cameras_json`): one shared camera and every keyframe's
+    world-to-camera pose."""
 
     intrinsics: Intrinsics
     frame_indices: list[int]
     R: np.ndarray  # (K, 3, 3)
     t: np.ndarray  # (K, 3)
-    doc: dict = field(default_factory=dict)
-
-    @property
-    def units(self) -> str:
-        return str(self.doc.get("units", "arbitrary"))
-
-    @property
-    def metric_scale(self) -> float | None:
-        return self.doc.get("metric_scale")
+    units: str = "arbitrary"
+    """Units of t and of the world: ``mm`` after the coarse stage."""
+    metric_scale: float | None = None
+    """mm per pose-stage unit, once the coarse stage has scaled the cameras."""
 
     def pose(self, frame_index: int) -> tuple[np.ndarray, np.ndarray]:
         k = self.frame_indices.index(int(frame_index))
         return self.R[k], self.t[k]
-
-
-def read_cameras_json(path) -> CameraSet:
-    """Load a ``cameras.json`` written by the pose or coarse stage (full-resolution pixels,
-    OpenCV world-to-camera R, t)."""
-
-
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"cameras file not found: {path} (run the pose stage first)")
-    try:
-        doc = json.loads(path.read_text())
-        intr = Intrinsics.from_dict(doc["intrinsics"])
-        frames = doc["keyframes"]
-        indices = [int(f["frame_index"]) for f in frames]
-        R = np.array([f["R"] for f in frames], float).reshape(-1, 3, 3)
-        t = np.array([f["t"] for f in frames], float).reshape(-1, 3)
-    except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"{path} is not a facecap cameras.json ({type(exc).__name__}: "
-                         f"{exc}); expected intrinsics and keyframes with frame_index, R, t; "
-                         "rerun the pose stage") from None
-    if not indices:
-        raise InputError(f"{path} lists no keyframes")
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-        raise InputError(f"{path} holds non-finite camera poses")
-    return CameraSet(intr, indices, R, t, doc)

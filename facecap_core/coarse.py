@@ -44,7 +44,7 @@ import numpy as np
 import trimesh
 from pydantic import Field
 
-from facecap_core.camera import CAMERAS_JSON, read_cameras_json
+from facecap_core.camera import CAMERAS_JSON
 from facecap_core.config import MAX_LEVELS, StrictModel
 from facecap_core.errors import InputError
 from facecap_core.geometry import robust_similarity
@@ -57,6 +57,7 @@ from facecap_core.landmarks.stage import (
     load_landmarks3d,
 )
 from facecap_core.nonrigid.nicp import NicpConfig, fit
+from facecap_core.pose.cameras_json import Cameras, keyframe_poses
 from facecap_core.stage import Folders, Stage
 from facecap_core.template import INNER_LANDMARKS, Template
 
@@ -374,7 +375,8 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     if len(ear_ids) and ear_ids.max() >= len(template.vertices):
         raise InputError(f"ears3d.json names vertex {ear_ids.max()} of a "
                          f"{len(template.vertices)}-vertex template")
-    cams = read_cameras_json(cameras_json)
+    cameras = Cameras.read(cameras_json)
+    cams = cameras.camera_set()
 
     scale_doc = metric_scale(template, L, ear_ids, ear_pts, ear_sides, config,
                              landmarks_doc.get("irises"))
@@ -398,12 +400,10 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     tmp.write_bytes(trimesh.exchange.ply.export_ply(
         trimesh.Trimesh(V, template.faces, process=False), encoding="binary"))
     tmp.replace(ply)
-    cam_doc = dict(cams.doc)
-    cam_doc["units"] = "mm"
-    cam_doc["metric_scale"] = m
-    cam_doc["keyframes"] = [{**k, "t": (np.asarray(k["t"], float) * m).tolist()}
-                            for k in cams.doc["keyframes"]]
-    _write(out / CAMERAS_JSON, cam_doc)
+    cameras.model_copy(update={
+        "units": "mm", "metric_scale": m,
+        "keyframes": keyframe_poses(cams.frame_indices, cams.R, cams.t * m)}).write(
+        out / CAMERAS_JSON)
     _write(out / LANDMARKS_3D, {
         "convention": "ibug68", "units": "mm", "template": template.name,
         "from_coarse_mesh": np.flatnonzero(missing).tolist(),
@@ -451,7 +451,7 @@ def figures(folder: str | Path) -> dict:
     and the angular coverage of the landmarks."""
     folder, fig = Path(folder), {}
     if (folder / CAMERAS_JSON).is_file():
-        fig["metric_scale"] = json.loads((folder / CAMERAS_JSON).read_text()).get("metric_scale")
+        fig["metric_scale"] = Cameras.read(folder / CAMERAS_JSON).metric_scale
     if (folder / COARSE_JSON).is_file():
         doc = json.loads((folder / COARSE_JSON).read_text())
         scale = doc["scale"]

@@ -18,8 +18,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facecap_core.camera import CAMERAS_JSON, read_cameras_json
+from facecap_core.camera import CAMERAS_JSON
 from facecap_core.errors import InputError
+from facecap_core.pose.cameras_json import read_cameras_json
 from facecap_core.stage import Folders, Stage, capture_in
 from facecap_core.video import iter_frames
 

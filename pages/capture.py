@@ -14,7 +14,6 @@ vendored in ``pages/viewer`` (MIT, ``pages/viewer/LICENSE-three.txt``; rebuilt b
 from __future__ import annotations
 
 import base64
-import json
 from importlib import resources
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from facecap.pages.render import render
 from facecap.pages.scan import stored_scan
 from facecap.tasks.graph import is_keyframe_row
 from facecap_core.frames import frame_name
+from facecap_core.pose.cameras_json import Cameras
 
 GLB_NAME = "mesh.glb"
 HEAT_MAX_MM = 5.0
@@ -96,13 +96,13 @@ def _cameras(cameras_json: Path, centre: np.ndarray, frames: Path | None = None
     """Frusta (line segments, mm) of the keyframe cameras with their centres and images (a
     click on a camera shows what it saw), and the direction and up vector from which they saw
     the head (the viewer starts there)."""
-    doc = json.loads(cameras_json.read_text())
-    intr, keyframes = doc["intrinsics"], doc["keyframes"]
-    rotations = np.array([k["R"] for k in keyframes], float)
-    centres = np.array([-np.asarray(k["R"]).T @ np.asarray(k["t"]) for k in keyframes], float)
+    cams = Cameras.read(cameras_json)
+    intr, keyframes = cams.intrinsics, cams.keyframes
+    rotations = np.array([k.R for k in keyframes], float)
+    centres = np.array([-np.asarray(k.R).T @ np.asarray(k.t) for k in keyframes], float)
     depth = 0.15 * float(np.median(np.linalg.norm(centres - centre, axis=1)))
-    w, h, fx, fy = intr["width"], intr["height"], intr["fx"], intr["fy"]
-    cx, cy = intr["cx"], intr["cy"]
+    w, h, fx, fy = intr.width, intr.height, intr.fx, intr.fy
+    cx, cy = intr.cx, intr.cy
     corners = np.array([[(u - cx) / fx, (v - cy) / fy, 1.0]
                         for u, v in ((0, 0), (w, 0), (w, h), (0, h))]) * depth
     lines = []
@@ -115,8 +115,8 @@ def _cameras(cameras_json: Path, centre: np.ndarray, frames: Path | None = None
     data = {"lines": _b64(np.asarray(lines, np.float32)), "count": len(keyframes),
             "distance": float(np.median(np.linalg.norm(centres - centre, axis=1))),
             "centres": _b64(centres.astype(np.float32)),
-            "frames": [int(k["frame_index"]) for k in keyframes],
-            "images": [_keyframe_image(frames, k["frame_index"]) for k in keyframes]}
+            "frames": [k.frame_index for k in keyframes],
+            "images": [_keyframe_image(frames, k.frame_index) for k in keyframes]}
     return data, direction.tolist(), up.tolist()
 
 

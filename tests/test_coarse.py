@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 
 from facecap_core import coarse
-from facecap_core.camera import read_cameras_json, rotation_matrix
+from facecap_core.camera import rotation_matrix
 from facecap_core.coarse import CoarseConfig
 from facecap_core.errors import InputError
 from facecap_core.evaluation import distances
 from facecap_core.meshio import load_landmarks, load_mesh
+from facecap_core.pose.cameras_json import read_cameras_json
 from facecap_core.template import INNER_LANDMARKS, Template
 
 
@@ -158,7 +159,7 @@ def test_coarse_stage_writes_a_metric_mesh_on_the_landmarks(template, subject, t
     # The prior's error is this identity's size against the average face (a few %).
     assert m == pytest.approx(mm_per_unit, rel=0.08)
     out_cams = read_cameras_json(tmp_path / "coarse" / "cameras.json")
-    assert out_cams.units == "mm" and out_cams.doc["metric_scale"] == m
+    assert out_cams.units == "mm" and out_cams.metric_scale == m
     assert np.allclose(out_cams.t[0], [0, 0, 400.0 / mm_per_unit * m])
     lm = load_landmarks(tmp_path / "coarse" / "landmarks3d.json")  # all 68 finite
     # The file holds mm rounded to 6 decimals (±5e-7 mm): an absolute tolerance, since

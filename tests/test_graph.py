@@ -30,6 +30,7 @@ from facecap.tasks.graph import (
 from facecap.tasks.store import artifact_key
 from facecap_core.config import KEY_NEUTRAL, StrictModel
 from facecap_core.pipeline import PipelineConfig, section_model
+from facecap_core.pose.cameras_json import CameraIntrinsics, Cameras, keyframe_poses
 from facecap_core.pose.stage import PoseConfig
 
 AFTER_COARSE = {"views", "depth", "fusion", "fitting", "evaluation"}
@@ -311,7 +312,11 @@ def test_what_the_flows_and_tasks_know_of_a_stage_is_in_its_row(tmp_path):
     key = artifact_key("coarse", {}, {}, "1")
     scale = {"metric_scale": 90.9, "sigma_pct": 4.0, "used": ["landmarks", "iris"],
              "dropped": []}
-    store.put(key, {"cameras.json": json.dumps({"metric_scale": 90.9}).encode(),
+    identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    cameras = Cameras(units="mm", metric_scale=90.9, intrinsics=CameraIntrinsics(
+        width=640, height=360, fx=500.0, fy=500.0, cx=320.0, cy=180.0),
+                      keyframes=keyframe_poses([0], [identity], [[0.0, 0.0, 1.0]]))
+    store.put(key, {"cameras.json": cameras.to_json().encode(),
                     "coarse.json": json.dumps({"scale": scale}).encode()},
               stage="coarse", inputs={}, config={}, version="1")
     assert _headline(BY_NAME["coarse"], str(tmp_path / "store"), key) == (

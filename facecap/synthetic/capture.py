@@ -40,6 +40,13 @@ from facecap_core.camera import (
 from facecap_core.config import dump_yaml
 from facecap_core.errors import InputError
 from facecap_core.meshio import save_landmarks
+from facecap_core.pose.cameras_json import (
+    CONVENTION,
+    CameraIntrinsics,
+    Cameras,
+    KeyframePose,
+    WorldFromGt,
+)
 from facecap_core.render import (
     Hits,
 )
@@ -351,15 +358,13 @@ def write_gt_keyframe_cameras(gt_cameras: str | Path, out_path: str | Path,
             continue
         # x_cam' = scale * x_cam = R Q^T (x' - d) + scale * t
         R = p["R"] @ Q.T
-        keyframes.append({"frame_index": i, "R": R.tolist(),
-                          "t": (scale * p["t"] - R @ d).tolist()})
-    doc = {"convention": "world-to-camera x_cam = R x_world + t (OpenCV); pixel centres at "
-                         "integer coordinates; distortion RADIAL (k1, k2) on normalised "
-                         "coordinates",
-           "units": "arbitrary (ground truth in a transformed world)",
-           "intrinsics": intr.to_dict(), "keyframes": keyframes,
-           "world_from_gt": {"scale": scale, "rotation": Q.tolist(), "translation": d.tolist()}}
+        keyframes.append(KeyframePose(frame_index=i, R=R.tolist(),
+                                      t=(scale * p["t"] - R @ d).tolist()))
+    cameras = Cameras(convention=CONVENTION,
+                      units="arbitrary (ground truth in a transformed world)",
+                      intrinsics=CameraIntrinsics(**intr.to_dict()), keyframes=keyframes,
+                      world_from_gt=WorldFromGt(scale=scale, rotation=Q.tolist(),
+                                                translation=d.tolist()))
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1))
-    return out
+    return cameras.write(out)

@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facecap_core.camera import CAMERAS_JSON, read_cameras_json
+from facecap_core.camera import CAMERAS_JSON
 from facecap_core.errors import InputError
 from facecap_core.fitting.run import FIT_JSON, MESH_LANDMARKS, MESH_OBJ, MESH_PLY, fit_and_write
 from facecap_core.fitting.settings import FittingConfig
@@ -25,6 +25,7 @@ from facecap_core.landmarks.stage import EARS_3D, LANDMARKS_3D
 from facecap_core.meshio import load_landmarks
 from facecap_core.mvs.fusion import CLOUD
 from facecap_core.nonrigid.constraints import FIT_THREADS, Keyframe
+from facecap_core.pose.cameras_json import read_cameras_json
 from facecap_core.stage import Folders, Stage
 from facecap_core.template import Template
 from facecap_core.texture import MESH_GLB, MESH_MTL, TEXTURE_PNG

@@ -50,7 +50,6 @@ from facecap_core.camera import (
     CameraSet,
     Intrinsics,
     camera_center,
-    read_cameras_json,
 )
 from facecap_core.errors import InputError
 from facecap_core.face import DETECTOR, MESH_TO_68_FILE, Detection, detect
@@ -65,6 +64,7 @@ from facecap_core.landmarks.convention import (
 )
 from facecap_core.landmarks.ear_check import check_ears
 from facecap_core.landmarks.triangulate import Triangulation, box_size, triangulate
+from facecap_core.pose.cameras_json import read_cameras_json
 from facecap_core.pose.checks import CameraSolveError, face_problem
 from facecap_core.stage import Folders, Stage, capture_in
 from facecap_core.template import INNER_LANDMARKS

@@ -14,9 +14,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facecap_core.camera import CameraSet, Intrinsics, camera_center, read_cameras_json
+from facecap_core.camera import CameraSet, Intrinsics, camera_center
 from facecap_core.errors import InputError
 from facecap_core.frames import frame_name, load_frame
+from facecap_core.pose.cameras_json import read_cameras_json
 
 
 @dataclass

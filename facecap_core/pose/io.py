@@ -3,32 +3,38 @@ text model that COLMAP's GUI opens (written by pycolmap)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
+from facecap_core.pose.cameras_json import (
+    CONVENTION,
+    CameraIntrinsics,
+    Cameras,
+    DroppedKeyframe,
+    SolveFigures,
+    keyframe_poses,
+)
 from facecap_core.pose.colmap_sfm import Poses
 
 # Imported where used: pycolmap only where a COLMAP model is written.
 
 
 def write_cameras_json(poses: Poses, path: str | Path, **meta) -> Path:
-    path = Path(path)
-    doc = {
-        "convention": "world-to-camera x_cam = R x_world + t (OpenCV); pixel centres at "
-                      "integer coordinates; distortion RADIAL (k1, k2) on normalised coordinates",
-        "units": "arbitrary (monocular); the metric scale comes with the landmark stage",
-        "intrinsics": {k: float(v) if not isinstance(v, int) else v
-                       for k, v in poses.intrinsics.to_dict().items()},
-        "keyframes": [{"frame_index": int(i), "R": np.asarray(R).tolist(),
-                       "t": np.asarray(t).tolist()}
-                      for i, R, t in zip(poses.frame_indices, poses.R, poses.t)],
-        **meta,
-    }
-    path.write_text(json.dumps(doc, indent=1))
-    return path
+    """``cameras.json`` of ``poses`` in the pose stage's units; ``meta``: the other fields
+    of :class:`Cameras` the stage fills in (seconds, method, dropped, solve, ...)."""
+    if meta.get("dropped") is not None:
+        meta["dropped"] = [DroppedKeyframe(**d) for d in meta["dropped"]]
+    if meta.get("solve") is not None:
+        meta["solve"] = SolveFigures.model_validate(meta["solve"])
+    cameras = Cameras(
+        convention=CONVENTION,
+        units="arbitrary (monocular); the metric scale comes with the landmark stage",
+        intrinsics=CameraIntrinsics(**{k: float(v) if not isinstance(v, int) else v
+                                       for k, v in poses.intrinsics.to_dict().items()}),
+        keyframes=keyframe_poses(poses.frame_indices, poses.R, poses.t), **meta)
+    return cameras.write(path)
 
 
 def colmap_reconstruction(poses: Poses, names: list[str] | None = None):

@@ -11,7 +11,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import tempfile
 import time
@@ -26,6 +25,7 @@ from facecap_core.config import StrictModel
 from facecap_core.errors import FacecapError, InputError
 from facecap_core.keyframes import KEYFRAMES_JSON, Keyframes, load_keyframes
 from facecap_core.photos import list_photos
+from facecap_core.pose.cameras_json import Cameras
 from facecap_core.pose.checks import (
     NOMINAL_HFOV_DEG,
     CameraSolveError,
@@ -346,9 +346,10 @@ def figures(folder: str | Path) -> dict:
     path = Path(folder) / CAMERAS_JSON
     if not path.is_file():
         return {}
-    doc = json.loads(path.read_text())
-    return {"keyframes": len(doc["keyframes"]), "focal_px": round(doc["intrinsics"]["fx"], 2),
-            "dropped_keyframes": doc.get("dropped", []), "solve": doc.get("solve", {})}
+    cams = Cameras.read(path)
+    return {"keyframes": len(cams.keyframes), "focal_px": round(cams.intrinsics.fx, 2),
+            "dropped_keyframes": [d.model_dump() for d in cams.dropped or []],
+            "solve": cams.solve.model_dump(exclude_unset=True) if cams.solve else {}}
 
 
 def run(inputs: Folders, out: Path, config: PoseConfig, params: dict) -> None:

@@ -105,7 +105,7 @@ def test_ears_are_triangulated_from_projected_points():
     box = (500.0, 250.0, 620.0, 420.0)
     found = {"left": [(k, uv_left[k], 0.9, box) for k in range(8)],
              "right": [(8 + k, uv_right[k], 0.9, box) for k in range(2)]}
-    cams = CameraSet(INTR, list(range(10)), R, t, {"units": "mm"})
+    cams = CameraSet(INTR, list(range(10)), R, t, "mm")
     ids = {"left": np.arange(100, 112), "right": np.arange(200, 212)}
     doc = triangulate_ears(found, cams, ids, LandmarkConfig(ear_min_views=3))
     assert doc["vertex_ids"] == list(range(100, 112)) and doc["sides"] == ["left"] * 12
@@ -333,7 +333,7 @@ def test_irises_unmeasured_say_why():
     from facecap_core.landmarks import iris
 
     R, t = _ring_cameras([-10, 0, 10])
-    cams = CameraSet(INTR, [0, 1, 2], R, t, {"units": "arbitrary"})
+    cams = CameraSet(INTR, [0, 1, 2], R, t, "arbitrary")
     records = [{"yaw_deg": y} for y in (-10, 0, 10)]
     dets = [None, None, None]
     doc = iris.triangulate_irises(dets, records, [], cams, np.eye(3),
