@@ -853,3 +853,108 @@ def test_the_scan_is_moved_onto_the_mesh(results, tmp_path):
     few, few_faces = thinned(vertices, faces, 1000)
     assert len(few_faces) <= 1000 and np.ptp(few, axis=0) == pytest.approx(np.ptp(head, axis=0),
                                                                             rel=0.05)
+
+
+CHECKER = ((200, 40, 200), (40, 200, 80))
+"""The textured sphere's two colours (magenta, green): neither is the heat map's red."""
+
+
+def _seam_split_sphere(folder: Path) -> tuple[trimesh.Trimesh, object]:
+    """A head-sized sphere as the fitting stage writes it: ``mesh.ply`` and a textured
+    ``mesh.glb`` (a checker atlas) split at a UV seam down the middle of its front (x = 0,
+    z > 0, where the page's view looks), the seam copies after the sphere's vertices."""
+    from facecap_core.texture import UVLayout, glb_bytes
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=80.0)
+    x, y, z = sphere.vertices.T
+    u = np.arctan2(x, -z) / (2 * np.pi) + 0.5  # 0 and 1 at the front's middle
+    v = np.arccos(np.clip(-y / 80.0, -1, 1)) / np.pi
+    faces = sphere.faces.copy()
+    copies: dict[int, int] = {}
+    for f in np.flatnonzero(np.ptp(u[faces], axis=1) > 0.5):  # across the seam
+        for k in range(3):
+            if u[faces[f, k]] < 0.5:  # this corner's copy lies past u = 1
+                faces[f, k] = copies.setdefault(int(faces[f, k]), len(u) + len(copies))
+    vertex = np.r_[np.arange(len(u)), list(copies)]
+    uv = np.c_[np.r_[u, u[list(copies)] + 1.0] / 1.1, v[vertex]]
+    layout = UVLayout(uv=uv, vertex=vertex, faces=faces)
+    cells = (np.add.outer(np.arange(256) // 32, np.arange(256) // 32) % 2).astype(bool)
+    atlas = np.where(cells[..., None], CHECKER[0], CHECKER[1]).astype(np.uint8)
+    sphere.export(folder / "mesh.ply")
+    (folder / "mesh.glb").write_bytes(glb_bytes(sphere.vertices, sphere.faces, layout, atlas))
+    return sphere, layout
+
+
+def _on_screen(page, corners, weights) -> tuple[float, float]:
+    """The page's point at those weights of the glTF vertices ``corners`` on the screen."""
+    box = page.locator("#canvas").bounding_box()
+    at = np.array([page.evaluate(f"window.facecap.vertexOnScreen({int(i)})") for i in corners])
+    x, y = np.asarray(weights) @ at
+    return box["x"] + x, box["y"] + y
+
+
+def test_a_textured_mesh_split_at_its_seams_shows_its_texture_heat_map_and_measures(tmp_path):
+    """The fitting stage's mesh.glb (split at its UV seams, the copies named in its extras):
+    Colour shows its texture; Accuracy (one value per mesh vertex) colours the seam copies'
+    triangles as the others', without a console error; a click on a copy's triangle picks
+    its mesh vertex, and the path along the surface crosses the seam."""
+    from tests.browser import chromium
+
+    sphere, layout = _seam_split_sphere(tmp_path)
+    n = len(sphere.vertices)
+    page_file = tmp_path / "index.html"
+    page_file.write_bytes(build_page(REPORT, {"mesh.ply": tmp_path / "mesh.ply"},
+                                     mesh_glb(tmp_path / "mesh.ply"), np.full(n, 5.0)))
+    # A copy near the view's middle, one of its triangles, and one of the sphere's own
+    # triangles away from the seam.
+    copy = n + int(np.argmax(sphere.vertices[layout.vertex[n:], 2]
+                             - np.abs(sphere.vertices[layout.vertex[n:], 1])))
+    copy_face = layout.faces[np.flatnonzero((layout.faces == copy).any(axis=1))[0]]
+    copy_face = np.r_[copy, [i for i in copy_face if i != copy]]
+    centres = sphere.vertices[sphere.faces].mean(axis=1)
+    own = (layout.faces < n).all(axis=1) & (np.abs(centres[:, 0] - 25.0) < 5) \
+        & (np.abs(centres[:, 1]) < 10) & (centres[:, 2] > 0)
+    own_face = layout.faces[np.flatnonzero(own)[0]]
+    with chromium() as browser:
+        page = browser.new_page(viewport={"width": 1100, "height": 700})
+        errors = []
+        # A draw WebGL refuses (an attribute shorter than the vertices) is only a warning.
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error"
+                or "INVALID" in m.text else None)
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(page_file.as_uri())
+        page.wait_for_function("window.facecap && window.facecap.ready", timeout=60_000)
+        box = page.locator("#canvas").bounding_box()
+
+        def patch(shot, point) -> np.ndarray:
+            x, y = int(point[0] - box["x"]), int(point[1] - box["y"])
+            return shot[y - 2: y + 3, x - 2: x + 3].reshape(-1, 3).mean(axis=0)
+
+        at_copy = _on_screen(page, copy_face, [0.6, 0.2, 0.2])
+        at_own = _on_screen(page, own_face, [1 / 3, 1 / 3, 1 / 3])
+        colour = _shot(page)
+        h, w = colour.shape[:2]
+        middle = colour[h // 4: 3 * h // 4, w // 4: 3 * w // 4].reshape(-1, 3)
+        r, g, b = middle.T
+        magenta = ((r > g + 60) & (b > g + 60)).mean()
+        green = ((g > r + 60) & (g > b + 40)).mean()
+        assert magenta > 0.1 and green > 0.1, (magenta, green)  # the checker, both colours
+        page.screenshot(path=str(SHOTS / "textured-colour.png"))
+
+        page.click("[data-mode=accuracy]")
+        heat = _shot(page)
+        for point in (at_copy, at_own):
+            r, g, b = patch(heat, point)
+            assert r > g + 40 and r > b + 40, (point, r, g, b)  # 5 mm: the heat map's red
+        page.screenshot(path=str(SHOTS / "textured-accuracy.png"))
+
+        page.click("#measure-button")
+        page.mouse.click(*at_copy)
+        page.wait_for_timeout(100)
+        assert page.evaluate("window.facecap.picked") == [int(layout.vertex[copy])]
+        page.mouse.click(*at_own)
+        page.wait_for_timeout(100)
+        m = page.evaluate("window.facecap.measurement")
+        assert m["a"] == layout.vertex[copy] and m["b"] in own_face
+        assert m["straight"] <= m["surface"] < 1.05 * m["straight"], m  # across the seam
+    assert errors == []

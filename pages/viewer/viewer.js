@@ -10,7 +10,10 @@
 // mesh (each snapped to the nearest vertex of the triangle hit) give their distance straight
 // and along the surface (the path of facecap_core/measure.py: a Steiner-point graph searched
 // by A*, then straightened along its edges), ± the metric scale's 1σ; the presets measure
-// between two landmarks.
+// between two landmarks. A textured mesh.glb is split at its UV seams: the mesh's own
+// vertices first, then copies of seam vertices (its userData: template_vertices,
+// seam_vertex); what is indexed by mesh vertex (the heat map, the measured vertices) is
+// spread onto the copies, and a copy clicked is its mesh vertex.
 (function () {
   "use strict";
   const data = JSON.parse(document.getElementById("facecap-data").textContent);
@@ -68,9 +71,13 @@
   }
 
   let mesh = null, colours = null;
+  // The mesh vertex of each glTF vertex (the identity but for seam copies), and how many
+  // mesh vertices there are: the heat map and the measured vertices count in those.
+  let meshVertex = null, meshVertices = 0;
   // Both sides drawn: the fitted mesh is open (the neck, behind the ears), and its inside,
   // seen through an opening or from behind, is part of what a user turns to look at.
   const materials = {
+    // Replaced by the glTF's own material when that has a texture (the fitting stage's atlas).
     colour: new THREE.MeshStandardMaterial({vertexColors: true, roughness: 0.8,
                                             side: THREE.DoubleSide}),
     plain: new THREE.MeshStandardMaterial({color: 0xb8b8b8, roughness: 0.7,  // grey: the shape
@@ -83,7 +90,7 @@
   function setMode(mode) {
     if (!mesh || !(mode in materials) || (mode === "accuracy" && !data.accuracy)) return false;
     const attribute = mode === "accuracy" ? "heat" : "original";
-    if (mode !== "plain") mesh.geometry.setAttribute("color", colours[attribute]);
+    if (materials[mode].vertexColors) mesh.geometry.setAttribute("color", colours[attribute]);
     mesh.material = materials[mode];
     document.getElementById("colourbar").hidden = mode !== "accuracy";
     for (const button of document.querySelectorAll("[data-mode]"))
@@ -161,10 +168,13 @@
   const STEINER = 3, SWEEPS = 400, GOLDEN_STEPS = 30, GOLDEN = (Math.sqrt(5) - 1) / 2;
   let topology = null;
   function buildTopology() {
-    const geometry = mesh.geometry;
-    const position = geometry.getAttribute("position").array;
-    const V = position.length / 3;
-    const index = geometry.index ? geometry.index.array : Uint32Array.from({length: V}, (_, i) => i);
+    // Over the mesh's own vertices: a seam copy's triangles join its mesh vertex's, so that
+    // a path crosses the seams.
+    const geometry = mesh.geometry, V = meshVertices;
+    const position = geometry.getAttribute("position").array.subarray(0, 3 * V);
+    const drawn = geometry.index ? geometry.index.array
+      : Uint32Array.from({length: meshVertex.length}, (_, i) => i);
+    const index = Uint32Array.from(drawn, (i) => meshVertex[i]);
     const F = index.length / 3;
     const edgeOf = new Map(), edges = [], edgeFaceList = [];
     const faceEdges = new Int32Array(3 * F);
@@ -409,8 +419,8 @@
   function showPreset(key) {
     const preset = data.measure.presets.find((p) => p.key === key);
     if (!preset) return null;
-    const count = mesh.geometry.getAttribute("position").count;
-    if (!preset.vertices.every((v) => Number.isInteger(v) && v >= 0 && v < count)) return null;
+    if (!preset.vertices.every((v) => Number.isInteger(v) && v >= 0 && v < meshVertices))
+      return null;
     if (!state.measuring) setMeasuring(true);
     const mm = (d) => (d && typeof d.mm === "number" ? d.mm : NaN);
     return measureVertices(preset.vertices[0], preset.vertices[1], preset.name,
@@ -432,6 +442,7 @@
       const d = v.fromBufferAttribute(position, i).distanceTo(hit.point);
       if (d < nearest) { nearest = d; best = i; }
     }
+    best = meshVertex[best];  // a seam copy is its mesh vertex
     if (picked.length === 2) picked.length = 0;
     picked.push(best);
     state.picked = [...picked];
@@ -552,14 +563,51 @@
     controls.update();
   }
 
+  function seamCopies(count) {
+    // meshVertex from the glTF's userData (on the mesh, its geometry or a parent), the
+    // identity where it has none (a mesh without seams) or where it does not fit.
+    let found = {};
+    for (let o = mesh; o; o = o.parent)
+      if ("seam_vertex" in o.userData) { found = o.userData; break; }
+    if ("seam_vertex" in mesh.geometry.userData) found = mesh.geometry.userData;
+    const seam = Array.isArray(found.seam_vertex) ? found.seam_vertex : [];
+    const n = Number.isInteger(found.template_vertices) ? found.template_vertices : count;
+    const fits = n + seam.length === count &&
+      seam.every((v) => Number.isInteger(v) && v >= 0 && v < n);
+    meshVertices = fits ? n : count;
+    meshVertex = new Uint32Array(count);
+    for (let i = 0; i < count; i++) meshVertex[i] = fits && i >= n ? seam[i - n] : i;
+  }
+
+  function spread(values, size) {
+    // Per-mesh-vertex values (``size`` each) onto the glTF's vertices; null if they are not
+    // one per mesh vertex.
+    if (values.length !== size * meshVertices) return null;
+    const out = new values.constructor(size * meshVertex.length);
+    for (let i = 0; i < meshVertex.length; i++)
+      for (let c = 0; c < size; c++) out[size * i + c] = values[size * meshVertex[i] + c];
+    return out;
+  }
+
   new THREE.GLTFLoader().parse(bytes(data.mesh_glb).buffer, "", (gltf) => {
     gltf.scene.traverse((object) => { if (object.isMesh && !mesh) mesh = object; });
     const geometry = mesh.geometry;
-    geometry.computeVertexNormals();
+    // The glTF's normals are the unsplit mesh's (smooth across the seams); recomputed here
+    // they would part along them.
+    if (!geometry.getAttribute("normal")) geometry.computeVertexNormals();
     const count = geometry.getAttribute("position").count;
+    seamCopies(count);
+    if (mesh.material.map) {  // its own texture in Colour
+      materials.colour = mesh.material;
+      materials.colour.side = THREE.DoubleSide;
+    }
     colours = {original: geometry.getAttribute("color") ||
                new THREE.BufferAttribute(new Float32Array(count * 3).fill(0.8), 3)};
-    if (data.accuracy) colours.heat = new THREE.BufferAttribute(buffer(data.accuracy.colours, Uint8Array), 3, true);
+    if (data.accuracy) {
+      const heat = spread(buffer(data.accuracy.colours, Uint8Array), 3);
+      if (heat) colours.heat = new THREE.BufferAttribute(heat, 3, true);
+      else delete data.accuracy;  // not this mesh's: no heat map rather than a broken draw
+    }
     // The mesh alone, in world coordinates (mm), as the cameras and the cloud are.
     mesh.removeFromParent();
     mesh.position.set(0, 0, 0);
