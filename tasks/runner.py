@@ -13,6 +13,8 @@ atomic step.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import errno
 import fcntl
 import os
@@ -240,7 +242,28 @@ def run_stage(store_url: str, stage: Stage, inputs: dict[str, str], config: Base
                       version=stage.full_version(), meta={**meta, **(params or {})})
         finally:
             shutil.rmtree(work, ignore_errors=True)
+            release_freed_memory()
     return key, True
+
+
+def _libc_malloc_trim():
+    """glibc's ``malloc_trim``, or None (another C library, another system)."""
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+_MALLOC_TRIM = _libc_malloc_trim()
+
+
+def release_freed_memory() -> None:
+    """Give the heap's free pages back to the system. The stages run one after another in
+    one process, and glibc keeps what a stage's arrays freed, so the next stage's peak stacks
+    on it: 330 MB still held after the fusion stage of a 640x360 capture (docs/benchmarks.md).
+    Freed memory only: no array changes."""
+    if _MALLOC_TRIM is not None:
+        _MALLOC_TRIM(0)
 
 
 _FAULT_COUNTS: dict[str, int] = {}
