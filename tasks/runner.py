@@ -259,9 +259,9 @@ _MALLOC_TRIM = _libc_malloc_trim()
 
 def release_freed_memory() -> None:
     """Give the heap's free pages back to the system. The stages run one after another in
-    one process, and glibc keeps what a stage's arrays freed, so the next stage's peak stacks
-    on it: 330 MB still held after the fusion stage of a 640x360 capture (docs/benchmarks.md).
-    Freed memory only: no array changes."""
+    one process, and glibc keeps what a stage's arrays freed: 330 MB still resident after the
+    fusion stage of a 640x360 capture, held by the process between stages
+    (docs/benchmarks.md). Freed memory only: no array changes."""
     if _MALLOC_TRIM is not None:
         _MALLOC_TRIM(0)
 
