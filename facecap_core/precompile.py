@@ -68,6 +68,8 @@ def _search_depth_signature() -> tuple:
 
 def kernels() -> list[tuple[str, object, tuple]]:
     """(name, dispatcher, signature) of every kernel the pipeline calls from Python."""
+    # Imported when asked for: each stage module loads numba and compiles nothing until
+    # called, but the command line's --help must not load the stages.
     from facecap_core.mvs import patchmatch
     from facecap_core.nonrigid import constraints
     from facecap_core.pose.pba import kernels as pba_kernels

@@ -189,7 +189,7 @@ def rasterise_uv(layout: UVLayout, size: int) -> Texels:
     """The texels whose centre lies in a UV triangle (a ray cast onto the flat atlas), and
     those within 0.75 texel of one (their closest point on it), so bilinear sampling at a
     chart's border reads the surface's colour."""
-    import open3d as o3d
+    import open3d as o3d  # heavy (a second to load): only a mesh with an atlas bakes one
 
     flat = np.c_[layout.uv[:, 0] * size - 0.5, (1.0 - layout.uv[:, 1]) * size - 0.5,
                  np.zeros(len(layout.uv))]
@@ -435,6 +435,7 @@ def glb_bytes(vertices: np.ndarray, faces: np.ndarray, layout: UVLayout, atlas: 
     each copy is: ``template_vertices`` (N) and ``seam_vertex`` (the mesh vertex of each
     glTF vertex from N on), so per-vertex data of the mesh (a heat map) can be spread onto
     the glTF's vertices."""
+    # Loaded only when a GLB is written: trimesh's exporters and PIL take a second to import.
     import trimesh
     from PIL import Image
 

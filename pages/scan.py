@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from facecap.tasks.store import open_store
 from facecap_core.evaluation.alignment import align
 from facecap_core.evaluation.stage import find_file
 from facecap_core.fitting.run import MESH_LANDMARKS, MESH_PLY
@@ -59,7 +60,6 @@ def stored_scan(report: dict) -> tuple[np.ndarray, np.ndarray] | None:
     through its evaluation artifact in the run's store (``report["store"]``); None for a run
     without a scan, or where the store no longer holds it or the alignment fails (the page
     is still worth having without it)."""
-    from facecap.tasks.store import open_store
 
     key = (report.get("stages", {}).get("evaluation") or {}).get("key")
     if not report.get("store") or not key:

@@ -40,6 +40,8 @@ LAYERS = (
     ("facecap_core.baselines", 8),
     # The pipeline: the stages' rows in order and their settings assembled.
     ("facecap_core.pipeline", 9),
+    # The kernels compiled at install: it names every stage's numba kernel.
+    ("facecap_core.precompile", 9),
     # Above the science: the tasks over the store, the flows, their deployments.
     ("tasks", 10),
     # The results pages and the server of their links: over the tasks' store, under the
