@@ -55,12 +55,17 @@ def config_data(config: BaseModel | dict | None, key_neutral: Iterable[str] = ()
 
 
 def _with_defaults(data: dict, defaults: dict, names: list[list[str]]) -> dict:
-    """``data`` with the settings at ``names`` (each a path of keys) as in ``defaults``."""
+    """``data`` with the settings at ``names`` (each a path of keys) as in ``defaults``; a
+    name the settings lack is none of theirs (another model given for the stage's)."""
     for *parents, name in names:
         node, default = data, defaults
         for part in parents:
-            node, default = node[part], default[part]
-        node[name] = default[name]
+            node, default = node.get(part), default.get(part)
+            if not isinstance(node, dict):
+                break
+        else:
+            if name in node:
+                node[name] = default[name]
     return data
 
 

@@ -71,6 +71,7 @@ VALUES = {
     "keyframes.min_keyframes": 100,
     "keyframes.min_shared_tracks": 5000,
     "keyframes.angle_slack": 0.9,
+    "poses.min_registered": 100,
     # Thresholds this capture's views and points are well inside of: stricter ones.
     "landmarks.min_detector_score": 0.99,
     "landmarks.gate_max_yaw_deg": 5.0,
@@ -109,6 +110,8 @@ NOT_ON_THIS_CAPTURE = {
     "coarse.ipd_ratio": "the scale from a given IPD uses it where the capture's pupils are not "
                         "measured; this capture's are",
     "coarse.ipd_spread": "as coarse.ipd_ratio",
+    "poses.min_registered_fraction": "refuses a capture of which too few keyframes register; "
+                                     "all of this capture's do",
 }
 """Fields that act only on a capture unlike this one, and why (run each where it acts)."""
 

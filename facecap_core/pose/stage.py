@@ -73,7 +73,8 @@ class PoseConfig(StrictModel):
     extraction_threads: int = Field(2, ge=1, le=256)
     """Threads for SfM's SIFT extraction (one image each): an image's features do not
     depend on them (the same keypoints from 1 and 2 threads), so they cost no
-    reproducibility; two halve the extraction, a third of SfM's time at 720p."""
+    reproducibility; two halve the extraction, a third of SfM's time at 720p. The row lists it
+    as key-neutral: a changed value reuses the stored cameras."""
 
 
 POINTS = "points.ply"
@@ -360,4 +361,6 @@ STAGE = Stage("poses", version="5", inputs=("video", "keyframes"),
               work_seconds=106.8,
               section="poses", run=run, outputs=(CAMERAS_JSON, SPARSE, *COLMAP_MODEL),
               optional_outputs=(POINTS,),
-              exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=figures)
+              exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=figures,
+              key_neutral={"extraction_threads": "an image's SIFT features do not depend on "
+                           "the threads that extract them: the same cameras from 1, 2 or 3"})
