@@ -273,20 +273,27 @@ def _view_samples(kf, depth: np.ndarray, small: Intrinsics, points: np.ndarray,
     return ids, cos[ids], _bilinear(kf.image, uv)
 
 
-def _exposure_gains(samples: list, sharp_rel: np.ndarray, n_texels: int, rounds: int = 4,
-                    stride: int = 4) -> np.ndarray:
+GAIN_STRIDE = 4
+"""Every this-many-th texel is enough for the exposure gains' K × 3 numbers."""
+
+
+def _gain_samples(sample: tuple, sharpness: float, stride: int = GAIN_STRIDE) -> tuple:
+    """What :func:`_exposure_gains` needs of one view's samples: those of every
+    ``stride``-th texel (its index over ``stride``, its blend score, its log colour)."""
+    ids, cos, colour = sample
+    keep = ids % stride == 0
+    return ids[keep] // stride, cos[keep] * sharpness, np.log(colour[keep] + 1.0)
+
+
+def _exposure_gains(picked: list, n_texels: int, rounds: int = 4,
+                    stride: int = GAIN_STRIDE) -> np.ndarray:
     """Per-view, per-channel gains (K, 3) that make each view's colours agree with the
     blend of all views on the texels it shares with others, in the log domain (a gain is a
     shift there); their mean weighted by each view's share of the blend is 1, so the atlas
-    keeps the keyframes' overall exposure. Every ``stride``-th texel is enough for K × 3
-    numbers."""
-    K = len(samples)
+    keeps the keyframes' overall exposure. ``picked``: each view's :func:`_gain_samples`."""
+    K = len(picked)
     if K < 2:
         return np.ones((K, 3))
-    picked = []
-    for k, (ids, cos, colour) in enumerate(samples):
-        keep = ids % stride == 0
-        picked.append((ids[keep] // stride, cos[keep] * sharp_rel[k], np.log(colour[keep] + 1.0)))
     n = n_texels // stride + 1
     best = np.full(n, -np.inf)
     seen = np.zeros(n)
@@ -356,15 +363,21 @@ def bake_texture(vertices: np.ndarray, faces: np.ndarray, keyframes, layout: UVL
     scene.add(v, f)
     sharp_rel = _relative_sharpness(keyframes)
     T = len(points)
-    samples, rays = [], {}
-    for kf in keyframes:
-        depth, small = _depth_map(scene, kf, rays)
-        samples.append(_view_samples(kf, depth, small, points, normals, min_cos, depth_tol_mm))
-    gains = _exposure_gains(samples, sharp_rel, T)
+    # Two passes over the views: the gains first, from a quarter of the texels, then the
+    # blend, each view's samples made again from its kept depth map: all views' samples at
+    # once held a gigabyte at 720p.
+    depths, picked, rays = [], [], {}
+    for k, kf in enumerate(keyframes):
+        depths.append(_depth_map(scene, kf, rays))
+        picked.append(_gain_samples(_view_samples(kf, *depths[k], points, normals, min_cos,
+                                                  depth_tol_mm), sharp_rel[k]))
+    gains = _exposure_gains(picked, T)
+    del picked
     # Soft maximum over the views, accumulated view by view (rescaled when the best rises).
     best = np.full(T, -np.inf)
     acc, total = np.zeros((T, 3)), np.zeros(T)
-    for k, (ids, cos, colour) in enumerate(samples):
+    for k, kf in enumerate(keyframes):
+        ids, cos, colour = _view_samples(kf, *depths[k], points, normals, min_cos, depth_tol_mm)
         s = cos * sharp_rel[k]
         new_best = np.maximum(best[ids], s)
         rescale = np.exp(np.where(np.isfinite(best[ids]), (best[ids] - new_best), 0.0)
