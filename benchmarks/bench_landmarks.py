@@ -60,6 +60,7 @@ from facecap_core.evaluation import paper_table, score, score_json  # noqa: E402
 from facecap_core.geometry import umeyama  # noqa: E402
 from facecap_core.landmarks import stage  # noqa: E402
 from facecap_core.landmarks.convention import OFFSETS_FILE, convention_offsets  # noqa: E402
+from facecap_core.landmarks.landmarks3d_json import load_landmarks3d  # noqa: E402
 from facecap_core.landmarks.stage import LandmarkConfig  # noqa: E402
 from facecap_core.meshio import load_landmarks, load_mesh  # noqa: E402
 from facecap_core.pose.cameras_json import read_cameras_json  # noqa: E402
@@ -153,12 +154,12 @@ def run_capture(capture: Path, out: Path, cameras: str, deformations: list[str],
         mm_per_unit = true_scale_pipeline(read_cameras_json(cams_path),
                                           capture / "gt" / "cameras.json")
     lm_path, cpu, wall = cpu_wall(stage.main, capture / "video.mp4", cams_path, work / "landmarks")
-    L, doc = stage.load_landmarks3d(lm_path)
-    raw = np.array([[np.nan] * 3 if p is None else p for p in doc["triangulated"]], float)
+    L, doc = load_landmarks3d(lm_path)
+    raw = np.array([[np.nan] * 3 if p is None else p for p in doc.triangulated], float)
     doc2d = json.loads((work / "landmarks" / "landmarks2d.json").read_text())
-    rec = {"keyframes": doc["keyframes"], "detected": doc["detected"],
-           "gated": len(doc["views"]), "stage_cpu_s": cpu, "stage_wall_s": wall,
-           "reprojection_px": doc["reprojection_px"],
+    rec = {"keyframes": doc.keyframes, "detected": doc.detected,
+           "gated": len(doc.views), "stage_cpu_s": cpu, "stage_wall_s": wall,
+           "reprojection_px": doc.reprojection_px.model_dump(),
            "landmarks_raw": region_stats(landmark_errors(raw, G)),
            "landmarks": region_stats(landmark_errors(L, G)),
            "ears": sum(len(r["ears"]) for r in doc2d["keyframes"]), "coarse": {}}
@@ -313,7 +314,7 @@ def calibrate(seeds: list[int], out: Path, ict_model: str) -> None:
         work = out / "calibration_runs" / folder.name
         cams = write_gt_keyframe_cameras(folder / "gt" / "cameras.json",
                                                work / "cameras.json", step=1, **WORLD)
-        L, _ = stage.load_landmarks3d(stage.main(folder / "video.mp4", cams, work, config))
+        L, _ = load_landmarks3d(stage.main(folder / "video.mp4", cams, work, config))
         L_mm = (L - WORLD["translation"]) @ WORLD["rotation"] / WORLD["scale"]
         G = load_landmarks(folder / "gt" / "landmarks.json")
         offsets.append(convention_offsets(L_mm, G))

@@ -55,6 +55,7 @@ from facecap_core.assets import default_ict_model  # noqa: E402
 from facecap_core.camera import rotation_matrix  # noqa: E402
 from facecap_core.coarse import CoarseConfig  # noqa: E402
 from facecap_core.landmarks import stage  # noqa: E402
+from facecap_core.landmarks.landmarks3d_json import load_landmarks3d  # noqa: E402
 from facecap_core.meshio import load_landmarks  # noqa: E402
 from facecap_core.template import (  # noqa: E402
     INNER_LANDMARKS,
@@ -114,7 +115,8 @@ def capture(subject: str, out: Path, ict_model: str) -> Path:
 def measure(subject: str, out: Path, ict_model: str, model: dict, template: Template) -> dict:
     triangulated_eye_distance_mm(subject, out, ict_model)  # renders and runs the stage once
     folder = out / "captures" / subject.replace(":", "_")
-    L, doc3d = stage.load_landmarks3d(out / "runs" / folder.name / "landmarks3d.json")
+    L, doc3d = load_landmarks3d(out / "runs" / folder.name / "landmarks3d.json")
+    measured = doc3d.irises.model_dump()
     gt = load_landmarks(folder / "gt" / "landmarks.json")
     truth = 1 / WORLD["scale"]
     none = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, str)
@@ -126,9 +128,9 @@ def measure(subject: str, out: Path, ict_model: str, model: dict, template: Temp
     given = round(ipd, 1)
     for setting, config, irises in (
             ("landmarks only", CoarseConfig(iris_cue=False), None),
-            ("no cue", base, doc3d.get("irises")),
+            ("no cue", base, measured),
             ("ipd, eye landmarks", CoarseConfig(ipd_mm=given, iris_cue=False), None),
-            ("ipd", CoarseConfig(ipd_mm=given), doc3d.get("irises"))):
+            ("ipd", CoarseConfig(ipd_mm=given), measured)):
         doc = coarse.metric_scale(template, L, *none, config, irises)
         row[setting] = {
             "error_pct": round(100 * (doc["metric_scale"] / truth - 1), 3),
@@ -166,7 +168,7 @@ def triangulated_eye_distance_mm(subject: str, out: Path, ict_model: str) -> flo
         cams = write_gt_keyframe_cameras(folder / "gt" / "cameras.json",
                                                work / "cameras.json", step=2, **WORLD)
         stage.main(folder / "video.mp4", cams, work)
-    L, _ = stage.load_landmarks3d(work / "landmarks3d.json")
+    L, _ = load_landmarks3d(work / "landmarks3d.json")
     return coarse.eye_distance(L) / WORLD["scale"]
 
 
@@ -180,8 +182,8 @@ def calibrate(subjects: list[str], out: Path, ict_model: str) -> None:
     for subject in subjects:
         eye_mm = triangulated_eye_distance_mm(subject, out, ict_model)
         folder = out / "captures" / subject.replace(":", "_")
-        _, doc3d = stage.load_landmarks3d(out / "runs" / folder.name / "landmarks3d.json")
-        irises = doc3d.get("irises") or {}
+        _, doc3d = load_landmarks3d(out / "runs" / folder.name / "landmarks3d.json")
+        irises = doc3d.irises.model_dump()
         pd = true_ipd(subject, folder, model, np.zeros((68, 3)), CoarseConfig())
         ratios["ipd_ratio"].append(pd / eye_mm)
         line = f"{subject}: pupil distance {pd:.1f} mm, ipd_ratio {ratios['ipd_ratio'][-1]:.4f}"

@@ -49,12 +49,12 @@ from facecap_core.config import MAX_LEVELS, StrictModel
 from facecap_core.errors import InputError
 from facecap_core.geometry import robust_similarity
 from facecap_core.landmarks.ear_check import reliability
+from facecap_core.landmarks.landmarks3d_json import load_landmarks3d
 from facecap_core.landmarks.stage import (
     EAR_TEMPLATE,
     EARS_3D,
     LANDMARKS_3D,
     load_ears3d,
-    load_landmarks3d,
 )
 from facecap_core.nonrigid.nicp import NicpConfig, fit
 from facecap_core.pose.cameras_json import Cameras, keyframe_poses
@@ -379,7 +379,7 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     cams = cameras.camera_set()
 
     scale_doc = metric_scale(template, L, ear_ids, ear_pts, ear_sides, config,
-                             landmarks_doc.get("irises"))
+                             landmarks_doc.irises.model_dump())
     m = float(scale_doc["metric_scale"])
     L_mm, ears_mm = L * m, ear_pts * m
     # Ear points of a document without uncertainties (written by hand) weigh as landmarks.
@@ -407,7 +407,7 @@ def main(landmarks_dir: str | Path, cameras_json: str | Path, out_dir: str | Pat
     _write(out / LANDMARKS_3D, {
         "convention": "ibug68", "units": "mm", "template": template.name,
         "from_coarse_mesh": np.flatnonzero(missing).tolist(),
-        "coverage": landmarks_doc.get("coverage"),
+        "coverage": landmarks_doc.coverage.model_dump(),
         "landmarks": np.round(L_out, 6).tolist()})
     _write(out / EARS_3D, {"template": template.name, "units": "mm",
                                  "vertex_ids": ear_ids.tolist(),

@@ -13,6 +13,7 @@ from facecap_core.camera import rotation_matrix
 from facecap_core.coarse import CoarseConfig
 from facecap_core.errors import InputError
 from facecap_core.evaluation import distances
+from facecap_core.landmarks.landmarks3d_json import Landmarks3d
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.pose.cameras_json import read_cameras_json
 from facecap_core.template import INNER_LANDMARKS, Template
@@ -132,10 +133,25 @@ def test_scale_cues_combine_by_their_spreads_and_a_wrong_one_is_dropped(template
     assert fixed["metric_scale"] == 2.5
 
 
+def _landmarks3d(points: list, units: str) -> Landmarks3d:
+    """A landmark stage's file of ``points`` (one view, irises not measured)."""
+    return Landmarks3d(
+        convention="ibug68", units=units, landmarks=points, convention_correction=None,
+        triangulated=points, views=[3], dropped_uncertain=[], spread_rel=[None] * 68,
+        inlier_views=[1] * 68, reprojection_px={"median": None, "rms": None},
+        head_frame={"R": np.eye(3).tolist(), "origin": [0.0, 0.0, 0.0]},
+        irises={"detector": "none", "units": units, "views": [],
+                "pupils": {"right": None, "left": None}, "pupil_distance": None,
+                "iris_diameter": None, "iris_diameter_spread_rel": None,
+                "iris_diameter_views": [], "reason": "iris measurement is off"},
+        detected=1, keyframes=1, coverage={"yaw_min_deg": 0.0, "yaw_max_deg": 0.0,
+                                           "yaw_span_deg": 0.0, "yaw_by_frame": [(3, 0.0)]})
+
+
 def _write_inputs(folder, landmarks_units, mm_per_unit):
     folder.mkdir(parents=True, exist_ok=True)
     L = [None if not np.all(np.isfinite(p)) else p.tolist() for p in landmarks_units]
-    (folder / "landmarks3d.json").write_text(json.dumps({"landmarks": L, "units": "arbitrary"}))
+    _landmarks3d(L, "arbitrary").write(folder / "landmarks3d.json")
     cams = {"intrinsics": {"width": 640, "height": 360, "fx": 500.0, "fy": 500.0, "cx": 320.0,
                            "cy": 180.0, "k1": 0.0, "k2": 0.0}, "units": "arbitrary",
             "keyframes": [{"frame_index": 3, "R": np.eye(3).tolist(),

@@ -63,6 +63,7 @@ from facecap_core.landmarks.convention import (
     robust_head_frame,
 )
 from facecap_core.landmarks.ear_check import check_ears
+from facecap_core.landmarks.landmarks3d_json import Landmarks3d, load_landmarks3d
 from facecap_core.landmarks.triangulate import Triangulation, box_size, triangulate
 from facecap_core.pose.cameras_json import read_cameras_json
 from facecap_core.pose.checks import CameraSolveError, face_problem
@@ -417,7 +418,7 @@ def main(video: str | Path, cameras_json: str | Path, out_dir: str | Path,
     doc3d["seconds"] = {"wall": round(time.perf_counter() - t_wall, 3),
                         "cpu": round(time.process_time() - t_cpu, 3),
                         "cpu_detection": round(t_detect, 3)}
-    return _write_json(out / LANDMARKS_3D, doc3d)
+    return Landmarks3d.model_validate(doc3d).write(out / LANDMARKS_3D)
 
 
 def _write_json(path: Path, doc: dict) -> Path:
@@ -428,21 +429,6 @@ def _write_json(path: Path, doc: dict) -> Path:
 
 
 # --------------------------------------------------------------------------- readers
-
-
-def load_landmarks3d(path: str | Path) -> tuple[np.ndarray, dict]:
-    """(68, 3) points (NaN where null) and the document of a ``landmarks3d.json``."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"3D landmark file not found: {path} (run the landmark stage first)")
-    try:
-        doc = json.loads(path.read_text())
-        pts = np.array([[np.nan] * 3 if p is None else p for p in doc["landmarks"]], float)
-    except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"{path} is not a landmarks3d.json ({type(exc).__name__})") from None
-    if pts.shape != (68, 3):
-        raise InputError(f"{path} holds {pts.shape} landmarks; expected 68 3D points")
-    return pts, doc
 
 
 def load_ears3d(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:

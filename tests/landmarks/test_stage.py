@@ -23,10 +23,10 @@ from facecap_core.camera import (
 from facecap_core.errors import InputError
 from facecap_core.geometry import umeyama
 from facecap_core.landmarks import stage
+from facecap_core.landmarks.landmarks3d_json import load_landmarks3d
 from facecap_core.landmarks.stage import (
     LandmarkConfig,
     load_ears3d,
-    load_landmarks3d,
     triangulate_ears,
 )
 from facecap_core.landmarks.triangulate import dlt, normalised, triangulate
@@ -175,10 +175,10 @@ def test_stage_triangulates_the_inner_landmarks(capture, stage_run):
     # figures are in the benchmark.
     assert np.median(err) < 3.0, np.median(err)
     assert abs(s - 1.0) < 0.05  # the landmarks have the world's scale (1 unit = 50 mm)
-    assert len(doc["views"]) >= 10
+    assert len(doc.views) >= 10
     # The convention correction (calibrated on other identities) removes a good part of the
     # detector's offsets (measured: 3.1 mm before, 1.8 after).
-    raw = np.array([[np.nan] * 3 if p is None else p for p in doc["triangulated"]], float)
+    raw = np.array([[np.nan] * 3 if p is None else p for p in doc.triangulated], float)
     assert np.median(err) < 0.8 * np.median(error(raw)[1])
 
 
@@ -215,7 +215,7 @@ def test_stage_measures_pupils_and_iris_size(capture, stage_run):
     ~5 % (``bench_scale.py --calibrate``), so 15 % is 3σ."""
     out, path = stage_run
     _, doc = load_landmarks3d(path)
-    irises = doc["irises"]
+    irises = doc.irises.model_dump()
     subject = json.loads((capture.gt_cameras.parent / "subject.json").read_text())
     config = LandmarkConfig()
     assert irises["reason"] is None and len(irises["views"]) >= 2
