@@ -70,9 +70,9 @@ VALUES = {
     "keyframes.min_frames": 1000,
     "keyframes.min_keyframes": 100,
     "keyframes.min_shared_tracks": 5000,
-    "keyframes.angle_slack": 0.9,
     "poses.min_registered": 100,
     # Thresholds this capture's views and points are well inside of: stricter ones.
+    "keyframes.angle_slack": 0.9,
     "landmarks.min_detector_score": 0.99,
     "landmarks.gate_max_yaw_deg": 5.0,
     "landmarks.gate_max_reprojection": 0.001,
@@ -92,6 +92,7 @@ VALUES = {
     # Stopping rules: values that stop earlier than the base's schedule does.
     "fitting.convergence_mm": 5.0,
     "poses.pba.iterations": 1,
+    "poses.pba.search_level": 0,  # the default pyramid has levels 0 and 1
     "poses.pba.readout_candidates": [0.02],
     "evaluation.max_iterations": 2,
     "evaluation.tolerance": 0.01,
@@ -213,7 +214,8 @@ class Chain:
                 self.runs[run_key] = digest(out)
             except FacecapError as exc:  # a check that refuses the input: what it says
                 self.runs[run_key] = {"refused": str(exc)}
-            shutil.rmtree(out)
+            finally:
+                shutil.rmtree(out)
         return self.runs[run_key]
 
 
