@@ -312,13 +312,13 @@ def assert_same_cameras(a_path: Path, b_path: Path) -> None:
 
     from facecap_core.camera import camera_center, rotation_angle_deg
     from facecap_core.geometry import umeyama
+    from facecap_core.pose.cameras_json import read_cameras_json
 
-    a, b = (json.loads(p.read_text()) for p in (a_path, b_path))
-    assert [k["frame_index"] for k in a["keyframes"]] == [k["frame_index"] for k in b["keyframes"]]
-    assert abs(a["intrinsics"]["fx"] / b["intrinsics"]["fx"] - 1) < 1e-3
-    rotations = [[np.array(k["R"]) for k in doc["keyframes"]] for doc in (a, b)]
-    centres = [np.array([camera_center(R, np.array(k["t"])) for R, k in zip(Rs, doc["keyframes"])])
-               for Rs, doc in zip(rotations, (a, b))]
+    a, b = (read_cameras_json(p) for p in (a_path, b_path))
+    assert a.frame_indices == b.frame_indices
+    assert abs(a.intrinsics.fx / b.intrinsics.fx - 1) < 1e-3
+    rotations = [list(cams.R) for cams in (a, b)]
+    centres = [np.array([camera_center(R, t) for R, t in zip(cams.R, cams.t)]) for cams in (a, b)]
     scale, R, t = umeyama(centres[1], centres[0], with_scale=True)  # b's world -> a's
     aligned = scale * centres[1] @ R.T + t
     assert np.abs(aligned - centres[0]).max() < 1e-3 * np.ptp(centres[0], axis=0).max()

@@ -31,6 +31,7 @@ from facecap_core.landmarks.stage import (
 )
 from facecap_core.landmarks.triangulate import dlt, normalised, triangulate
 from facecap_core.meshio import load_landmarks
+from facecap_core.pose.cameras_json import Cameras
 from facecap_core.template import INNER_LANDMARKS, head_frame
 
 INTR = Intrinsics(1280, 720, 1000.0, 1000.0, 641.0, 358.0, -0.06, 0.015)
@@ -354,11 +355,10 @@ def test_cameras_collapsed_onto_one_view_are_a_failed_camera_solve(capture, tmp_
 
     cams = write_gt_keyframe_cameras(capture.gt_cameras, tmp_path / "cameras.json", step=1,
                                      **WORLD)
-    doc = json.loads(cams.read_text())
-    first = doc["keyframes"][0]
-    for k in doc["keyframes"]:
-        k["R"], k["t"] = first["R"], first["t"]
-    cams.write_text(json.dumps(doc))
+    cameras = Cameras.read(cams)
+    first = cameras.keyframes[0]
+    cameras.model_copy(update={"keyframes": [k.model_copy(update={"R": first.R, "t": first.t})
+                                             for k in cameras.keyframes]}).write(cams)
     monkeypatch.setattr(stage, "_ear_module", lambda: None)
     with pytest.raises(CameraSolveError) as caught:
         stage.main(capture.video, cams, tmp_path / "out")

@@ -1,5 +1,3 @@
-import json
-
 import numpy as np
 import pytest
 
@@ -7,6 +5,7 @@ from facecap.synthetic import load_gt_cameras
 from facecap_core.camera import Intrinsics, rotation_matrix
 from facecap_core.keyframes import load_keyframes
 from facecap_core.keyframes import main as keyframes_main
+from facecap_core.pose.cameras_json import Cameras
 from facecap_core.pose.colmap_sfm import Poses, run_sfm
 from facecap_core.pose.evaluate import head_surface, pose_errors, surface_error
 from facecap_core.pose.geometric import triangulate
@@ -190,8 +189,7 @@ def test_pose_stage_calibrates_every_keyframe(capture, tmp_path):
 
     # The stage's outputs.
     path = write_outputs(steps["pba"], tmp_path / "poses")
-    doc = json.loads(path.read_text())
-    assert [k["frame_index"] for k in doc["keyframes"]] == kf.indices
+    assert [k.frame_index for k in Cameras.read(path).keyframes] == kf.indices
     sparse = np.load(tmp_path / "poses" / "sparse.npz")
     assert sparse["points"].shape[1] == 3 and len(sparse["points"]) > 500
     assert sparse["visibility"].shape == (len(kf.indices), len(sparse["points"]))
