@@ -513,6 +513,9 @@ CORPUS = {
         _reconstruct_with("fitting: {stiffness: [1.0e-308], "
                                     "landmark_weight: [1.0e308]}\n"),
         ["stiffness must lie in [0.001, 10000]", "landmark_weight in [0, 10000]"]),
+    "config: a depth search on a level the pyramid lacks": (
+        _reconstruct_with("poses: {pba: {points_from_sparse: false, search_level: 3}}\n"),
+        ["poses.pba", "search_level (3) must be a level of the pyramid"]),
     "config: 200,000 stiffness levels": (
         lambda m, t, k: ["reconstruct", m["orbit"], "--config",
                          _config(t, f"fitting: {{stiffness: {[1] * 200_000}}}\n")],

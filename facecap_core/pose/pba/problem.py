@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import cv2
 import numba as nb
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from facecap_core.camera import Intrinsics, project
 from facecap_core.config import KEY_NEUTRAL, StrictModel
@@ -116,6 +116,13 @@ class PBAConfig(StrictModel):
     change with it). PBA holds every keyframe with its pyramid and gradients, about 14 bytes
     a pixel: at 3840×2160 that is 116 MB a keyframe, 5 GB for 45 keyframes; at 1920×1080,
     29 MB. None: full resolution. 720p and 1080p captures are not affected."""
+
+    @model_validator(mode="after")
+    def _check_search_level(self):
+        if self.search_level >= self.pyramid_levels:
+            raise ValueError(f"search_level ({self.search_level}) must be a level of the "
+                             f"pyramid: under pyramid_levels ({self.pyramid_levels})")
+        return self
 
 
 @nb.njit(cache=True)
