@@ -27,12 +27,17 @@ def prefect_defaults() -> None:
     # logging configuration (see _quiet_console).
 
 
+def prefect_home_value() -> str:
+    """``PREFECT_HOME`` as set, or Prefect's default ``~/.prefect``."""
+    return os.environ.get("PREFECT_HOME") or "~/.prefect"
+
+
 def prefect_home_problem() -> str | None:
     """Why the folder Prefect keeps its files in (``PREFECT_HOME``, default ``~/.prefect``)
     cannot be one, as the one line of a refusal, or None. Prefect itself only warns
     when it cannot make it, and its server then fails to start: found here, before Prefect
     is imported, the variable is named."""
-    value = os.environ.get("PREFECT_HOME") or "~/.prefect"
+    value = prefect_home_value()
     problem = folder_problem(Path(value).expanduser())
     if problem is None:
         return None
@@ -55,15 +60,15 @@ def full_disk_error(exc: BaseException) -> str | None:
     if full is None:
         return None
     return (f"no space left on the disk of {full} ({type(exc).__name__}: "
-            f"{' '.join(str(exc).split())[:80]}); free space there and run again (the results "
-            "already in --out are kept)")
+            f"{' '.join(str(exc).split())[:80]}); free space there and run again (what was "
+            "computed before is kept)")
 
 
 def full_disk() -> str | None:
     """The folders of facecap's and Prefect's files (``FACECAP_HOME``, ``PREFECT_HOME``) whose
     disk is full, in words, or None."""
     folders = {"FACECAP_HOME": facecap_home(),
-               "PREFECT_HOME": Path(os.environ.get("PREFECT_HOME") or "~/.prefect").expanduser()}
+               "PREFECT_HOME": Path(prefect_home_value()).expanduser()}
     full = []
     for name, folder in folders.items():
         try:

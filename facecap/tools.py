@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shlex
 import sys
 import tempfile
 from datetime import UTC, datetime, timedelta
@@ -138,7 +139,9 @@ def _check_folder_path(folder: Path, option: str) -> None:
             return
 
 
-def print_removal(removal, dry_run: bool) -> None:
+def print_removal(removal, dry_run: bool, in_use: bool = True) -> None:
+    """What a removal removed and kept; ``in_use``: the line on what a run in progress
+    holds too (``forget`` says it as its error instead)."""
     verb = "would remove" if dry_run else "removed"
     print(f"{verb} {len(removal.artifacts)} artifacts, {len(removal.folders)} results "
           f"folders and {removal.history_entries} evaluation-history entries")
@@ -151,7 +154,7 @@ def print_removal(removal, dry_run: bool) -> None:
               "yourself if they hold the subject's data:")
         for path in removal.kept:
             print(f"  {path}")
-    if removal.in_use:
+    if removal.in_use and in_use:
         count = len(removal.in_use)
         print(f"kept {count} artifact{'s' if count > 1 else ''} that a run in progress uses; "
               "run this again when it has ended")
@@ -187,12 +190,15 @@ def forget(args) -> int:
 
     removal = lifecycle.remove(store, planned, args.subject, out, dry_run=args.dry_run,
                                results=pages, first=ui_pages)
-    print_removal(removal, args.dry_run)
+    print_removal(removal, args.dry_run, in_use=False)
     if removal.in_use:  # a subject's data left behind is no success, whoever holds it
         count = len(removal.in_use)
+        again = " ".join(["facecap forget", shlex.quote(args.subject), *(
+            f"{option} {shlex.quote(value)}" for option, value in (
+                ("--root", args.root), ("--out", args.out), ("--store", args.store)) if value)])
         raise InputError(f"a run in progress uses {count} artifact{'s' if count > 1 else ''} "
-                         f"of {args.subject}, kept in the store; run facecap forget "
-                         f"{args.subject} again when that run has ended (the rest is removed)")
+                         f"of {args.subject}, kept in the store; run {again} again when that "
+                         "run has ended (the rest is removed)")
     return 0
 
 

@@ -27,6 +27,7 @@ from facecap.pages.figures import figure_rows, run_summary, warnings
 from facecap.pages.render import render
 from facecap.pages.scan import stored_scan
 from facecap.tasks.graph import is_keyframe_row
+from facecap_core.camera import camera_center
 from facecap_core.frames import frame_name
 from facecap_core.pose.cameras_json import Cameras
 
@@ -99,7 +100,7 @@ def _cameras(cameras_json: Path, centre: np.ndarray, frames: Path | None = None
     cams = Cameras.read(cameras_json)
     intr, keyframes = cams.intrinsics, cams.keyframes
     rotations = np.array([k.R for k in keyframes], float)
-    centres = np.array([-np.asarray(k.R).T @ np.asarray(k.t) for k in keyframes], float)
+    centres = np.array([camera_center(k.R, k.t) for k in keyframes], float)
     depth = 0.15 * float(np.median(np.linalg.norm(centres - centre, axis=1)))
     w, h, fx, fy = intr.width, intr.height, intr.fx, intr.fy
     cx, cy = intr.cx, intr.cy

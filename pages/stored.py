@@ -28,8 +28,6 @@ artifacts: what a link from the Prefect UI opens (:func:`facecap.flows.ui.result
 def keep_page(store, inputs: dict[str, str], page: bytes) -> str:
     """Keep ``page`` in the store as an artifact made from ``inputs`` (name -> key), held
     for the run in progress; returns its key."""
-
-
     config = {"sha256": hashlib.sha256(page).hexdigest()}
     key = artifact_key(PAGE_STAGE, inputs, config, "1")
     lease(store, key)

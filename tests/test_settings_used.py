@@ -140,8 +140,8 @@ def stage_of(path: str) -> Stage | None:
 
 ALL_FIELDS = [(path, field) for path, field in leaf_fields(PipelineConfig) if stage_of(path)]
 SAMPLE = 8
-"""Fields a run of the suite checks, drawn anew each run (all 160 take 12-15 minutes of the
-2-core machine): ``FACECAP_SETTINGS_FIELDS=all`` checks every one, a comma-separated list of
+"""Fields a run of the suite checks, drawn anew each run (all of them take 12-15 minutes of
+the 2-core machine): ``FACECAP_SETTINGS_FIELDS=all`` checks every one, a comma-separated list of
 dotted paths those (what a failure prints), ``FACECAP_SETTINGS_SEED`` fixes the draw."""
 
 
@@ -297,6 +297,8 @@ def test_a_changed_setting_changes_what_its_stage_writes(chain, path, field):
     if name in stage.key_neutral:
         assert stage.key_neutral[name].strip(), f"{path}: key-neutral without its reason"
         assert same_key, f"{path} is key-neutral, yet changes the {stage.name} key"
+        assert chain.outputs(stage, before) == chain.outputs(stage, after), (
+            f"{path} is key-neutral, yet at {value!r} changes what the {stage.name} stage writes")
         return
     assert not same_key, path
     assert "refused" not in chain.outputs(stage, before), chain.outputs(stage, before)

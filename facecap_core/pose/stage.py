@@ -3,7 +3,7 @@
 1. pycolmap SfM on the keyframes (SIFT, sequential matching, incremental mapping).
 2. Our geometric refinement: the keyframe tracker's LK tracks triangulated into the model and
    a bundle adjustment with the principal point free (``geometric.py``).
-3. Photometric bundle adjustment from that start (``pba.py``), hosting the sparse points at
+3. Photometric bundle adjustment from that start (``pba/``), hosting the sparse points at
    their depths, when ``config.method == "pba"``, on keyframes decoded at most
    ``config.pba.max_width`` wide; the sparse points are then re-triangulated with the final
    cameras.
