@@ -119,7 +119,8 @@ class PBAConfig(StrictModel):
 
     @model_validator(mode="after")
     def _check_search_level(self):
-        if self.search_level >= self.pyramid_levels:
+        # Only the search for photometric points reads it: the sparse points replace it.
+        if not self.points_from_sparse and self.search_level >= self.pyramid_levels:
             raise ValueError(f"search_level ({self.search_level}) must be a level of the "
                              f"pyramid: under pyramid_levels ({self.pyramid_levels})")
         return self
