@@ -430,18 +430,31 @@ def test_each_writing_command_keeps_to_its_folder(case, world, tmp_path, capfd, 
     monkeypatch.setenv("FACECAP_ICT_MODEL", str(world["ict_model"]))
     store_before, inputs_before = snapshot(world["store"]), writer_inputs(world)
     _writer_scratch(case, world, tmp_path)
-    fill = {"{scan}": world["scan"], "{landmarks}": world["scan_landmarks"],
-            "{home}": world["home"], "{store}": world["store"], "{scratch}": tmp_path,
+    argv, code, err = run_filled(WRITERS[case][0], filling(world, tmp_path), capfd)
+    check_writer_outcome(case, code, err, world, tmp_path, inputs_before)
+    assert snapshot(world["store"]) == store_before, argv
+
+
+def filling(world, scratch: Path, **more) -> dict:
+    """What each placeholder of an argv stands for (``more``: ``{input}`` and the like)."""
+    return {**{f"{{{key}}}": value for key, value in more.items()},
+            "{scan}": world["scan"], "{landmarks}": world["scan_landmarks"],
+            "{home}": world["home"], "{store}": world["store"], "{scratch}": scratch,
             "{file}": world["file"], "{root}": world["root"]}
-    argv = [str(a).replace(k, str(v)) for a in WRITERS[case][0] for k, v in [_field(str(a), fill)]]
+
+
+def run_filled(argv: list, fill: dict, capfd) -> tuple[list[str], int, str]:
+    """``facecap ARGV`` with its placeholders filled: the argv, the exit code and stderr,
+    which must be success or exit 2 with one line, never a traceback."""
+    argv = [str(a).replace(k, str(v)) for a in argv for k, v in [_field(str(a), fill)]]
     code = main(argv)
     _, err = capfd.readouterr()
     assert "Traceback" not in err, (argv, err)
+    assert code in (0, 2), (argv, err)
     if code == 2:
         lines = err.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("facecap: error: "), (argv, err)
-    check_writer_outcome(case, code, err, world, tmp_path, inputs_before)
-    assert snapshot(world["store"]) == store_before, argv
+    return argv, code, err
 
 
 def _field(arg: str, fill: dict) -> tuple[str, str]:
@@ -492,18 +505,8 @@ def test_no_input_ends_in_a_traceback(world, tmp_path_factory, capfd, monkeypatc
             path = scratch / f"input{suffix}"
             path.write_bytes(data)
         photos_before = snapshot(photos) if photos.is_dir() else {}
-        fill = {"{input}": path, "{photos}": photos, "{out}": out, "{scan}": world["scan"],
-                "{landmarks}": world["scan_landmarks"], "{home}": world["home"],
-                "{store}": world["store"], "{scratch}": scratch, "{file}": world["file"],
-                "{root}": world["root"]}
-        argv = [str(a).replace(k, str(v)) for a in argv for k, v in [_field(str(a), fill)]]
-        code = main(argv)
-        _, err = capfd.readouterr()
-        assert "Traceback" not in err, (argv, err)
-        assert code in (0, 2), (argv, err)
-        if code == 2:
-            lines = err.strip().splitlines()
-            assert len(lines) == 1 and lines[0].startswith("facecap: error: "), (argv, err)
+        argv, code, err = run_filled(argv, filling(world, scratch, input=path, photos=photos,
+                                                   out=out), capfd)
         if argv[0] == "reconstruct":
             assert code == 2, (argv, err)  # no reconstruct case may start a flow
         if kind == "out":
