@@ -129,15 +129,12 @@ def solve_summary(solve) -> str:
         return ""
     number = {key: finite_number(solve.get(key)) for key in (
         "turn_deg", "tracked_turn_deg", "track_length", "largest_step_ratio")}
-    fov = [finite_number(v) for v in solve.get("field_of_view_deg") or []
-           ] if isinstance(solve.get("field_of_view_deg"), list) else []
-    centre = [finite_number(v) for v in solve.get("principal_point_px") or []
-              ] if isinstance(solve.get("principal_point_px"), list) else []
+    fov, centre = _pair(solve.get("field_of_view_deg")), _pair(solve.get("principal_point_px"))
     error = solve.get("reprojection_px") if isinstance(solve.get("reprojection_px"), dict) else {}
     parts = []
-    if len(fov) == 2 and None not in fov:
+    if fov:
         parts.append(f"field of view {fov[0]:.0f}° × {fov[1]:.0f}°")
-    if len(centre) == 2 and None not in centre:
+    if centre:
         parts.append(f"principal point ({centre[0]:.1f}, {centre[1]:.1f}) px")
     if finite_number(error.get("median")) is not None:
         parts.append(f"reprojection {error['median']:.2f} px median")
@@ -148,6 +145,14 @@ def solve_summary(solve) -> str:
                    if number["tracked_turn_deg"] is not None else "")
         parts.append(f"views turn {number['turn_deg']:.0f}° along the sweep{tracked}")
     return "; ".join(parts)
+
+
+def _pair(value) -> tuple[float, float] | None:
+    """``value`` if it is a list of two finite numbers, else None."""
+    if not isinstance(value, list) or len(value) != 2:
+        return None
+    pair = tuple(finite_number(v) for v in value)
+    return None if None in pair else pair
 
 
 def finite_number(value) -> float | None:
