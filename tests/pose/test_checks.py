@@ -114,6 +114,31 @@ def test_a_step_is_a_jump_only_beyond_both_the_floor_and_twice_the_tracked_turn(
     assert checks.order_jumps(steps, expected).tolist() == [1, 3]
 
 
+def test_a_solve_that_turns_further_than_the_tracking_all_along_keeps_its_order():
+    """A camera circling a face: the tracker measures 1.7x less than the turn in every
+    step, and one step is 2.1x the tracker's 6° (12.6°, over the 10° floor). Against the
+    tracking alone that step is a jump; against the tracking scaled by the solve's own
+    median ratio it is a step like the others. Two views swapped still jump."""
+    yaws = np.arange(-90.0, 91.0, 6.0 * 1.7)
+    yaws[12:] += 12.6 - 6.0 * 1.7
+    R, t = _sweep(yaws)
+    true = checks.rotation_angles_deg(R)
+    keyframes = _keyframes(len(yaws), _nominal_angles(np.full(len(true), 6.0)))
+    poses = Poses(PHONE, list(keyframes.indices), R, t)
+    expected = checks.tracked_steps_deg(keyframes.angles_deg, range(len(yaws)), PHONE.width,
+                                        PHONE.fx)
+    assert checks.order_jumps(true, expected).tolist() == [11]
+    assert checks.circling_factor(true, expected) == pytest.approx(1.7, rel=1e-9)
+    assert checks.solve_problem(poses, keyframes) is None
+    assert checks.solve_figures(poses, keyframes)["largest_step_ratio"] == pytest.approx(
+        12.6 / (6.0 * 1.7), abs=1e-3)  # a jump is over 2
+    R[4], R[14] = R[14], R[4]
+    assert "out of order" in checks.solve_problem(Poses(PHONE, poses.frame_indices, R, t),
+                                                   keyframes)
+    # Scrambled throughout: the tracking is scaled by twice at most.
+    assert checks.circling_factor(true * 5, expected) == checks.CIRCLING_MAX
+
+
 def test_a_solve_that_turns_half_as_far_as_the_tracking_is_named():
     yaws = np.arange(-60.0, 61.0, 4.0)
     poses, keyframes = _video(yaws, tremor_deg=0.0)
