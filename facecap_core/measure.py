@@ -10,7 +10,10 @@ under the true geodesic, never under the straight line; on a plane it is the str
 within 0.1 %. The results page (``pages/viewer/viewer.js``) does the same for two clicks.
 
 The metric scale's uncertainty (``report.json`` ``figures.scale.sigma_pct``, 1σ) scales every
-distance alike: a distance ``d`` is stated ``d ± d·σ``.
+distance alike: a distance ``d`` is stated ``d ± d·σ``. An anatomical preset (the distance
+between two of the 68 landmarks) also carries where the fit put the two landmark vertices
+against the true landmarks: its ``anatomical`` figure is the mesh's distance less that
+placement's bias, ± the scale's and the placement's spread in quadrature (:data:`PLACEMENT`).
 """
 
 from __future__ import annotations
@@ -39,6 +42,18 @@ PRESETS = (
 """(key, name, landmark, landmark) of the anatomical measurements: iBUG 68-point indices
 (0-based): the eyes' outer and inner corners, the nostrils' wings, the mouth's corners, the
 nasion to the nose's base (subnasale), the nasion to the chin."""
+
+
+PLACEMENT = {
+    "outer_eyes": (2.94, 4.26), "inner_eyes": (-0.72, 1.63), "nose_width": (7.75, 1.2),
+    "mouth_width": (-2.27, 2.37), "nose_length": (-2.88, 1.73), "face_height": (0.45, 2.59),
+}
+"""Per preset, (bias, spread) in mm of the fitted mesh's distance between the two landmark
+vertices at the true scale less the true landmarks' distance: its mean, and the spread of
+a new capture's about it (standard deviation × sqrt(1 + 1/n)), over the n calibration
+captures of ``benchmarks/bench_measure.py --calibrate`` (ICT
+identities 101-106: three clean 1280×720 and three phone-like 512×512 sweeps; the truth is
+the renderer's landmarks). Held-out captures are reported in ``docs/results_page.md``."""
 
 
 def _edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -196,24 +211,41 @@ def landmark_measurements(vertices: np.ndarray, faces: np.ndarray, landmark_ids,
             for key, name, i, j in PRESETS}
 
 
+def anatomical(key: str, straight_mm: float, sigma_pct: float | None) -> dict:
+    """``{"mm", "sigma_mm"}`` of preset ``key``'s anatomical distance from the mesh's straight
+    distance between its landmark vertices: less the placement's bias, ± the metric scale's
+    1σ and the placement's spread in quadrature (:data:`PLACEMENT`; None: the scale's σ is
+    unknown)."""
+    bias, spread = PLACEMENT[key]
+    sigma = None if sigma_pct is None else math.hypot(straight_mm * sigma_pct / 100, spread)
+    return {"mm": round(straight_mm - bias, 3),
+            "sigma_mm": None if sigma is None else round(sigma, 3)}
+
+
 def under_scale(measurements: dict, sigma_pct: float | None) -> dict:
     """The fitting stage's ``measurements`` (made with the mesh, :func:`landmark_measurements`)
-    with the metric scale's 1σ, ``sigma_pct`` (the coarse stage's)."""
+    with the metric scale's 1σ, ``sigma_pct`` (the coarse stage's), and each preset's
+    :func:`anatomical` figure."""
     return {key: {**m, "sigma_pct": sigma_pct,
                   **{side: with_sigma(m[side]["mm"], sigma_pct)
-                     for side in ("straight", "surface")}}
+                     for side in ("straight", "surface")},
+                  **({"anatomical": anatomical(key, m["straight"]["mm"], sigma_pct)}
+                     if key in PLACEMENT else {})}
             for key, m in measurements.items()}
 
 
 def summary(measurements: dict) -> str:
-    """The measurements in words: ``Outer eye corners 98.1 mm ± 3.9 mm (surface 104.2 mm);
-    ...`` (the uncertainty is the metric scale's, 1σ)."""
+    """The measurements in words: ``Outer eye corners 96.3 mm ± 4.1 mm (between its
+    landmark vertices 98.1 mm straight, 104.2 mm along the surface); ...`` (the uncertainty
+    is 1σ: the metric scale's and the landmarks' placement)."""
     said = []
     for m in measurements.values():
         if not isinstance(m, dict) or not isinstance(m.get("straight"), dict):
             continue
-        said.append(f"{m.get('name', '?')} {distance_text(m['straight'])} (surface "
-                    f"{_number(m.get('surface', {}).get('mm'))} mm)")
+        stated = m.get("anatomical") if isinstance(m.get("anatomical"), dict) else m["straight"]
+        said.append(f"{m.get('name', '?')} {distance_text(stated)} (between its landmark "
+                    f"vertices {_number(m['straight'].get('mm'))} mm straight, "
+                    f"{_number(m.get('surface', {}).get('mm'))} mm along the surface)")
     return "; ".join(said)
 
 

@@ -236,6 +236,6 @@ def _measure_data(report: dict) -> dict:
                 len(m["vertices"]) == 2 and all(isinstance(v, int) for v in m["vertices"]):
             presets.append({"key": str(key), "name": str(m.get("name", key)),
                             "vertices": m["vertices"], "straight": m.get("straight"),
-                            "surface": m.get("surface")})
+                            "surface": m.get("surface"), "anatomical": m.get("anatomical")})
     return {"sigma_pct": sigma if isinstance(sigma, (int, float)) else None,
             "presets": presets}

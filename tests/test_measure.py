@@ -79,7 +79,26 @@ def test_the_presets_of_a_fitted_mesh_are_its_landmarks_distances(tmp_path):
         assert abs(m["straight"]["mm"] - straight) < 1e-3
         assert m["surface"]["mm"] >= m["straight"]["mm"]
         assert abs(m["straight"]["sigma_mm"] - 0.04 * straight) < 1e-3
-    assert summary(found).startswith(f"Outer eye corners {found['outer_eyes']['straight']['mm']:.1f} mm ± ")
+    outer = found["outer_eyes"]
+    assert summary(found).startswith(
+        f"Outer eye corners {outer['anatomical']['mm']:.1f} mm ± "
+        f"{outer['anatomical']['sigma_mm']:.1f} mm (between its landmark vertices "
+        f"{outer['straight']['mm']:.1f} mm straight, ")
     assert distance_text({"mm": 63.21, "sigma_mm": 2.53}, 4.0) == "63.2 mm ± 2.5 mm (±4.0 %, 1σ)"
     (tmp_path / "fit.json").write_text(json.dumps({"timing": {}}))
     assert "measurements" not in fitting_figures(tmp_path)
+
+
+def test_a_presets_anatomical_figure_counts_where_the_landmarks_sit(monkeypatch):
+    """A preset's anatomical figure: the straight distance less the placement's bias, ± the
+    scale's 1σ and the placement's spread in quadrature; the scale's σ unknown, no ±; every
+    preset has a placement."""
+    from facecap_core import measure
+
+    assert set(measure.PLACEMENT) == {key for key, *_ in PRESETS}
+    monkeypatch.setitem(measure.PLACEMENT, "nose_width", (3.0, 4.0))
+    got = measure.under_scale({"nose_width": {"straight": {"mm": 40.0}, "surface": {"mm": 45.0}}},
+                              7.5)["nose_width"]
+    assert got["anatomical"] == {"mm": 37.0, "sigma_mm": 5.0}  # 3 mm (7.5 % of 40) and 4 mm
+    assert got["straight"] == {"mm": 40.0, "sigma_mm": 3.0}
+    assert measure.anatomical("nose_width", 40.0, None) == {"mm": 37.0, "sigma_mm": None}

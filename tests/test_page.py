@@ -589,13 +589,14 @@ def test_the_camera_solve_is_said_in_words_and_odd_values_are_left_out(results):
 def _measured_report(results) -> dict:
     """REPORT with ``figures.measurements`` of the sphere: its 68 "landmarks" are vertices on
     its front (the side the cameras see), measured as the capture flow measures a face."""
-    from facecap_core.measure import landmark_measurements
+    from facecap_core.measure import landmark_measurements, under_scale
 
     sphere = trimesh.load(results["mesh.ply"], process=False)
     front = np.flatnonzero(sphere.vertices[:, 2] > 45)
     ids = front[np.argsort(sphere.vertices[front, 0])][np.linspace(0, len(front) - 1, 68)
                                                          .astype(int)]
-    measurements = landmark_measurements(sphere.vertices, sphere.faces, ids, 4.0)
+    measurements = under_scale(landmark_measurements(sphere.vertices, sphere.faces, ids, 4.0),
+                               4.0)
     return {**REPORT, "figures": {**REPORT["figures"], "measurements": measurements}}
 
 
@@ -650,7 +651,11 @@ def test_two_clicks_measure_the_face_straight_and_along_its_surface(results, tmp
         m = page.evaluate("window.facecap.measurement")
         assert [m["a"], m["b"]] == preset["vertices"]
         said = page.inner_text("#measure-result")
-        assert said.startswith(f"Mouth width: straight {preset['straight']['mm']:.1f} mm ± "
+        anatomical = preset["anatomical"]
+        assert said.startswith(f"Mouth width: {anatomical['mm']:.1f} mm ± "
+                               f"{anatomical['sigma_mm']:.1f} mm (1σ, with where the landmarks "
+                               "sit); between its landmark vertices: straight "
+                               f"{preset['straight']['mm']:.1f} mm ± "
                                f"{preset['straight']['sigma_mm']:.1f} mm (±4.0 %, 1σ); "
                                f"along the surface {preset['surface']['mm']:.1f} mm"), said
         assert abs(m["straight"] - preset["straight"]["mm"]) < 0.01

@@ -10,7 +10,7 @@
 // mesh (each snapped to the nearest vertex of the triangle hit) give their distance straight
 // and along the surface (the path of facecap_core/measure.py: a Steiner-point graph searched
 // by A*, then straightened along its edges), ± the metric scale's 1σ; the presets measure
-// between two landmarks. A textured mesh.glb is split at its UV seams: the mesh's own
+// between two landmarks and say the report's anatomical figure first. A textured mesh.glb is split at its UV seams: the mesh's own
 // vertices first, then copies of seam vertices (its userData: template_vertices,
 // seam_vertex); what is indexed by mesh vertex (the heat map, the measured vertices) is
 // spread onto the copies, and a copy clicked is its mesh vertex.
@@ -401,8 +401,14 @@
     drawMeasure(path.points, ends);
     const s = shown && Number.isFinite(shown.straight) ? shown.straight : straight;
     const r = shown && Number.isFinite(shown.surface) ? shown.surface : surface;
+    // A preset also says its anatomical figure: the distance less where the fit puts the
+    // landmark vertices, ± the scale's and that placement's 1σ (report.json's).
+    const anat = shown && shown.anatomical;
+    const said = anat && Number.isFinite(anat.mm) && Number.isFinite(anat.sigma_mm) ?
+      `${anat.mm.toFixed(1)} mm ± ${anat.sigma_mm.toFixed(1)} mm (1σ, with where the landmarks ` +
+      "sit); between its landmark vertices: " : "";
     document.getElementById("measure-result").textContent =
-      `${name ? name + ": " : ""}straight ${distanceText(s)}; along the surface ` +
+      `${name ? name + ": " : ""}${said}straight ${distanceText(s)}; along the surface ` +
       `${distanceText(r)}`;
     return state.measurement;
   }
@@ -424,7 +430,8 @@
     if (!state.measuring) setMeasuring(true);
     const mm = (d) => (d && typeof d.mm === "number" ? d.mm : NaN);
     return measureVertices(preset.vertices[0], preset.vertices[1], preset.name,
-                           {straight: mm(preset.straight), surface: mm(preset.surface)});
+                           {straight: mm(preset.straight), surface: mm(preset.surface),
+                            anatomical: preset.anatomical || null});
   }
   state.showPreset = showPreset;
 
