@@ -14,17 +14,21 @@ landmarks), and splits the error in two: the metric scale's (the evaluation's si
 scale) and the landmark vertices' *placement* (the distance at the true scale minus the
 truth), which the scale's σ does not count.
 
-``--calibrate`` prints each preset's placement bias (mean) and spread (standard deviation)
-over the calibration captures, the table :data:`facecap_core.measure.PLACEMENT` holds. The
-report says, for each capture and preset, where the truth lies against the figure the report
-states (``figures.measurements[*].anatomical``: the mesh's distance less the bias, ± the
-scale's and the placement's 1σ in quadrature) and against the scale's σ alone: the share
-within 1σ and 2σ (an honest σ covers ~68 % and ~95 %).
+``--calibrate`` prints each preset's placement bias (mean) and spread (the standard
+deviation × sqrt(1 + 1/n), a new capture's spread about a mean of n) over the calibration
+captures, the table :data:`facecap_core.measure.PLACEMENT` holds (its coverage lines are
+against the table in the code when it ran). The report says, for each capture and preset,
+where the truth lies against the figure the report states
+(``figures.measurements[*].anatomical``: the mesh's distance less the bias, ± the scale's
+and the placement's 1σ in quadrature) and against the scale's σ alone: the share within 1σ
+and 2σ (an honest σ covers ~68 % and ~95 %).
 
-Split: calibration on ICT identities 101-106 (the landmark convention's calibration heads),
-101-103 at 1280×720 clean and 104-106 at ``phone_512``; the report on ICT identities 11 and
-12 at ``phone_512``, ict:2 at 1280×720 and the james scan (a real head) at ``phone_512`` and
-``phone_240`` — none of them calibrated on.
+Split: calibration on ICT identities 101-106 (also the landmark convention's calibration
+heads, so their landmarks may sit better than other heads'), 101-103 at 1280×720 clean and
+104-106 at ``phone_512``; the report on ICT identities 11 and 12 at ``phone_512``, ict:2 at
+1280×720 and the james scan (a real head) at ``phone_512`` and ``phone_240`` — none of them
+calibrated on. Run ``--results`` once per group to count the ICT heads and the real scan
+apart (``docs/results_page.md``).
 """
 
 from __future__ import annotations
@@ -98,7 +102,7 @@ def score(result: Path, gt_landmarks: Path) -> dict:
     """Per preset: the stated figures, the truth and the placement error (mm)."""
     report = json.loads((result / "report.json").read_text())
     stated = report["figures"]["measurements"]
-    sigma_pct = report["figures"]["scale"]["sigma_pct"]
+    sigma_pct = (report["figures"].get("scale") or {}).get("sigma_pct")
     scale = json.loads((result / "evaluation.json").read_text())["similarity"]["scale"]
     truth = load_landmarks(gt_landmarks)
     rows = {}
@@ -142,11 +146,13 @@ def coverage(scored: dict[str, dict]) -> str:
                          + f" | {z if z is not None else float('nan'):.2f} | "
                          f"{z_scale if z_scale is not None else float('nan'):.2f} |")
     lines.append("")
-    for what, zs in within.items():
-        zs = [z for z in zs if z is not None]
+    for what, all_z in within.items():
+        zs = [z for z in all_z if z is not None]
         if zs:
             lines.append(f"{what}: within 1σ {sum(z <= 1 for z in zs)} of {len(zs)}, within 2σ "
-                         f"{sum(z <= 2 for z in zs)} of {len(zs)}")
+                         f"{sum(z <= 2 for z in zs)} of {len(zs)}"
+                         + (f" ({len(all_z) - len(zs)} without a σ: the scale's unknown)"
+                            if len(zs) < len(all_z) else ""))
     return "\n".join(lines)
 
 
@@ -160,7 +166,10 @@ def main() -> None:
     args = ap.parse_args()
     if args.results:
         pairs = {}
-        for r, g in (item.split(":", 1) for item in args.results):
+        for item in args.results:
+            if ":" not in item:
+                sys.exit(f"bench_measure: {item}: give RESULT:GT_LANDMARKS")
+            r, g = item.rsplit(":", 1)
             # A capture's name: its result folder's, or the folder above a "result".
             name = Path(r).parent.name if Path(r).name == "result" else Path(r).name
             pairs[name] = (Path(r), Path(g))
@@ -171,6 +180,8 @@ def main() -> None:
             result = reconstruct(name, subject, seed, settings, args.out)
             pairs[name] = (result, args.out / name / "capture" / "gt" / "landmarks.json")
     scored = {name: score(result, gt) for name, (result, gt) in pairs.items()}
+    if args.calibrate and len(scored) < 2:
+        sys.exit("bench_measure: --calibrate needs two captures or more (a spread)")
     text = coverage(scored)
     if args.calibrate:
         text += "\n\nPLACEMENT = " + json.dumps(calibrate(scored))

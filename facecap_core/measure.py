@@ -235,9 +235,10 @@ def under_scale(measurements: dict, sigma_pct: float | None) -> dict:
 
 
 def summary(measurements: dict) -> str:
-    """The measurements in words: ``Outer eye corners 96.3 mm ± 4.1 mm (between its
-    landmark vertices 98.1 mm straight, 104.2 mm along the surface); ...`` (the uncertainty
-    is 1σ: the metric scale's and the landmarks' placement)."""
+    """The measurements in words: ``Outer eye corners 95.2 mm ± 5.8 mm (between its
+    landmark vertices 98.1 mm straight, 104.2 mm along the surface); ...``: each preset's
+    anatomical figure (1σ: the metric scale's and the landmarks' placement; no ± when the
+    scale's is unknown), or its straight one ± the scale's 1σ in a report without it."""
     said = []
     for m in measurements.values():
         if not isinstance(m, dict) or not isinstance(m.get("straight"), dict):

@@ -84,8 +84,11 @@ def figure_rows(report: dict) -> list[tuple[str, str, str]]:
     if fig.get("parts"):
         rows.append(("parts", "Support by part", parts_summary(fig["parts"])))
     if isinstance(fig.get("measurements"), dict) and measurements_summary(fig["measurements"]):
+        anatomical = any(isinstance(m, dict) and isinstance(m.get("anatomical"), dict)
+                         for m in fig["measurements"].values())
         rows.append(("measurements", "Measurements", measurements_summary(fig["measurements"])
-                     + " (straight; ± the metric scale's 1σ)"))
+                     + (" (anatomical: ± the metric scale's and the landmarks' placement 1σ)"
+                        if anatomical else " (straight; ± the metric scale's 1σ)")))
     for protocol, sc in (fig.get("evaluation") or {}).items():
         rows.append((f"evaluation_{protocol}", f"Accuracy ({protocol})", _scores(sc)))
         ears = sc.get("ears") or {}

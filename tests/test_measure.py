@@ -10,6 +10,7 @@ import trimesh
 
 from facecap_core.fitting.stage import figures as fitting_figures
 from facecap_core.measure import (
+    PLACEMENT,
     PRESETS,
     SurfacePaths,
     distance_text,
@@ -102,3 +103,27 @@ def test_a_presets_anatomical_figure_counts_where_the_landmarks_sit(monkeypatch)
     assert got["anatomical"] == {"mm": 37.0, "sigma_mm": 5.0}  # 3 mm (7.5 % of 40) and 4 mm
     assert got["straight"] == {"mm": 40.0, "sigma_mm": 3.0}
     assert measure.anatomical("nose_width", 40.0, None) == {"mm": 37.0, "sigma_mm": None}
+
+
+def test_the_measurements_row_says_which_uncertainty_it_gives():
+    """The page's Measurements row: the anatomical figures with both errors named; a report
+    from before them, the straight figures with the scale's alone, and no ± at all when the
+    scale's σ is unknown."""
+    from facecap.pages.figures import figure_rows
+
+    made = {"nose_width": {"name": "Nose width", "straight": {"mm": 40.0}, "surface": {"mm": 45.0}}}
+
+    def row(measurements):
+        report = {"figures": {"measurements": measurements}}
+        return dict((key, text) for key, _, text in figure_rows(report))["measurements"]
+
+    with_both = under_scale(made, 7.5)
+    bias, _ = PLACEMENT["nose_width"]
+    assert row(with_both).startswith(f"Nose width {40.0 - bias:.1f} mm ± ")
+    assert row(with_both).endswith("(anatomical: ± the metric scale's and the landmarks' "
+                                   "placement 1σ)")
+    before = {"nose_width": {**with_both["nose_width"]}}
+    del before["nose_width"]["anatomical"]
+    assert row(before).startswith("Nose width 40.0 mm ± 3.0 mm (between")
+    assert row(before).endswith("(straight; ± the metric scale's 1σ)")
+    assert row(under_scale(made, None)).startswith(f"Nose width {40.0 - bias:.1f} mm (between")

@@ -52,7 +52,8 @@ def build(results: Path, target: Path) -> bytes:
         if len(mesh.vertices) == len(template.vertices):
             figures["measurements"] = landmark_measurements(
                 mesh.vertices, mesh.faces, template.landmarks, sigma)
-    if figures.get("measurements"):  # with today's figures (a report from before them)
+    if figures.get("measurements") and not all("anatomical" in m for m in
+                                                figures["measurements"].values()):
         figures["measurements"] = under_scale(figures["measurements"], sigma)
     accuracy, frames, stages = None, None, report.get("stages", {})
     if report.get("store"):

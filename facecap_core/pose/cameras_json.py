@@ -92,9 +92,12 @@ class SolveFigures(ArtifactJson):
     """Sum of the view-to-view rotations along the keyframes, degrees."""
     tracked_turn_deg: float | None = None
     """The same turn as the tracker measured it, degrees (keyframes in sweep order)."""
+    circling_factor: float | None = None
+    """How much further the solve turns than the tracker step by step (1-2; keyframes in
+    sweep order): what the order check scales the tracking by."""
     largest_step_ratio: float | None = None
-    """Largest step between consecutive views over what the images say (jumps are over
-    2)."""
+    """Largest step between consecutive views over what the images say (keyframes: the
+    tracking times the circling factor; jumps are over 2)."""
 
 
 class WorldFromGt(ArtifactJson):

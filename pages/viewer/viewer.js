@@ -404,9 +404,12 @@
     // A preset also says its anatomical figure: the distance less where the fit puts the
     // landmark vertices, ± the scale's and that placement's 1σ (report.json's).
     const anat = shown && shown.anatomical;
-    const said = anat && Number.isFinite(anat.mm) && Number.isFinite(anat.sigma_mm) ?
-      `${anat.mm.toFixed(1)} mm ± ${anat.sigma_mm.toFixed(1)} mm (1σ, with where the landmarks ` +
-      "sit); between its landmark vertices: " : "";
+    let said = "";
+    if (anat && Number.isFinite(anat.mm))
+      said = (Number.isFinite(anat.sigma_mm) ?
+        `${anat.mm.toFixed(1)} mm ± ${anat.sigma_mm.toFixed(1)} mm (1σ, with where the ` +
+        "landmarks sit)" : `${anat.mm.toFixed(1)} mm (its uncertainty is not known)`) +
+        "; between its landmark vertices: ";
     document.getElementById("measure-result").textContent =
       `${name ? name + ": " : ""}${said}straight ${distanceText(s)}; along the surface ` +
       `${distanceText(r)}`;

@@ -118,7 +118,9 @@ def test_a_solve_that_turns_further_than_the_tracking_all_along_keeps_its_order(
     """A camera circling a face: the tracker measures 1.7x less than the turn in every
     step, and one step is 2.1x the tracker's 6° (12.6°, over the 10° floor). Against the
     tracking alone that step is a jump; against the tracking scaled by the solve's own
-    median ratio it is a step like the others. Two views swapped still jump."""
+    lower quartile of ratios it is a step like the others. Two views swapped still jump,
+    and so do every two neighbours swapped (half the steps long); a solve turning 2.5x the
+    tracking all along is refused by its span."""
     yaws = np.arange(-90.0, 91.0, 6.0 * 1.7)
     yaws[12:] += 12.6 - 6.0 * 1.7
     R, t = _sweep(yaws)
@@ -130,13 +132,25 @@ def test_a_solve_that_turns_further_than_the_tracking_all_along_keeps_its_order(
     assert checks.order_jumps(true, expected).tolist() == [11]
     assert checks.circling_factor(true, expected) == pytest.approx(1.7, rel=1e-9)
     assert checks.solve_problem(poses, keyframes) is None
-    assert checks.solve_figures(poses, keyframes)["largest_step_ratio"] == pytest.approx(
-        12.6 / (6.0 * 1.7), abs=1e-3)  # a jump is over 2
-    R[4], R[14] = R[14], R[4]
-    assert "out of order" in checks.solve_problem(Poses(PHONE, poses.frame_indices, R, t),
-                                                   keyframes)
-    # Scrambled throughout: the tracking is scaled by twice at most.
+    figures = checks.solve_figures(poses, keyframes)
+    assert figures["circling_factor"] == pytest.approx(1.7, abs=1e-3)
+    assert figures["largest_step_ratio"] == pytest.approx(12.6 / (6.0 * 1.7), abs=1e-3)
+    swapped = list(R)
+    swapped[4], swapped[14] = swapped[14], swapped[4]
+    problem = checks.solve_problem(Poses(PHONE, poses.frame_indices, swapped, t), keyframes)
+    assert "out of order" in problem and "~6° in the images" in problem  # the tracker's 6°
+    # Every two neighbours swapped (1, 0, 3, 2, ...): the steps alternate 1x and 3x.
+    pairs = [R[k ^ 1] for k in range(len(R) - len(R) % 2)]
+    n = len(pairs)
+    problem = checks.solve_problem(Poses(PHONE, poses.frame_indices[:n], pairs, t[:n]),
+                                   _keyframes(n, keyframes.angles_deg[:n]))
+    assert "out of order" in problem
+    # Scaled by twice at most; 2.5x all along is more than a circling camera explains.
     assert checks.circling_factor(true * 5, expected) == checks.CIRCLING_MAX
+    R, t = _sweep(np.arange(-60.0, 61.0, 6.0 * 2.5))
+    keyframes = _keyframes(len(R), _nominal_angles(np.full(len(R) - 1, 6.0)))
+    problem = checks.solve_problem(Poses(PHONE, list(keyframes.indices), R, t), keyframes)
+    assert "in all along the sweep where the video's tracking measured" in problem
 
 
 def test_a_solve_that_turns_half_as_far_as_the_tracking_is_named():
@@ -152,11 +166,14 @@ def test_a_solve_that_turns_half_as_far_as_the_tracking_is_named():
     assert not len(checks.order_jumps(steps, expected))
     assert "turn 60° in all along the sweep where the video's tracking measured ~120°" in \
         checks.solve_problem(half, keyframes)
-    # A turn wider than the tracking's passes: a camera circling a face sees the face move
-    # less than the turn, so the tracker measures less (1.6x on a 50° phone-like sweep).
+    # A turn wider than the tracking's passes up to 2x: a camera circling a face sees the
+    # face move less than the turn, so the tracker measures less (1.6x on a 50° phone-like
+    # sweep).
     R, t = _sweep(yaws * 1.7)
     assert checks.solve_problem(Poses(PHONE, poses.frame_indices, R, t), keyframes) is None
-    R, t = _sweep(yaws * 0.65)
+    R, t = _sweep(yaws * 0.7)
+    assert checks.solve_problem(Poses(PHONE, poses.frame_indices, R, t), keyframes) is None
+    R, t = _sweep(yaws * 1.9)
     assert checks.solve_problem(Poses(PHONE, poses.frame_indices, R, t), keyframes) is None
 
 
