@@ -661,6 +661,18 @@ def test_two_clicks_measure_the_face_straight_and_along_its_surface(results, tmp
         assert abs(m["straight"] - preset["straight"]["mm"]) < 0.01
         assert abs(m["surface"] - preset["surface"]["mm"]) <= 0.005 * preset["surface"]["mm"]
         page.screenshot(path=str(SHOTS / "measure.png"))
+        # A run whose metric scale has no stated σ: the preset's figure without a ±.
+        unknown = {**report, "figures": {**report["figures"], "measurements": {
+            key: {**m, "anatomical": {**m["anatomical"], "sigma_mm": None}}
+            for key, m in report["figures"]["measurements"].items()}}}
+        page_file.write_bytes(build_page(unknown, results, mesh_glb(results["mesh.ply"])))
+        page.goto(page_file.as_uri())
+        page.wait_for_function("window.facecap && window.facecap.ready", timeout=60_000)
+        page.click("#measure-button")
+        page.click("[data-preset=mouth_width]")
+        said = page.inner_text("#measure-result")
+        assert said.startswith(f"Mouth width: {anatomical['mm']:.1f} mm (its uncertainty is "
+                               "not known); between its landmark vertices: straight"), said
     assert errors == []
     assert report["figures"]["measurements"]["mouth_width"]["name"] in \
         page_file.read_text()  # the preset's button
