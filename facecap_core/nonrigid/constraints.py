@@ -288,13 +288,16 @@ def edge_map(image: np.ndarray, blur_sigma: float, low: int, high: int) -> np.nd
 
 
 def nearest_edge_pixels(edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel, the distance to and the (x, y) of the nearest edge pixel."""
+    """Per pixel, the distance to (float32) and the integer (x, y) of the nearest edge
+    pixel (int16 where the image allows: the fit holds one of these per keyframe, 6 bytes
+    a pixel less than floats)."""
     dist, labels = cv2.distanceTransformWithLabels(
         np.where(edges > 0, 0, 255).astype(np.uint8), cv2.DIST_L2, 5,
         labelType=cv2.DIST_LABEL_PIXEL)
     ys, xs = np.nonzero(edges > 0)
     # Labels count the zero pixels in row-major scan order starting at 1.
-    lut = np.zeros((len(xs) + 1, 2), np.float64)
+    small = max(edges.shape) <= np.iinfo(np.int16).max
+    lut = np.zeros((len(xs) + 1, 2), np.int16 if small else np.int32)
     lut[1:, 0], lut[1:, 1] = xs, ys
     return dist, lut[labels]
 

@@ -190,6 +190,8 @@ def test_nearest_edge_pixel_labels():
     dist, xy = nearest_edge_pixels(edges)
     assert tuple(xy[12, 6]) == (5, 10) and tuple(xy[29, 38]) == (40, 30)
     assert tuple(xy[26, 8]) == (7, 25) and dist[10, 5] == 0
+    # One of these per keyframe is held through the fit: 4 + 2 × 2 bytes a pixel.
+    assert dist.dtype == np.float32 and xy.dtype == np.int16
 
 
 # --------------------------------------------------------------------------- fitting
