@@ -51,9 +51,9 @@ PLACEMENT = {
 """Per preset, (bias, spread) in mm of the fitted mesh's distance between the two landmark
 vertices at the true scale less the true landmarks' distance: its mean, and the spread of
 a new capture's about it (standard deviation × sqrt(1 + 1/n)), over the n calibration
-captures of ``benchmarks/bench_measure.py --calibrate`` (ICT
-identities 101-106: three clean 1280×720 and three phone-like 512×512 sweeps; the truth is
-the renderer's landmarks). Held-out captures are reported in ``docs/results_page.md``."""
+captures of ``benchmarks/bench_measure.py --calibrate`` (ICT identities 101-106: three clean
+1280×720 and three phone-like 512×512 sweeps; the truth is the renderer's landmarks).
+Held-out captures are reported in ``docs/results_page.md``."""
 
 
 def _edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -100,9 +100,8 @@ class Stage:
     key_neutral: dict[str, str] = field(default_factory=dict, hash=False)
     """Settings of its section that change none of its files, ``{dotted name in the section:
     why}`` (the pose stage's ``extraction_threads``: how many threads extract the SIFT
-    features). Its artifact key
-    hashes each at its default whatever the value, so a changed one reuses the stored
-    artifact (``facecap.tasks.graph.config_data``)."""
+    features). Its artifact key hashes each at its default whatever the value, so a changed
+    one reuses the stored artifact (``facecap.tasks.graph.config_data``)."""
     sources: dict[str, str] = field(default_factory=dict, hash=False)
     """Inputs named otherwise than the stage that makes them: ``{input name: stage}`` (the
     evaluation's ``mesh`` is the fitting stage's artifact); see :meth:`source`."""

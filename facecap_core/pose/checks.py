@@ -291,8 +291,9 @@ def solve_figures(poses, keyframes, numbers=None) -> dict:
     if expected is not None:
         if keyframes.ordered:
             doc["tracked_turn_deg"] = round(float(np.sum(expected)), 1)
-            doc["circling_factor"] = round(circling_factor(steps, expected), 3)
-            expected = expected * doc["circling_factor"]  # as the order check
+            factor = circling_factor(steps, expected)
+            doc["circling_factor"] = round(factor, 3)
+            expected = expected * factor  # as the order check
         floor = np.maximum(expected, MIN_JUMP_DEG / JUMP_FACTOR)
         doc["largest_step_ratio"] = round(float(np.max(steps / floor)), 3)
     return doc

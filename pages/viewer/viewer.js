@@ -10,10 +10,10 @@
 // mesh (each snapped to the nearest vertex of the triangle hit) give their distance straight
 // and along the surface (the path of facecap_core/measure.py: a Steiner-point graph searched
 // by A*, then straightened along its edges), ± the metric scale's 1σ; the presets measure
-// between two landmarks and say the report's anatomical figure first. A textured mesh.glb is split at its UV seams: the mesh's own
-// vertices first, then copies of seam vertices (its userData: template_vertices,
-// seam_vertex); what is indexed by mesh vertex (the heat map, the measured vertices) is
-// spread onto the copies, and a copy clicked is its mesh vertex.
+// between two landmarks and say the report's anatomical figure first. A textured mesh.glb
+// is split at its UV seams: the mesh's own vertices first, then copies of seam vertices (its
+// userData: template_vertices, seam_vertex); what is indexed by mesh vertex (the heat map,
+// the measured vertices) is spread onto the copies, and a copy clicked is its mesh vertex.
 (function () {
   "use strict";
   const data = JSON.parse(document.getElementById("facecap-data").textContent);
