@@ -41,7 +41,6 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import trimesh
 from pydantic import Field
 
 from facecap_core.camera import CAMERAS_JSON
@@ -56,10 +55,13 @@ from facecap_core.landmarks.stage import (
     LANDMARKS_3D,
     load_ears3d,
 )
+from facecap_core.lazy import LazyModule
 from facecap_core.nonrigid.nicp import NicpConfig, fit
 from facecap_core.pose.cameras_json import Cameras, keyframe_poses
 from facecap_core.stage import Folders, Stage
 from facecap_core.template import INNER_LANDMARKS, Template
+
+trimesh = LazyModule("trimesh")
 
 
 class CoarseConfig(StrictModel):

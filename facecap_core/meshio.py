@@ -16,9 +16,11 @@ import json
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from facecap_core.errors import InputError
+from facecap_core.lazy import LazyModule
+
+trimesh = LazyModule("trimesh")
 
 MESH_SUFFIXES = {".ply", ".obj", ".stl", ".off", ".glb", ".gltf"}
 

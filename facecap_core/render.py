@@ -11,11 +11,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 
 from facecap_core.camera import Intrinsics, pixel_rays
+from facecap_core.lazy import LazyModule
 
-NO_HIT = np.uint32(o3d.t.geometry.RaycastingScene.INVALID_ID)
+o3d = LazyModule("open3d")
+
+NO_HIT = np.uint32(2**32 - 1)
+"""open3d's ``RaycastingScene.INVALID_ID``: the triangle id of a ray that hits nothing."""
 
 
 @dataclass

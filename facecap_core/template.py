@@ -22,13 +22,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
 from facecap_core import assets
 from facecap_core.errors import InputError
+from facecap_core.lazy import LazyModule
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.render import RaycastScene, vertex_normals
+
+trimesh = LazyModule("trimesh")
 
 INNER_LANDMARKS = np.arange(17, 68)  # the 68 without the jaw contour (paper: 50 of them + 1)
 REGIONS = ("face", "ears", "scalp_neck")

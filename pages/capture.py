@@ -19,8 +19,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import open3d as o3d
-import trimesh
 from markupsafe import Markup
 
 from facecap.pages.figures import figure_rows, run_summary, warnings
@@ -29,7 +27,11 @@ from facecap.pages.scan import stored_scan
 from facecap.tasks.graph import is_keyframe_row
 from facecap_core.camera import camera_center
 from facecap_core.frames import frame_name
+from facecap_core.lazy import LazyModule
 from facecap_core.pose.cameras_json import Cameras
+
+o3d = LazyModule("open3d")
+trimesh = LazyModule("trimesh")
 
 GLB_NAME = "mesh.glb"
 HEAT_MAX_MM = 5.0

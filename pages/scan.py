@@ -1,10 +1,9 @@
 """The scan beside the reconstruction on the capture page: the scan a run was scored against,
 moved into the mesh's frame and thinned to a page's size.
 
-The evaluation stage keeps no transform (its artifact holds the scores and the heat maps), so
-the page aligns the two again as the evaluation's metric protocol does (landmarks, then
-trimmed ICP, rigid: the mesh keeps its own scale) and moves the scan by the inverse: the
-scan then stands where the mesh stands, seen by the same camera.
+The evaluation stage keeps the transform its metric protocol brought the mesh onto the scan
+with (landmarks, then trimmed ICP, rigid: the mesh keeps its own scale); the page moves the
+scan by its inverse, so the scan stands where the mesh stands, seen by the same camera.
 """
 
 from __future__ import annotations
@@ -13,13 +12,14 @@ import logging
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 
 from facecap.tasks.store import open_store
-from facecap_core.evaluation.alignment import align
-from facecap_core.evaluation.stage import find_file
-from facecap_core.fitting.run import MESH_LANDMARKS, MESH_PLY
-from facecap_core.meshio import load_landmarks, load_mesh
+from facecap_core.evaluation.alignment import Alignment
+from facecap_core.evaluation.stage import find_file, read_alignment
+from facecap_core.lazy import LazyModule
+from facecap_core.meshio import load_mesh
+
+o3d = LazyModule("open3d")
 
 _log = logging.getLogger(__name__)
 
@@ -40,26 +40,21 @@ def thinned(vertices: np.ndarray, faces: np.ndarray, max_faces: int = SCAN_FACES
     return (np.asarray(mesh.vertices, np.float32), np.asarray(mesh.triangles, np.uint32))
 
 
-def scan_in_mesh_frame(mesh_ply: Path, scan_mesh: Path, scan_landmarks: Path,
-                       mesh_landmarks: Path | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The scan's vertices (mm, moved into the mesh's frame by the inverse of the metric
-    protocol's alignment) and its triangles, thinned to :data:`SCAN_FACES`."""
-    mesh = load_mesh(mesh_ply, "mesh")
+def scan_in_mesh_frame(scan_mesh: Path, alignment: Alignment) -> tuple[np.ndarray, np.ndarray]:
+    """The scan's vertices (mm) moved into the mesh's frame by the inverse of ``alignment``
+    (mesh to scan) and its triangles, thinned to :data:`SCAN_FACES`."""
     scan = load_mesh(scan_mesh, "scan")
-    mesh_lm = load_landmarks(mesh_landmarks) if mesh_landmarks is not None and \
-        mesh_landmarks.is_file() else None
-    fit = align(mesh.vertices, mesh.faces, scan.vertices, scan.faces,
-                load_landmarks(scan_landmarks), mesh_lm, with_scale=False)
+    a = alignment
     # x_scan = s R x_mesh + t, so x_mesh = R^T (x_scan - t) / s (row-wise: (x - t) R / s).
-    moved = (np.asarray(scan.vertices, float) - fit.t) @ fit.R / fit.s
+    moved = (np.asarray(scan.vertices, float) - a.t) @ a.R / a.s
     return thinned(moved, np.asarray(scan.faces))
 
 
 def stored_scan(report: dict) -> tuple[np.ndarray, np.ndarray] | None:
     """The scan of a scored run, in the mesh's frame (:func:`scan_in_mesh_frame`), found
-    through its evaluation artifact in the run's store (``report["store"]``); None for a run
-    without a scan, or where the store no longer holds it or the alignment fails (the page
-    is still worth having without it)."""
+    through its evaluation artifact in the run's store (``report["store"]``) and moved by the
+    alignment that artifact kept; None for a run without a scan, or where the store no
+    longer holds it (the page is still worth having without it)."""
 
     key = (report.get("stages", {}).get("evaluation") or {}).get("key")
     if not report.get("store") or not key:
@@ -67,15 +62,11 @@ def stored_scan(report: dict) -> tuple[np.ndarray, np.ndarray] | None:
     try:
         store = open_store(report["store"])
         inputs = store.manifest(key).inputs
-        if not {"mesh", "scan", "scan_landmarks"} <= set(inputs):
+        if "scan" not in inputs:
             return None
-        fitting = store.get(inputs["mesh"])
         return scan_in_mesh_frame(
-            fitting / MESH_PLY,
             find_file(store.get(inputs["scan"]), (".ply", ".obj", ".stl", ".off"), "scan mesh"),
-            find_file(store.get(inputs["scan_landmarks"]), (".json", ".ljson", ".txt", ".pts"),
-                      "scan landmarks"),
-            fitting / MESH_LANDMARKS)
+            read_alignment(store.get(key), "metric"))
     except Exception as exc:  # noqa: BLE001 - the page is made without the scan, and says so
         _log.warning("the page shows no scan: %s", str(exc).splitlines()[0] if str(exc)
                      else type(exc).__name__)

@@ -849,7 +849,8 @@ def test_the_scan_is_moved_onto_the_mesh(results, tmp_path):
     """The scan, turned and moved away in its own frame, is brought back onto the mesh by the
     inverse of the metric protocol's alignment, and thinned to the page's size."""
     from facecap.pages.scan import scan_in_mesh_frame, thinned
-    from facecap_core.meshio import save_landmarks
+    from facecap_core.evaluation.alignment import align
+    from facecap_core.meshio import load_landmarks, save_landmarks
 
     sphere = trimesh.load(results["mesh.ply"], process=False)
     head = _bumpy_head(sphere.vertices)
@@ -864,7 +865,9 @@ def test_the_scan_is_moved_onto_the_mesh(results, tmp_path):
     ids = np.flatnonzero(head[:, 2] > 40)[:68]
     scan_lm = save_landmarks(tmp_path / "scan_landmarks.json", moved[ids])
     mesh_lm = save_landmarks(tmp_path / "mesh_landmarks.json", head[ids])
-    vertices, faces = scan_in_mesh_frame(mesh_ply, scan_ply, scan_lm, mesh_lm)
+    fit = align(head, sphere.faces, moved, sphere.faces, load_landmarks(scan_lm),
+                load_landmarks(mesh_lm), with_scale=False)
+    vertices, faces = scan_in_mesh_frame(scan_ply, fit)
     assert np.abs(vertices - head).max() < 0.5
     assert np.array_equal(faces, sphere.faces)
     few, few_faces = thinned(vertices, faces, 1000)

@@ -8,14 +8,16 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from facecap_core.errors import InputError
 from facecap_core.evaluation.region import check_landmarks, region_sphere
 from facecap_core.evaluation.settings import EvaluationConfig
 from facecap_core.geometry import umeyama
+from facecap_core.lazy import LazyModule
 from facecap_core.template import INNER_LANDMARKS
+
+o3d = LazyModule("open3d")
 
 Protocol = Literal["similarity", "metric"]
 PROTOCOLS: tuple[str, ...] = ("similarity", "metric")

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from facecap_core.errors import InputError
-from facecap_core.evaluation.alignment import PROTOCOLS
+from facecap_core.evaluation.alignment import PROTOCOLS, Alignment
 from facecap_core.evaluation.figures import error_heatmap
 from facecap_core.evaluation.scoring import evaluate, score_json
 from facecap_core.evaluation.settings import EvaluationConfig
@@ -20,6 +20,7 @@ from facecap_core.template import Template
 
 EVALUATION_JSON = "evaluation.json"
 ACCURACY_NPY = "accuracy_{protocol}.npy"
+ALIGNMENT_JSON = "alignment_{protocol}.json"
 """Each mesh vertex's distance to the scan (mm; nan outside the scored regions: the face
 sphere and the ear region), per protocol: the heat map on the mesh of the capture's page."""
 
@@ -45,8 +46,9 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
                    scan_landmarks: str | Path | None = None,
                    config: EvaluationConfig | None = None) -> Path:
     """Score the fitting stage's ``mesh.ply`` against a scan; writes ``evaluation.json``
-    (:func:`score_json` per protocol), ``heatmap_<protocol>.png`` and
-    ``accuracy_<protocol>.npy`` (per vertex); returns the JSON."""
+    (:func:`score_json` per protocol), ``heatmap_<protocol>.png``,
+    ``accuracy_<protocol>.npy`` (per vertex) and ``alignment_<protocol>.json`` (the transform
+    from the mesh to the scan, :func:`read_alignment`); returns the JSON."""
 
     mesh_path = Path(mesh_dir) / MESH_PLY
     scan_path = find_file(scan_dir, (".ply", ".obj", ".stl", ".off"), "scan mesh")
@@ -70,9 +72,24 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
         error_heatmap(sc.alignment.apply(mesh.vertices), mesh.faces, scored,
                       out / f"heatmap_{name}.png")
         np.save(out / ACCURACY_NPY.format(protocol=name), scored.astype(np.float32))
+        a = sc.alignment
+        (out / ALIGNMENT_JSON.format(protocol=name)).write_text(json.dumps(
+            {"s": float(a.s), "R": np.asarray(a.R, float).tolist(),
+             "t": np.asarray(a.t, float).tolist(), "maps": "mesh to scan: s R x + t"}))
     path = out / EVALUATION_JSON
     path.write_text(json.dumps({p: score_json(s) for p, s in scores.items()}, indent=1))
     return path
+
+
+def read_alignment(folder: str | Path, protocol: str) -> Alignment:
+    """The transform the evaluation in ``folder`` brought the mesh onto the scan with."""
+    path = Path(folder) / ALIGNMENT_JSON.format(protocol=protocol)
+    try:
+        d = json.loads(path.read_text())
+        return Alignment(float(d["s"]), np.asarray(d["R"], float).reshape(3, 3),
+                         np.asarray(d["t"], float).reshape(3))
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path} holds no alignment ({exc}); evaluate the mesh again") from exc
 
 
 def figures(folder: str | Path) -> dict:
@@ -88,8 +105,9 @@ def run(inputs: Folders, out: Path, config: EvaluationConfig, params: dict) -> N
 
 HEATMAPS = tuple(f"heatmap_{p}.png" for p in PROTOCOLS)
 ACCURACY = tuple(ACCURACY_NPY.format(protocol=p) for p in PROTOCOLS)
+ALIGNMENTS = tuple(ALIGNMENT_JSON.format(protocol=p) for p in PROTOCOLS)
 
-STAGE = Stage("evaluation", version="4", inputs=("mesh", "scan"), work_seconds=3.0,
-              section="evaluation", run=run, outputs=(EVALUATION_JSON, *HEATMAPS, *ACCURACY),
+STAGE = Stage("evaluation", version="5", inputs=("mesh", "scan"), work_seconds=3.0,
+              section="evaluation", run=run, outputs=(EVALUATION_JSON, *HEATMAPS, *ACCURACY, *ALIGNMENTS),
               exported=(EVALUATION_JSON, *HEATMAPS), optional=("scan_landmarks",),
               sources={"mesh": "fitting"}, figures=figures)

@@ -16,13 +16,15 @@ or missing is where to look first; the figures go to ``fit.json`` (``parts``) an
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
+from facecap_core.lazy import LazyModule
 from facecap_core.nonrigid.constraints import CloudGrid, cloud_targets
 from facecap_core.nonrigid.roughness import BENT_DEG, bend_angles
 from facecap_core.render import vertex_normals
 from facecap_core.template import Template, head_frame
+
+trimesh = LazyModule("trimesh")
 
 PARTS = ("forehead", "eyes", "nose", "cheeks", "mouth", "jaw", "ears")
 """The parts of the face reported, in the order they are shown."""

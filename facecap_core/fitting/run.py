@@ -20,8 +20,6 @@ import logging
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
-import trimesh
 from scipy.spatial import cKDTree
 
 from facecap_core.errors import InputError
@@ -29,6 +27,7 @@ from facecap_core.fitting.quality import part_quality
 from facecap_core.fitting.sanity import MeshSanity, check_mesh, relax_folds
 from facecap_core.fitting.settings import FittingConfig
 from facecap_core.landmarks.ears import EAR_VERTEX_IDS
+from facecap_core.lazy import LazyModule
 from facecap_core.measure import landmark_measurements
 from facecap_core.meshio import load_landmarks, save_landmarks
 from facecap_core.nonrigid.constraints import Keyframe
@@ -49,6 +48,9 @@ from facecap_core.texture import (
     vertex_colours,
 )
 from facecap_core.video import read_frames
+
+o3d = LazyModule("open3d")
+trimesh = LazyModule("trimesh")
 
 MESH_PLY = "mesh.ply"
 MESH_OBJ = "mesh.obj"

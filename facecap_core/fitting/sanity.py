@@ -16,12 +16,14 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import open3d as o3d
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from facecap_core.geometry import umeyama
+from facecap_core.lazy import LazyModule
 from facecap_core.nonrigid.solver import edges_of
+
+o3d = LazyModule("open3d")
 
 MAX_EDGE_STRETCH = 3.0
 """An edge beyond this many times its (similarity-scaled) template length counts as

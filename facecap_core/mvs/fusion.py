@@ -20,18 +20,20 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 from pydantic import Field
 
 from facecap_core.camera import CAMERAS_JSON
 from facecap_core.config import StrictModel
 from facecap_core.errors import InputError
+from facecap_core.lazy import LazyModule
 from facecap_core.mvs import depth
 from facecap_core.mvs.depth import load_depth_map
 from facecap_core.mvs.filtering import _partners, agreement, backproject, geometric_filter
 from facecap_core.mvs.images import load_view, metric_cameras
 from facecap_core.mvs.patchmatch import DepthMap
 from facecap_core.stage import Folders, Stage
+
+o3d = LazyModule("open3d")
 
 
 class FusionConfig(StrictModel):

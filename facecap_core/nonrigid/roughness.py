@@ -16,7 +16,10 @@ also the region that ``benchmarks/bench_real.py --split-half`` measures).
 from __future__ import annotations
 
 import numpy as np
-import trimesh
+
+from facecap_core.lazy import LazyModule
+
+trimesh = LazyModule("trimesh")
 
 FACE_RADIUS_MM = 70.0
 """Radius of the face region on a face whose outer eye corners are ``EYE_CORNERS_MM`` apart

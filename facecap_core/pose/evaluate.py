@@ -4,10 +4,12 @@ as the surface they would reconstruct."""
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
 from facecap_core.camera import Intrinsics, camera_center, project, rotation_angle_deg, undistort
 from facecap_core.geometry import umeyama
+from facecap_core.lazy import LazyModule
+
+trimesh = LazyModule("trimesh")
 
 
 def pose_errors(R_est, t_est, intr_est: Intrinsics, R_gt, t_gt, intr_gt: Intrinsics) -> dict:

@@ -6,8 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
+from facecap_core.lazy import LazyModule
 from facecap_core.pose.cameras_json import (
     CONVENTION,
     CameraIntrinsics,
@@ -17,6 +17,8 @@ from facecap_core.pose.cameras_json import (
     keyframe_poses,
 )
 from facecap_core.pose.colmap_sfm import Poses
+
+trimesh = LazyModule("trimesh")
 
 # Imported where used: pycolmap only where a COLMAP model is written.
 

@@ -529,3 +529,29 @@ def test_the_stage_writes_the_distance_of_each_scored_vertex_face_and_ears(ict_m
     assert np.isnan(per_vertex[~(in_ears | in_face)]).all()
     assert np.median(per_vertex[ears & in_ears]) > 0.95  # the pushed ears, coloured
     assert np.nanmax(per_vertex[in_face]) < 1e-3
+
+
+def test_the_stage_keeps_the_transform_that_brought_the_mesh_onto_the_scan(ict_mean, tmp_path):
+    """The scan is the mesh turned 15° and moved 50 mm: each protocol's kept alignment maps
+    the mesh onto it, rigidly for the metric protocol."""
+    from facecap_core.evaluation.stage import main, read_alignment
+    from facecap_core.fitting.run import MESH_LANDMARKS
+
+    v, f, lm = ict_mean.vertices, ict_mean.faces, ict_mean.landmark_points
+    angle = np.radians(15)
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0],
+                  [-np.sin(angle), 0, np.cos(angle)]])
+    t = np.array([50.0, -20.0, 10.0])
+    for folder in ("mesh", "scan", "scan_landmarks"):
+        (tmp_path / folder).mkdir()
+    trimesh.Trimesh(v, f, process=False).export(tmp_path / "mesh" / "mesh.ply")
+    save_landmarks(tmp_path / "mesh" / MESH_LANDMARKS, lm)
+    trimesh.Trimesh(v @ R.T + t, f, process=False).export(tmp_path / "scan" / "scan.ply")
+    save_landmarks(tmp_path / "scan_landmarks" / "scan_landmarks.json", lm @ R.T + t)
+    main(tmp_path / "mesh", tmp_path / "scan", tmp_path / "out", tmp_path / "scan_landmarks")
+    for protocol in ("similarity", "metric"):
+        kept = read_alignment(tmp_path / "out", protocol)
+        assert np.abs(kept.apply(v) - (v @ R.T + t)).max() < 0.05, protocol
+    assert read_alignment(tmp_path / "out", "metric").s == 1.0
+    with pytest.raises(InputError, match="holds no alignment"):
+        read_alignment(tmp_path / "mesh", "metric")
