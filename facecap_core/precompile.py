@@ -36,7 +36,7 @@ def _patchmatch_signature() -> tuple:
     """facecap_core.mvs.patchmatch.patchmatch_depth's call of ``_patchmatch``."""
     return (I32_1, I32_1, I32_2, BOOL_1, F32_2, F32_2, F32_2, F32_3, BOOL,  # .. use_prior
             F32_3, F64_3, F64_2, F64, F64, F64, F64,  # srcs, A, b, fx, fy, cx, cy
-            I32_1, I32_1, F32_2, F32_2, I64, I64, I32_2, I64, F64, I64, I64,  # .. pixel_views
+            I32_1, I32_1, F32_2, F32_2, I64, I64, I64, I32_2, I64, F64, I64, I64,  # .. pixel_views
             F32_2, F32_3, F32_2)  # depth, normal, cost
 
 

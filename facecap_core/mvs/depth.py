@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from pathlib import Path
 from typing import Literal
 
@@ -20,11 +21,12 @@ from facecap_core.config import StrictModel
 from facecap_core.errors import InputError
 from facecap_core.meshio import load_mesh
 from facecap_core.mvs.filtering import filter_with_prior
-from facecap_core.mvs.images import MVSView, load_view, metric_cameras
+from facecap_core.mvs.images import MVSView, downscale_view, load_view, metric_cameras
 from facecap_core.mvs.patchmatch import DepthMap, patchmatch_depth
-from facecap_core.mvs.prior import coarse_prior
+from facecap_core.mvs.prior import CoarsePrior, coarse_prior
 from facecap_core.mvs.sweep import sweep_depth
 from facecap_core.mvs.views import VIEWS, read_views
+from facecap_core.render import RaycastScene
 from facecap_core.stage import Folders, Stage
 
 
@@ -56,6 +58,15 @@ class DepthMapConfig(StrictModel):
     """Red–black PatchMatch iterations (each updates both colours once). Four: as accurate
     as five on the real-skin calibration captures (ICT 11 `clean` and `phone_512`), three
     and two were worse on `phone_512` (docs/mvs.md, "How many iterations")."""
+    levels: int = Field(1, ge=1, le=2)
+    """PatchMatch's pyramid. 1: every iteration at ``processing_width``. 2: the
+    ``iterations`` at half that width (a quarter of the pixels), then ``fine_iterations`` at
+    full width starting from the half-width planes: the depth maps in 0.6 of the time, but
+    1-8 % less accurate meshes (the mouth, the ears on phone-like video), so not the default
+    (docs/mvs.md, "Coarse to fine")."""
+    fine_iterations: int = Field(2, ge=1, le=8)
+    """Iterations at full width after the half-width level (``levels: 2``), propagating from
+    the four nearest neighbours, with refinement steps a quarter of the first level's."""
     neighbours: str = Field("fast", pattern="^(fast|full)$")
     """Gipuma's propagation pattern: 8 ('fast': ±1, ±5 on both axes) or 20 ('full')."""
     refine_trials: int = Field(3, ge=0, le=10)
@@ -114,16 +125,52 @@ def compute_depth_map(ref: MVSView, sources: list[MVSView], coarse_vertices: np.
 
     Returns (raw, filtered); both carry depth, camera-frame normal and cost maps.
     """
+    scene = RaycastScene()
+    scene.add(coarse_vertices, coarse_faces)
     prior = coarse_prior(ref, coarse_vertices, coarse_faces, config.depth_margin_mm,
-                         config.head_dilation_px)
+                         config.head_dilation_px, scene)
     if config.method == "sweep":
         raw = sweep_depth(ref, sources, prior, config.depth_margin_mm, config.sweep_step_mm,
                           config.window_radius, config.num_best_views)
     else:
-        raw = patchmatch_depth(ref, sources, prior, config)
+        raw = patchmatch_pyramid(ref, sources, prior, coarse_vertices, coarse_faces, scene,
+                                 config)
     filtered = filter_with_prior(raw, prior, config.max_cost, config.coarse_max_distance_mm,
                                  config.depth_margin_mm)
     return raw, filtered
+
+
+FINE_FIRST_STEP = 2
+"""The full-width level's refinement steps start at 0.5 ** this of the first level's: its
+planes are already within a few tenths of a mm (1 and 4 were no better on the calibration
+render's depth maps, docs/mvs.md)."""
+
+
+def patchmatch_pyramid(ref: MVSView, sources: list[MVSView], prior: CoarsePrior,
+                       coarse_vertices: np.ndarray, coarse_faces: np.ndarray,
+                       scene: RaycastScene, config: DepthMapConfig) -> DepthMap:
+    """PatchMatch over ``config.levels`` pyramid levels, coarsest first: the coarsest runs
+    every iteration from random planes; each finer one starts from the planes of the level
+    below and refines them (``scene``: the coarse mesh's, for each level's prior)."""
+    start, cpu = time.perf_counter(), time.thread_time()
+    planes = None
+    for level in range(config.levels - 1, -1, -1):
+        if level == 0:
+            view, views, level_prior = ref, sources, prior
+        else:
+            factor = 0.5 ** level
+            view = downscale_view(ref, factor)
+            views = [downscale_view(s, factor) for s in sources]
+            level_prior = coarse_prior(view, coarse_vertices, coarse_faces, config.depth_margin_mm,
+                                       max(1, round(config.head_dilation_px * factor)), scene)
+        if planes is None:
+            planes = patchmatch_depth(view, views, level_prior, config)
+        else:
+            planes = patchmatch_depth(view, views, level_prior, config, planes,
+                                      config.fine_iterations, FINE_FIRST_STEP)
+    planes.seconds = time.perf_counter() - start
+    planes.cpu_seconds = time.thread_time() - cpu
+    return planes
 
 
 def save_depth_map(depth: DepthMap, folder: str | Path) -> Path:

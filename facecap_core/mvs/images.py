@@ -82,6 +82,15 @@ def prepare_view(index: int, image: np.ndarray, intr: Intrinsics, R: np.ndarray,
     return MVSView(int(index), pinhole(cam), R, t, np.ascontiguousarray(rgb), grey)
 
 
+def downscale_view(view: MVSView, factor: float) -> MVSView:
+    """The view at ``factor`` times its size (area filter), for a coarser pyramid level."""
+    h, w = view.grey.shape
+    nw, nh = max(1, int(round(w * factor))), max(1, int(round(h * factor)))
+    grey = cv2.resize(view.grey, (nw, nh), interpolation=cv2.INTER_AREA)
+    rgb = cv2.resize(view.rgb, (nw, nh), interpolation=cv2.INTER_AREA)
+    return MVSView(view.index, view.intr.scaled(nw, nh), view.R, view.t, rgb, grey)
+
+
 VIEW_CACHE_BYTES = 256 * 2**20
 """Prepared views a process keeps for its next depth maps: each map reads its reference and
 12 sources, neighbouring maps mostly the same ones, and decoding and undistorting a 720p
