@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from facecap.synthetic.ground_truth import gt_depth
 from facecap_core.camera import Intrinsics, project
 from facecap_core.mvs import compute_depth_map
 from facecap_core.mvs.images import downscale_view
@@ -18,12 +17,7 @@ from facecap_core.mvs.patchmatch import (
     planes_at,
     window_offsets,
 )
-
-
-def _face(view, scene):
-    d, P = gt_depth(view, scene["V"], scene["F"])
-    centre, radius = scene["sphere"]
-    return d, np.isfinite(d) & (np.linalg.norm(np.nan_to_num(P) - centre, axis=-1) <= radius)
+from tests.mvs.test_depth import _face_pixels as _face
 
 
 def _rays(intr: Intrinsics) -> np.ndarray:
