@@ -87,6 +87,46 @@ def load_mesh(path: str | Path, what: str = "mesh", keep_vertex_order: bool = Tr
     return loaded
 
 
+PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2",
+             "int16": "<i2", "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4",
+             "uint": "<u4", "uint32": "<u4", "float": "<f4", "float32": "<f4",
+             "double": "<f8", "float64": "<f8"}
+
+
+def ply_vertices(path: str | Path) -> np.ndarray | None:
+    """The vertex element of a binary little-endian PLY whose vertices come first with
+    scalar properties (what open3d and trimesh write: the cloud, the mesh), as a structured
+    array by property name, read without either library; None for any other PLY."""
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            return None
+        fields, count, element = [], None, None
+        while True:
+            line = f.readline()
+            if not line:
+                return None
+            words = line.decode("ascii", "replace").split()
+            if not words or words[0] in ("comment", "obj_info"):
+                continue
+            if words[0] == "format" and words[1:2] != ["binary_little_endian"]:
+                return None
+            if words[0] == "element":
+                element = words[1]
+                if element == "vertex":
+                    count = int(words[2])
+                elif count is None:  # another element before the vertices
+                    return None
+            if words[0] == "property" and element == "vertex":
+                if words[1] not in PLY_TYPES or len(words) != 3:  # a list property
+                    return None
+                fields.append((words[2], PLY_TYPES[words[1]]))
+            if words[0] == "end_header":
+                break
+        if count is None or not fields:
+            return None
+        return np.fromfile(f, dtype=np.dtype(fields), count=count)
+
+
 def _ljson_points(data: dict, path: Path) -> np.ndarray:
     group = next(iter(data["groups"].values()))
     pts = np.asarray(group["landmarks"]["points"], dtype=float)

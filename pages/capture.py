@@ -28,6 +28,7 @@ from facecap.tasks.graph import is_keyframe_row
 from facecap_core.camera import camera_center
 from facecap_core.frames import frame_name
 from facecap_core.lazy import LazyModule
+from facecap_core.meshio import ply_vertices
 from facecap_core.pose.cameras_json import Cameras
 
 o3d = LazyModule("open3d")
@@ -124,10 +125,17 @@ def _cameras(cameras_json: Path, centre: np.ndarray, frames: Path | None = None
 
 
 def _cloud(cloud_ply: Path, seed: int = 0) -> dict:
-    cloud = o3d.io.read_point_cloud(str(cloud_ply))
-    points = np.asarray(cloud.points, np.float32)
-    colours = (np.clip(np.asarray(cloud.colors), 0, 1) * 255).astype(np.uint8) \
-        if cloud.has_colors() else np.full((len(points), 3), 160, np.uint8)
+    vertices = ply_vertices(cloud_ply)  # the fusion's own file: no open3d to load
+    if vertices is not None and {"x", "y", "z"} <= set(vertices.dtype.names):
+        points = np.stack([vertices[k] for k in "xyz"], 1).astype(np.float32)
+        colours = (np.stack([vertices[k] for k in ("red", "green", "blue")], 1)
+                   .astype(np.uint8) if {"red", "green", "blue"} <= set(vertices.dtype.names)
+                   else np.full((len(points), 3), 160, np.uint8))
+    else:
+        cloud = o3d.io.read_point_cloud(str(cloud_ply))
+        points = np.asarray(cloud.points, np.float32)
+        colours = (np.clip(np.asarray(cloud.colors), 0, 1) * 255).astype(np.uint8) \
+            if cloud.has_colors() else np.full((len(points), 3), 160, np.uint8)
     if len(points) > MAX_CLOUD_POINTS:
         keep = np.sort(np.random.default_rng(seed).choice(len(points), MAX_CLOUD_POINTS,
                                                            replace=False))
@@ -193,8 +201,7 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
     data: dict = {"mesh_glb": base64.b64encode(glb).decode("ascii") if glb else None}
     centre = None
     if glb:
-        centre = np.asarray(trimesh.load(results["mesh.ply"], process=False,
-                                         force="mesh").bounding_box.centroid)
+        centre = _box_centre(results["mesh.ply"])
     if glb and accuracy_mm is not None:
         data["accuracy"] = {"colours": _b64(turbo(accuracy_mm, HEAT_MAX_MM)),
                             "max_mm": HEAT_MAX_MM}
@@ -225,6 +232,16 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
         # The page's own scripts, markup by construction.
         three=Markup((viewer / "three.bundle.min.js").read_text()) if glb else "",
         viewer=Markup((viewer / "viewer.js").read_text()) if glb else "")
+
+
+def _box_centre(mesh_ply: Path) -> np.ndarray:
+    """The centre of the mesh's bounding box (read without trimesh where the file allows)."""
+    vertices = ply_vertices(mesh_ply)
+    if vertices is not None and {"x", "y", "z"} <= set(vertices.dtype.names) and len(vertices):
+        xyz = np.stack([vertices[k] for k in "xyz"], 1).astype(float)
+    else:
+        xyz = np.asarray(trimesh.load(mesh_ply, process=False, force="mesh").vertices, float)
+    return (xyz.min(0) + xyz.max(0)) / 2
 
 
 def _measure_data(report: dict) -> dict:

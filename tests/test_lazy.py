@@ -40,3 +40,41 @@ def test_no_hit_is_open3d_s_invalid_id():
     from facecap_core.render import NO_HIT
 
     assert NO_HIT == np.uint32(o3d.t.geometry.RaycastingScene.INVALID_ID)
+
+
+def test_ply_vertices_reads_what_open3d_and_trimesh_write(tmp_path):
+    """The page reads the fusion's cloud and the fitting's mesh without open3d or trimesh:
+    the same numbers as those libraries read; any other PLY is left to them (None)."""
+    import open3d as o3d
+    import trimesh
+
+    from facecap_core.meshio import ply_vertices
+    from facecap_core.mvs.fusion import PointCloud, write_ply
+
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(500, 3)) * 80
+    colours = rng.integers(0, 256, size=(500, 3), dtype=np.uint8)
+    cloud = PointCloud(points, rng.normal(size=(500, 3)), colours, np.full(500, 3.0),
+                       np.full(500, 0.2))
+    write_ply(cloud, tmp_path / "cloud.ply")
+    got = ply_vertices(tmp_path / "cloud.ply")
+    read = o3d.io.read_point_cloud(str(tmp_path / "cloud.ply"))
+    assert np.array_equal(np.stack([got[k] for k in "xyz"], 1), np.asarray(read.points))
+    assert np.array_equal(np.stack([got[k] for k in ("red", "green", "blue")], 1), colours)
+
+    box = trimesh.creation.icosphere(subdivisions=2, radius=50.0)
+    box.visual.vertex_colors = rng.integers(0, 256, size=(len(box.vertices), 4))
+    box.export(tmp_path / "mesh.ply")
+    got = ply_vertices(tmp_path / "mesh.ply")
+    again = trimesh.load(tmp_path / "mesh.ply", process=False)
+    assert np.array_equal(np.stack([got[k] for k in "xyz"], 1), again.vertices)
+
+    box.export(tmp_path / "ascii.ply", encoding="ascii")
+    assert ply_vertices(tmp_path / "ascii.ply") is None
+    (tmp_path / "faces_first.ply").write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement face 1\n"
+        b"property list uchar int vertex_indices\nelement vertex 3\nproperty float x\n"
+        b"end_header\n")
+    assert ply_vertices(tmp_path / "faces_first.ply") is None
+    (tmp_path / "not.ply").write_bytes(b"solid mesh\n")
+    assert ply_vertices(tmp_path / "not.ply") is None
