@@ -21,6 +21,10 @@ class LazyModule:
         self._module: ModuleType | None = None
 
     def __getattr__(self, attr: str):
+        if attr.startswith("__") or attr in ("_name", "_module"):
+            # copy, pickle and inspect probe dunders; an instance copied without __init__
+            # has neither field (and would recurse here for them)
+            raise AttributeError(attr)
         module = self._module
         if module is None:
             module = self._module = importlib.import_module(self._name)

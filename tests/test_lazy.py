@@ -78,3 +78,11 @@ def test_ply_vertices_reads_what_open3d_and_trimesh_write(tmp_path):
     assert ply_vertices(tmp_path / "faces_first.ply") is None
     (tmp_path / "not.ply").write_bytes(b"solid mesh\n")
     assert ply_vertices(tmp_path / "not.ply") is None
+
+
+def test_a_lazy_module_does_not_answer_for_dunders_nor_load_for_them():
+    import copy
+
+    lazy = LazyModule("json")
+    assert not hasattr(lazy, "__wrapped__") and "not loaded" in repr(lazy)
+    assert copy.copy(lazy)._name == "json"

@@ -20,9 +20,11 @@ from facecap_core.template import Template
 
 EVALUATION_JSON = "evaluation.json"
 ACCURACY_NPY = "accuracy_{protocol}.npy"
-ALIGNMENT_JSON = "alignment_{protocol}.json"
 """Each mesh vertex's distance to the scan (mm; nan outside the scored regions: the face
 sphere and the ear region), per protocol: the heat map on the mesh of the capture's page."""
+ALIGNMENT_JSON = "alignment_{protocol}.json"
+"""The transform the protocol brought the mesh onto the scan with (``s``, ``R``, ``t``:
+x_scan = s R x_mesh + t): the capture page moves the scan into the mesh's frame by it."""
 
 
 def scored_per_vertex(sc) -> np.ndarray:

@@ -61,12 +61,14 @@ class DepthMapConfig(StrictModel):
     levels: int = Field(1, ge=1, le=2)
     """PatchMatch's pyramid. 1: every iteration at ``processing_width``. 2: the
     ``iterations`` at half that width (a quarter of the pixels), then ``fine_iterations`` at
-    full width starting from the half-width planes: the depth maps in 0.6 of the time, but
-    1-8 % less accurate meshes (the mouth, the ears on phone-like video), so not the default
-    (docs/mvs.md, "Coarse to fine")."""
+    full width starting from the half-width planes: the depth maps in 0.58-0.74 of the
+    time, but meshes up to 11 % less accurate on the ICT renders (the clean render's mouth
+    and completion, the ears on phone-like video), so not the default (docs/mvs.md, "Coarse
+    to fine"). ``method: sweep`` has one level whatever this says."""
     fine_iterations: int = Field(2, ge=1, le=8)
     """Iterations at full width after the half-width level (``levels: 2``), propagating from
-    the four nearest neighbours, with refinement steps a quarter of the first level's."""
+    the four nearest neighbours (whatever ``neighbours`` says), with refinement steps a
+    quarter of the first level's."""
     neighbours: str = Field("fast", pattern="^(fast|full)$")
     """Gipuma's propagation pattern: 8 ('fast': ±1, ±5 on both axes) or 20 ('full')."""
     refine_trials: int = Field(3, ge=0, le=10)
@@ -142,8 +144,8 @@ def compute_depth_map(ref: MVSView, sources: list[MVSView], coarse_vertices: np.
 
 FINE_FIRST_STEP = 2
 """The full-width level's refinement steps start at 0.5 ** this of the first level's: its
-planes are already within a few tenths of a mm (1 and 4 were no better on the calibration
-render's depth maps, docs/mvs.md)."""
+planes are already within a few tenths of a mm (a half was worse on the calibration render's
+depth maps: 0.324 against 0.315 mm, docs/experiments/2026-11-28-coarse-to-fine-patchmatch.md)."""
 
 
 def patchmatch_pyramid(ref: MVSView, sources: list[MVSView], prior: CoarsePrior,

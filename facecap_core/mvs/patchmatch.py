@@ -176,7 +176,9 @@ def _hypothesis_cost(u, v, row, d, n0, n1, n2, views, srcs, A, b, fx, fy, cx, cy
     for k in range(nbest):
         best[k] = MAX_COST
     nviews = views.shape[0]
-    limit = bound * nbest
+    # A hair above bound * nbest, so that the two sums' rounding (in any order) can never
+    # stop a hypothesis the caller would have kept.
+    limit = bound * nbest * (1.0 + 1e-9)
     for i in range(nviews):
         cost = _view_cost(views[i], u, v, row, m0, m1, m2, srcs, A, b, dxs, dys, wn, wa)
         # Insert into the sorted list of the best ``nbest`` costs.
@@ -187,7 +189,8 @@ def _hypothesis_cost(u, v, row, d, n0, n1, n2, views, srcs, A, b, fx, fy, cx, cy
                 j -= 1
             best[j] = cost
         # Of the final best nbest, at least nbest - (views left) are among those scored:
-        # their sum bounds the total from below (every cost is >= 0).
+        # their sum bounds the total from below (every cost is >= 0). With bound = MAX_COST
+        # it stops only where every cost is MAX_COST: what the mean would be.
         known = nbest - (nviews - 1 - i)
         if known > 0:
             lower = 0.0
@@ -295,7 +298,7 @@ def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
             d = lo[v, u] + np.random.random() * (hi[v, u] - lo[v, u])
             n0, n1, n2 = _random_normal(rx, ry, max_tilt)
         c = _hypothesis_cost(u, v, r, d, n0, n1, n2, views[r], srcs, A, b, fx, fy, cx, cy,
-                             dxs, dys, wn, wa, nbest, best, np.inf)
+                             dxs, dys, wn, wa, nbest, best, MAX_COST)
         if use_prior and np.isfinite(prior_depth[v, u]):
             p0, p1, p2 = prior_normal[v, u, 0], prior_normal[v, u, 1], prior_normal[v, u, 2]
             pd = prior_depth[v, u]
@@ -487,11 +490,14 @@ def patchmatch_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, c
         normal = np.zeros((h, w, 3), np.float32)
     else:
         depth, normal = planes_at(start_planes, ref.intr)
+        depth[~prior.mask] = 0.0  # outside the region nothing is computed, nor kept
+        normal[~prior.mask] = 0.0
     cost = np.full((h, w), MAX_COST, np.float32)
     nbr = NEIGHBOURS_FAST if config.neighbours == "fast" else NEIGHBOURS_FULL
     if start_planes is not None:
         # Started from a coarser level's planes, which already carry what the far neighbours
-        # would: the four nearest make the map 22 % faster, as accurate (docs/mvs.md).
+        # would: the four nearest make the map 22 % faster, as accurate
+        # (docs/experiments/2026-11-28-coarse-to-fine-patchmatch.md).
         nbr = NEIGHBOURS_NEAR
     nbest = int(min(config.num_best_views, len(sources)))
     k = ref.intr

@@ -555,3 +555,9 @@ def test_the_stage_keeps_the_transform_that_brought_the_mesh_onto_the_scan(ict_m
     assert read_alignment(tmp_path / "out", "metric").s == 1.0
     with pytest.raises(InputError, match="holds no alignment"):
         read_alignment(tmp_path / "mesh", "metric")
+    # The capture page moves the scan by the kept metric alignment: back onto the mesh.
+    from facecap.pages.scan import scan_in_mesh_frame
+
+    on_mesh, _ = scan_in_mesh_frame(tmp_path / "scan" / "scan.ply",
+                                    read_alignment(tmp_path / "out", "metric"))
+    assert np.abs(on_mesh - v).max() < 0.05
