@@ -95,8 +95,9 @@ PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": 
 
 def ply_vertices(path: str | Path) -> np.ndarray | None:
     """The vertex element of a binary little-endian PLY whose vertices come first with
-    scalar properties (what open3d and trimesh write: the cloud, the mesh), as a structured
-    array by property name, read without either library; None for any other PLY."""
+    scalar properties, x, y and z among them (what open3d and trimesh write: the cloud, the
+    mesh), as a structured array by property name, read without either library; None for
+    any other PLY."""
     with open(path, "rb") as f:
         if f.readline().strip() != b"ply":
             return None
@@ -122,7 +123,7 @@ def ply_vertices(path: str | Path) -> np.ndarray | None:
                 fields.append((words[2], PLY_TYPES[words[1]]))
             if words[0] == "end_header":
                 break
-        if count is None or not fields:
+        if count is None or not {"x", "y", "z"} <= {name for name, _ in fields}:
             return None
         return np.fromfile(f, dtype=np.dtype(fields), count=count)
 

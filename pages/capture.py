@@ -134,7 +134,7 @@ def _cameras(cameras_json: Path, centre: np.ndarray, frames: Path | None = None
 
 def _cloud(cloud_ply: Path, seed: int = 0) -> dict:
     vertices = ply_vertices(cloud_ply)  # the fusion's own file: no open3d to load
-    if vertices is not None and {"x", "y", "z"} <= set(vertices.dtype.names):
+    if vertices is not None:
         points = np.stack([vertices[k] for k in "xyz"], 1).astype(np.float32)
         colours = (np.stack([vertices[k] for k in ("red", "green", "blue")], 1)
                    .astype(np.uint8) if {"red", "green", "blue"} <= set(vertices.dtype.names)
@@ -245,7 +245,7 @@ def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
 def _box_centre(mesh_ply: Path) -> np.ndarray:
     """The centre of the mesh's bounding box (read without trimesh where the file allows)."""
     vertices = ply_vertices(mesh_ply)
-    if vertices is not None and {"x", "y", "z"} <= set(vertices.dtype.names) and len(vertices):
+    if vertices is not None and len(vertices):
         xyz = np.stack([vertices[k] for k in "xyz"], 1).astype(float)
     else:
         xyz = np.asarray(trimesh.load(mesh_ply, process=False, force="mesh").vertices, float)
