@@ -83,7 +83,8 @@ VALUES = {
     "landmarks.min_views": 12,
     "landmarks.min_parallax_deg": 30.0,
     "landmarks.ear_max_yaw_deg": 60.0,
-    "landmarks.ear_min_yaw_deg": 20.0,  # no keyframe of the sweep lies between 45° and 46°
+    # No keyframe of the sweep lies between 45° and 46°; several lie between 20° and 45°.
+    "landmarks.ear_min_yaw_deg": 20.0,
     "landmarks.min_yaw_span_deg": 300.0,  # the sweep spans about 180°
     "landmarks.iris_max_yaw_deg": 3.0,
     "landmarks.min_eye_opening": 0.9,

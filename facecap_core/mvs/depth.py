@@ -76,10 +76,11 @@ class DepthMapConfig(StrictModel):
     normal_perturbation_deg: float = Field(30.0, gt=0, le=90)
     """Largest normal perturbation; the depth and normal steps halve every iteration."""
     window_radius: int = Field(5, ge=1, le=15)
-    """Half-size (px) of the matching window. 3 (every second pixel over ±2 px): the depth
-    maps in about half the time and 10-13 % better faces on clean captures, but a sparser
-    cloud on real skin and worse faces on phone-like renders, so not the default
-    (docs/mvs.md, "The matching window")."""
+    """Half-size (px) of the matching window. 3 (with ``window_step`` 2: every second pixel
+    over ±2 px): the depth maps in about half the time and 10-13 % better faces on clean
+    captures, but a sparser cloud on real skin, worse faces on the noisy calibration renders
+    (ICT 11, ICT 104) and worse ears on the real scan, so not the default (docs/mvs.md, "The
+    matching window")."""
     window_step: int = Field(2, ge=1, le=5)
     """Sample every ``window_step``-th pixel of the window (sparse window)."""
     presmooth_sigma: float = Field(0.8, ge=0, le=5)
