@@ -43,6 +43,7 @@ from facecap_core.evaluation.alignment import Surface  # noqa: E402
 from facecap_core.fitting.run import load_cloud_errors  # noqa: E402
 from facecap_core.meshio import load_landmarks, load_mesh  # noqa: E402
 from facecap_core.mvs.depth import load_depth_map  # noqa: E402
+from facecap_core.mvs.filtering import backproject  # noqa: E402
 from facecap_core.render import vertex_normals  # noqa: E402
 
 RADIUS_MM = 6.0
@@ -103,15 +104,12 @@ def binned(truth: Truth, points: np.ndarray, samples: int, rng) -> list[tuple[fl
 
 
 def depth_map_points(store, keys: list[str]) -> np.ndarray:
-    """The depth maps' valid pixels back-projected into the world (their cameras' frame)."""
+    """The depth maps' valid pixels back-projected into the world."""
     points = []
     for key in keys:
         depth = load_depth_map(next(store.get(key).glob("depth_*.npz")))
         rows, cols = np.nonzero(np.isfinite(depth.depth) & (depth.depth > 0))
-        z = depth.depth[rows, cols].astype(float)
-        camera = np.column_stack([(cols - depth.intr.cx) / depth.intr.fx * z,
-                                  (rows - depth.intr.cy) / depth.intr.fy * z, z])
-        points.append((camera - depth.t) @ depth.R)
+        points.append(backproject(depth, rows, cols)[0])
     return np.concatenate(points) if points else np.zeros((0, 3))
 
 
