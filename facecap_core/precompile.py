@@ -66,12 +66,17 @@ def _search_depth_signature() -> tuple:
             F64_1, F64_1, F64_1)
 
 
+def _patch_scores_signature() -> tuple:
+    """facecap_core.nonrigid.photometric._measure's call of ``_patch_scores``."""
+    return (F64_3, F64_2, I64_2, F64_1, F32_3, F64_3, F64_2, F64_2, I64_1, F64_2)
+
+
 def kernels() -> list[tuple[str, object, tuple]]:
     """(name, dispatcher, signature) of every kernel the pipeline calls from Python."""
     # Imported when asked for: each stage module loads numba and compiles nothing until
     # called, but the command line's --help must not load the stages.
     from facecap_core.mvs import patchmatch
-    from facecap_core.nonrigid import constraints
+    from facecap_core.nonrigid import constraints, photometric
     from facecap_core.pose.pba import kernels as pba_kernels
     from facecap_core.pose.pba import normal, problem
 
@@ -79,6 +84,8 @@ def kernels() -> list[tuple[str, object, tuple]]:
         ("mvs.patchmatch._patchmatch", patchmatch._patchmatch, _patchmatch_signature()),
         ("nonrigid.constraints._normal_ray_kernel", constraints._normal_ray_kernel,
          _normal_ray_signature()),
+        ("nonrigid.photometric._patch_scores", photometric._patch_scores,
+         _patch_scores_signature()),
         ("pose.pba.kernels.accumulate", pba_kernels.accumulate, _accumulate_signature()),
         ("pose.pba.normal.accumulate_tracks", normal.accumulate_tracks,
          _accumulate_tracks_signature()),

@@ -32,6 +32,7 @@ from facecap_core.measure import landmark_measurements
 from facecap_core.meshio import load_landmarks, save_landmarks
 from facecap_core.nonrigid.constraints import Keyframe
 from facecap_core.nonrigid.nicp import FitResult, fit
+from facecap_core.nonrigid.photometric import refine
 from facecap_core.nonrigid.roughness import face_edges, roughness
 from facecap_core.template import Template
 from facecap_core.texture import (
@@ -201,6 +202,11 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
         ear_points, ears_report = ears_off_the_cloud(ear_points, cloud)
     result = fit(template, cloud, landmarks, keyframes, ear_points, cloud_normals, config,
                  cloud_errors)
+    photometric = {}
+    if config.photometric.rounds and len(keyframes):
+        vertices, photometric = refine(result.vertices, result.faces, keyframes,
+                                       config.photometric)
+        result.template = result.template.with_vertices(vertices)
     sanity, relaxed = check_mesh(result.vertices, result.faces, template.vertices), None
     if not sanity.ok and config.relax_folds:
         found = sanity.to_json()
@@ -239,7 +245,7 @@ def fit_and_write(cloud, landmarks, out_dir: str | Path, template: Template | No
     measurements = landmark_measurements(result.vertices, result.faces, template.landmarks,
                                          None)
     write_report(out / FIT_JSON, result, config, sanity, relaxed, ears_report, rough,
-                 {**(parts or {}), "measurements": measurements,
+                 {**(parts or {}), "measurements": measurements, "photometric": photometric,
                   **({"texture": texture_info} if texture_info else {})})
     last = result.log[-1] if result.log else {}
     log.info("fitted %d vertices in %d steps (%.1f s): landmark RMS %.2f mm, %d cloud targets, "

@@ -56,7 +56,7 @@ def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str |
     coarse = Path(coarse_dir)
     cams = read_cameras_json(coarse / CAMERAS_JSON)
     keyframes = []
-    if config.use_edges or config.texture:
+    if config.use_edges or config.texture or config.photometric.rounds:
         def keyframe(i, R, t):
             image = load_frame(frames_dir, i)
             if frame_width and image.shape[1] > frame_width:
@@ -101,8 +101,8 @@ def run(inputs: Folders, out: Path, config: FittingConfig, params: dict) -> None
     main(inputs["fusion"] / CLOUD, inputs["coarse"], inputs["frames"], out, config)
 
 
-STAGE = Stage("fitting", version="8", inputs=("fusion", "coarse", "frames"),
-              work_seconds=34.2,
+STAGE = Stage("fitting", version="9", inputs=("fusion", "coarse", "frames"),
+              work_seconds=45.0,
               section="fitting", run=run,
               outputs=(MESH_PLY, MESH_OBJ, MESH_LANDMARKS, FIT_JSON),
               # The UV atlas: the default template's topology and the texture on.

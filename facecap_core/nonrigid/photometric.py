@@ -1,0 +1,351 @@
+"""Photometric refinement of a fitted mesh against its keyframes.
+
+The fused cloud carries the depth maps' errors: a plane over each matching window fills
+concave skin and flattens convex skin, and its noise follows coverage
+(docs/experiments/2026-11-28-raking-light-lumps.md). Here each vertex is moved along its
+normal to where the keyframes agree best on a patch that follows the mesh itself, curved as
+the mesh is curved, so the patch shape that biased the depth maps is the surface being
+refined: at convergence a correct surface is where the views agree.
+
+Each round, for every vertex:
+
+1. its views: the keyframes that see it (a ray cast against the mesh) at ``cos >= min_cos``,
+   at most ``max_views`` spread along the sweep;
+2. its patch: a (2r+1)² grid in its tangent plane, ``patch_step_px`` of its best view's
+   pixels apart, lifted onto the mesh's local quadric (its two-ring neighbours' heights);
+3. each candidate offset ``d`` along the normal moves the patch rigidly; the views' grey
+   samples of it, normalised, give the mean pairwise NCC; the best ``d`` (a parabola
+   through the peak) and a confidence (the peak's height over the candidates' mean) are
+   the vertex's measurement;
+4. the offsets are solved for on the mesh graph: ``(W + λ L + ε I) δ = W d`` (``L`` the
+   graph Laplacian), so a vertex the images say nothing about follows its neighbours.
+
+The search range halves every round.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import cv2
+import numba
+import numpy as np
+import scipy.sparse as sp
+from pydantic import Field
+from scipy.sparse.linalg import spsolve
+
+from facecap_core.camera import camera_center
+from facecap_core.config import StrictModel
+from facecap_core.nonrigid.constraints import FIT_THREADS
+from facecap_core.render import RaycastScene, vertex_normals
+
+__all__ = ["PhotometricConfig", "refine"]
+
+log = logging.getLogger(__name__)
+
+
+CANDIDATES = 11
+"""Offsets tried along the normal in a round, evenly over ± the round's reach."""
+SHRINK = 0.7
+"""Each round's reach is this fraction of the round's before it."""
+MIN_COS = 0.5
+"""A keyframe measures a vertex that faces it at least this much (cos): beyond 60° the
+patch's samples crowd into a few pixels."""
+MAX_VIEWS = 8
+"""Most keyframes that measure a vertex, spread along the sweep (more cost time, not
+accuracy: 12 measured the same on the calibration captures)."""
+ANCHOR = 0.01
+"""The pull of every vertex toward the fitted surface, relative to one typical measurement,
+beside ``fit_weight``: it keeps the offsets' system regular where nothing is measured (a
+vertex the images say nothing about takes its neighbours' offsets, fading over some 40
+rings), and costs a measured vertex 1 % of its offset."""
+MIN_CONFIDENCE = 0.5
+"""A measurement whose confidence is below this fraction of the first round's median
+confidence is not used (a flat score: texture-less skin, or a view that disagrees)."""
+MAX_WEIGHT = 2.0
+"""The most one measurement weighs, relative to the first round's median confidence."""
+
+
+class PhotometricConfig(StrictModel):
+    """Photometric refinement of the fitted mesh: each vertex moved along its normal to
+    where the keyframes agree on a patch curved as the mesh is
+    (:mod:`facecap_core.nonrigid.photometric`)."""
+
+    rounds: int = Field(2, ge=0, le=10)
+    """Rounds of measuring and moving (0: the mesh as the fit leaves it)."""
+    search_mm: float = Field(2.0, gt=0, le=20)
+    """How far along the normal the first round looks, either way (each round after it
+    looks 0.7 as far)."""
+    patch_radius: int = Field(5, ge=1, le=10)
+    """The patch is (2r + 1)² samples."""
+    patch_step_px: float = Field(1.5, gt=0, le=10)
+    """The patch's samples lie this many of the vertex's best view's pixels apart."""
+    confidence_scale: float | None = Field(0.03, gt=0, le=1)
+    """A measurement whose confidence (its NCC peak's height over the mean of the
+    candidates) is this weighs 1 against ``fit_weight``; None: the capture's own median
+    confidence in the first round."""
+    fit_weight: float = Field(1.0, ge=0, le=1e4)
+    """Pull of every vertex toward the fitted surface (the cloud's), against one typical
+    measurement: 1 puts a typical vertex halfway between the two."""
+    smoothness: float = Field(16.0, ge=0, le=1e4)
+    """Weight of the mesh-graph Laplacian on the offsets against one typical measurement:
+    how far a measurement's offset spreads over its neighbours (16: about four rings, some
+    5 mm on the default template)."""
+
+
+def _edges(faces: np.ndarray, n: int) -> sp.csr_matrix:
+    f = np.asarray(faces, np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    a = ((a + a.T) > 0).astype(np.float64)
+    return a.tocsr()
+
+
+def _tangents(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    helper = np.where(np.abs(normals[:, [0]]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(normals, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    return t1, np.cross(normals, t1)
+
+
+def _quadrics(v: np.ndarray, normals: np.ndarray, t1: np.ndarray, t2: np.ndarray,
+              adjacency: sp.csr_matrix) -> np.ndarray:
+    """Per vertex (a, b, c) of the height h = a u² + b u v + c v² of its two-ring over its
+    tangent plane (least squares, a small ridge toward flat)."""
+    ring2 = ((adjacency @ adjacency + adjacency) > 0).tocoo()
+    i, j = ring2.row, ring2.col
+    keep = i != j
+    i, j = i[keep], j[keep]
+    d = v[j] - v[i]
+    u = np.einsum("ij,ij->i", d, t1[i])
+    w = np.einsum("ij,ij->i", d, t2[i])
+    h = np.einsum("ij,ij->i", d, normals[i])
+    phi = np.stack([u * u, u * w, w * w], axis=1)
+    n = len(v)
+    m = np.zeros((n, 3, 3))
+    r = np.zeros((n, 3))
+    np.add.at(m, i, phi[:, :, None] * phi[:, None, :])
+    np.add.at(r, i, phi * h[:, None])
+    scale = np.trace(m, axis1=1, axis2=2)[:, None, None]
+    m += np.eye(3) * (1e-3 * scale + 1e-9)
+    return np.linalg.solve(m, r[..., None])[..., 0]
+
+
+def _visible(scene: RaycastScene, v: np.ndarray, normals: np.ndarray, kf, min_cos: float,
+             tol_mm: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices the keyframe sees at ``cos >= min_cos``, their cos and camera depth."""
+    c = camera_center(kf.R, kf.t)
+    d = c - v
+    dist = np.linalg.norm(d, axis=1)
+    d /= dist[:, None]
+    cos = np.einsum("ij,ij->i", normals, d)
+    ids = np.flatnonzero(cos >= min_cos)
+    pc = v[ids] @ kf.R.T + kf.t
+    z = pc[:, 2]
+    intr = kf.intrinsics
+    u = intr.fx * pc[:, 0] / z + intr.cx
+    w = intr.fy * pc[:, 1] / z + intr.cy
+    inside = (z > 0) & (u >= 2) & (w >= 2) & (u <= intr.width - 3) & (w <= intr.height - 3)
+    ids, z = ids[inside], z[inside]
+    if not len(ids):
+        return ids, cos[ids], z
+    hit = scene.cast(np.broadcast_to(c, (len(ids), 3)), -d[ids])["t_hit"]
+    vis = hit >= dist[ids] - tol_mm
+    return ids[vis], cos[ids[vis]], z[vis]
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    g = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    return g.astype(np.float32)
+
+
+def _views_per_vertex(scene, v, normals, keyframes, s: PhotometricConfig):
+    """(n, K) keyframe indices (-1 none) and the pixel footprint (mm) in the best view."""
+    n = len(v)
+    cos_all = np.full((len(keyframes), n), -1.0, np.float32)
+    footprint = np.full(n, np.inf)
+    best = np.full(n, -1.0)
+    for k, kf in enumerate(keyframes):
+        ids, cos, z = _visible(scene, v, normals, kf, MIN_COS)
+        cos_all[k, ids] = cos
+        better = cos > best[ids]
+        best[ids[better]] = cos[better]
+        footprint[ids[better]] = z[better] / kf.intrinsics.fx
+    seen = cos_all >= MIN_COS
+    count = seen.sum(0)
+    # Views spread along the sweep: of a vertex's c seeing views (in keyframe order) those
+    # of rank round(j (c - 1) / (K - 1)), j < K; all of them when c <= K.
+    rank = np.cumsum(seen, axis=0) - 1
+    K = MAX_VIEWS
+    c1 = np.maximum(count - 1, 1)[None]
+    j = np.round(rank * (K - 1) / c1)
+    chosen = seen & ((count[None] <= K) | (np.round(j * c1 / (K - 1)) == rank))
+    chosen[:, count < 2] = False
+    k_idx = np.where(chosen, np.arange(len(keyframes))[:, None], len(keyframes))
+    views = np.sort(k_idx, axis=0)[:K].T
+    views = np.where(views == len(keyframes), -1, views)
+    return views, footprint
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _patch_scores(base, normals, views, offsets, images, rotations, translations, cameras,
+                  rows, score):
+    """For the vertices ``rows``: the mean pairwise NCC of their views' grey samples of the
+    patch ``base[i]`` (G, 3) moved by each of ``offsets`` along ``normals[i]``, into
+    ``score[i]`` (D,). ``cameras[k]``: fx, fy, cx, cy, k1, k2 of keyframe k."""
+    n_off, n_pts = len(offsets), base.shape[1]
+    height, width = images.shape[1], images.shape[2]
+    total = np.empty((n_off, n_pts))
+    vals = np.empty(n_pts)
+    for i in rows:
+        total[:] = 0.0
+        count = 0
+        for slot in range(views.shape[1]):
+            k = views[i, slot]
+            if k < 0:
+                continue
+            count += 1
+            fx, fy, cx, cy, k1, k2 = cameras[k]
+            R, t = rotations[k], translations[k]
+            for d in range(n_off):
+                mean = 0.0
+                for g in range(n_pts):
+                    px = base[i, g, 0] + offsets[d] * normals[i, 0]
+                    py = base[i, g, 1] + offsets[d] * normals[i, 1]
+                    pz = base[i, g, 2] + offsets[d] * normals[i, 2]
+                    cx_ = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+                    cy_ = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+                    cz_ = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+                    x, y = cx_ / cz_, cy_ / cz_
+                    r2 = x * x + y * y
+                    f = 1.0 + k1 * r2 + k2 * r2 * r2
+                    u = min(max(fx * x * f + cx, 0.0), width - 1.001)
+                    v = min(max(fy * y * f + cy, 0.0), height - 1.001)
+                    u0, v0 = int(u), int(v)
+                    a, b = u - u0, v - v0
+                    val = ((1 - a) * (1 - b) * images[k, v0, u0]
+                           + a * (1 - b) * images[k, v0, u0 + 1]
+                           + (1 - a) * b * images[k, v0 + 1, u0]
+                           + a * b * images[k, v0 + 1, u0 + 1])
+                    vals[g] = val
+                    mean += val
+                mean /= n_pts
+                norm = 0.0
+                for g in range(n_pts):
+                    vals[g] -= mean
+                    norm += vals[g] * vals[g]
+                norm = max(np.sqrt(norm), 1e-3)
+                for g in range(n_pts):
+                    total[d, g] += vals[g] / norm
+        for d in range(n_off):
+            if count < 2:
+                score[i, d] = 0.0
+                continue
+            sq = 0.0
+            for g in range(n_pts):
+                sq += total[d, g] * total[d, g]
+            score[i, d] = (sq - count) / (count * (count - 1))
+
+
+def _measure(v, normals, keyframes, images, views, footprint, quad, t1, t2,
+             offsets: np.ndarray, s: PhotometricConfig):
+    """Per vertex the best offset along the normal and its confidence (0: not measured)."""
+    n = len(v)
+    r = s.patch_radius
+    g = np.arange(-r, r + 1, dtype=float)
+    gu, gv = np.meshgrid(g, g, indexing="ij")
+    gu, gv = gu.ravel(), gv.ravel()  # (G,)
+    todo = np.flatnonzero(views[:, 1] >= 0)
+    base = np.zeros((n, len(gu), 3))
+    step = (s.patch_step_px * footprint[todo])[:, None]  # mm
+    u, w = gu[None] * step, gv[None] * step  # (m, G)
+    a, b, c = quad[todo, 0:1], quad[todo, 1:2], quad[todo, 2:3]
+    h = a * u * u + b * u * w + c * w * w
+    base[todo] = (v[todo, None] + u[..., None] * t1[todo, None] + w[..., None] * t2[todo, None]
+                  + h[..., None] * normals[todo, None])
+    rotations = np.ascontiguousarray([kf.R for kf in keyframes], float)
+    translations = np.ascontiguousarray([kf.t for kf in keyframes], float)
+    cameras = np.ascontiguousarray([[kf.intrinsics.fx, kf.intrinsics.fy, kf.intrinsics.cx,
+                                     kf.intrinsics.cy, kf.intrinsics.k1, kf.intrinsics.k2]
+                                    for kf in keyframes], float)
+    score = np.zeros((n, len(offsets)))
+    views = np.ascontiguousarray(views, np.int64)
+    normals_c = np.ascontiguousarray(normals, float)
+    parts = np.array_split(todo, 8 * FIT_THREADS)
+    with ThreadPoolExecutor(FIT_THREADS) as pool:  # the kernel lets go of the GIL
+        list(pool.map(lambda rows: _patch_scores(base, normals_c, views, offsets, images,
+                                                 rotations, translations, cameras,
+                                                 np.ascontiguousarray(rows, np.int64), score),
+                      parts))
+    D = len(offsets)
+    j = np.argmax(score, axis=1)
+    rows = np.arange(n)
+    peak = score[rows, j]
+    inner = (j > 0) & (j < D - 1) & (views[:, 1] >= 0)
+    sl, sr = score[rows, np.clip(j - 1, 0, D - 1)], score[rows, np.clip(j + 1, 0, D - 1)]
+    denom = sl - 2 * peak + sr
+    frac = np.where(inner & (denom < 0), 0.5 * (sl - sr) / np.where(denom < 0, denom, -1), 0.0)
+    best_d = offsets[j] + frac * (offsets[1] - offsets[0])
+    conf = np.where(inner, np.maximum(peak - score.mean(axis=1), 0.0), 0.0)
+    return best_d, conf
+
+
+def refine(vertices: np.ndarray, faces: np.ndarray, keyframes, settings: PhotometricConfig
+           | None = None, measured: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """The mesh's vertices moved along their normals to where the keyframes agree; and a
+    per-round log. ``measured``: the vertices the images may measure (default all); the
+    others follow their neighbours' offsets through the smoothing."""
+    s = settings or PhotometricConfig()
+    start = np.asarray(vertices, float)
+    f = np.asarray(faces, np.int64)
+    n = len(start)
+    v = start.copy()
+    # Offsets are along the fitted mesh's normals, and the fit's surface is their prior.
+    start_normals = vertex_normals(start, f)
+    offset = np.zeros(n)
+    # Each vertex's latest measurement (the offset it asks for, its weight): a later round's
+    # narrower search leaves some vertices unmeasured, and they keep what they had.
+    target, weight = np.zeros(n), np.zeros(n)
+    adjacency = _edges(f, n)
+    laplacian = sp.diags(np.asarray(adjacency.sum(1)).ravel()) - adjacency
+    images = np.ascontiguousarray(np.stack([_grey(kf.image) for kf in keyframes]))
+    measured = np.ones(n, bool) if measured is None else np.asarray(measured, bool)
+    rounds = []
+    typical = None
+    for rnd in range(s.rounds):
+        t0 = time.perf_counter()
+        normals = vertex_normals(v, f)
+        scene = RaycastScene()
+        scene.add(v, f)
+        views, footprint = _views_per_vertex(scene, v, normals, keyframes, s)
+        views[~measured] = -1
+        t1, t2 = _tangents(normals)
+        quad = _quadrics(v, normals, t1, t2, adjacency)
+        reach = s.search_mm * SHRINK ** rnd
+        offsets = np.linspace(-reach, reach, CANDIDATES)
+        d, conf = _measure(v, normals, keyframes, images, views, footprint, quad, t1, t2,
+                           offsets, s)
+        ok = conf > 0
+        if typical is None:  # the first round's, at the widest reach: later rounds' peaks
+            typical = float(np.median(conf[ok])) if ok.any() else 1.0  # are flatter
+        scale = typical if s.confidence_scale is None else s.confidence_scale
+        w = np.where(ok & (conf >= MIN_CONFIDENCE * typical),
+                     np.minimum(conf / scale, MAX_WEIGHT), 0.0)
+        new = w > 0
+        target[new], weight[new] = offset[new] + d[new], w[new]
+        a = sp.diags(weight + s.fit_weight + ANCHOR) + s.smoothness * laplacian
+        solved = spsolve(a.tocsc(), weight * target)
+        if (weight > 0).any():  # the shape from the images, the position from the cloud
+            solved -= np.average(solved[weight > 0], weights=weight[weight > 0])
+        delta = np.clip(solved - offset, -reach, reach)
+        offset += delta
+        v = start + offset[:, None] * start_normals
+        rounds.append({"reach_mm": reach, "measured": int((w > 0).sum()),
+                       "median_conf": float(np.median(conf[w > 0])) if (w > 0).any() else 0.0,
+                       "mean_abs_move_mm": float(np.abs(delta[w > 0]).mean())
+                       if (w > 0).any() else 0.0,
+                       "seconds": round(time.perf_counter() - t0, 2)})
+        log.info("photometric round %d: %s", rnd, rounds[-1])
+    return v, {"rounds": rounds}
