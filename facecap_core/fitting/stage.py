@@ -82,7 +82,9 @@ def figures(folder: str | Path) -> dict:
     if not (Path(folder) / FIT_JSON).is_file():
         return {}
     fit = json.loads((Path(folder) / FIT_JSON).read_text())
-    fig = {"fit_seconds": round(fit["timing"].get("wall_s", 0.0), 2)}
+    # The registration's seconds and the photometric refinement's after it.
+    fig = {"fit_seconds": round(fit["timing"].get("wall_s", 0.0)
+                                + (fit.get("photometric") or {}).get("seconds", 0.0), 2)}
     if fit.get("sanity"):
         fig["mesh_sanity"] = fit["sanity"]
     if fit.get("roughness"):

@@ -1,26 +1,28 @@
 """Photometric refinement of a fitted mesh against its keyframes.
 
-The fused cloud carries the depth maps' errors: a plane over each matching window fills
-concave skin and flattens convex skin, and its noise follows coverage
+The fused cloud carries the depth maps' errors: a plane over each matching window flattens
+convex skin and fills concave skin, and its noise follows coverage
 (docs/experiments/2026-11-28-raking-light-lumps.md). Here each vertex is moved along its
-normal to where the keyframes agree best on a patch that follows the mesh itself, curved as
-the mesh is curved, so the patch shape that biased the depth maps is the surface being
-refined: at convergence a correct surface is where the views agree.
+normal to where the keyframes agree best on a patch curved as the mesh is, so a correct
+surface is where the views agree.
 
 Each round, for every vertex:
 
-1. its views: the keyframes that see it (a ray cast against the mesh) at ``cos >= min_cos``,
-   at most ``max_views`` spread along the sweep;
+1. its views: the keyframes that see it (a ray cast against the mesh) at
+   ``cos >= MIN_COS``, at most ``MAX_VIEWS`` spread along the sweep;
 2. its patch: a (2r+1)² grid in its tangent plane, ``patch_step_px`` of its best view's
    pixels apart, lifted onto the mesh's local quadric (its two-ring neighbours' heights);
-3. each candidate offset ``d`` along the normal moves the patch rigidly; the views' grey
-   samples of it, normalised, give the mean pairwise NCC; the best ``d`` (a parabola
+3. each of ``CANDIDATES`` offsets along the normal moves the patch rigidly; the views' grey
+   samples of it, normalised, give the mean pairwise NCC; the best offset (a parabola
    through the peak) and a confidence (the peak's height over the candidates' mean) are
-   the vertex's measurement;
-4. the offsets are solved for on the mesh graph: ``(W + λ L + ε I) δ = W d`` (``L`` the
-   graph Laplacian), so a vertex the images say nothing about follows its neighbours.
+   the vertex's measurement, its weight ``min(confidence / confidence_scale, MAX_WEIGHT)``;
+4. the offsets from the fitted surface are solved for on the mesh graph,
+   ``(W + fit_weight + ANCHOR + smoothness L) Δ = W (t - t̄)`` (``L`` the graph Laplacian,
+   ``t`` the measured offsets, ``t̄`` their weighted mean): a vertex the images say nothing
+   about follows its neighbours, and the images set the surface's shape while the fused
+   cloud keeps its position.
 
-The search range halves every round.
+The search reach shrinks by ``SHRINK`` every round.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import scipy.sparse as sp
 from pydantic import Field
 from scipy.sparse.linalg import spsolve
 
-from facecap_core.camera import camera_center
+from facecap_core.camera import camera_center, project
 from facecap_core.config import StrictModel
 from facecap_core.nonrigid.constraints import FIT_THREADS
 from facecap_core.render import RaycastScene, vertex_normals
@@ -54,18 +56,17 @@ MIN_COS = 0.5
 """A keyframe measures a vertex that faces it at least this much (cos): beyond 60° the
 patch's samples crowd into a few pixels."""
 MAX_VIEWS = 8
-"""Most keyframes that measure a vertex, spread along the sweep (more cost time, not
-accuracy: 12 measured the same on the calibration captures)."""
+"""Most keyframes that measure a vertex, spread along the sweep (more cost time: 12
+measured the same on the clean calibration capture)."""
 ANCHOR = 0.01
-"""The pull of every vertex toward the fitted surface, relative to one typical measurement,
-beside ``fit_weight``: it keeps the offsets' system regular where nothing is measured (a
-vertex the images say nothing about takes its neighbours' offsets, fading over some 40
-rings), and costs a measured vertex 1 % of its offset."""
+"""A pull of every vertex toward the fitted surface beside ``fit_weight``, so that the
+offsets' system stays regular with ``fit_weight`` 0."""
 MIN_CONFIDENCE = 0.5
 """A measurement whose confidence is below this fraction of the first round's median
 confidence is not used (a flat score: texture-less skin, or a view that disagrees)."""
 MAX_WEIGHT = 2.0
-"""The most one measurement weighs, relative to the first round's median confidence."""
+"""The most one measurement weighs (a confidence of twice ``confidence_scale``): against
+the fitted surface's 1, a vertex moves at most two thirds of the way to it."""
 
 
 class PhotometricConfig(StrictModel):
@@ -87,12 +88,12 @@ class PhotometricConfig(StrictModel):
     candidates) is this weighs 1 against ``fit_weight``; None: the capture's own median
     confidence in the first round."""
     fit_weight: float = Field(1.0, ge=0, le=1e4)
-    """Pull of every vertex toward the fitted surface (the cloud's), against one typical
-    measurement: 1 puts a typical vertex halfway between the two."""
+    """Pull of every vertex toward the fitted surface (the cloud's), against a measurement
+    of confidence ``confidence_scale``: 1 puts such a vertex halfway between the two."""
     smoothness: float = Field(16.0, ge=0, le=1e4)
-    """Weight of the mesh-graph Laplacian on the offsets against one typical measurement:
-    how far a measurement's offset spreads over its neighbours (16: about four rings, some
-    5 mm on the default template)."""
+    """Weight of the mesh-graph Laplacian on the offsets against a measurement of weight 1:
+    how far a measurement's offset spreads over its neighbours (16, with ``fit_weight`` 1:
+    about four rings, some 5 mm on the default template)."""
 
 
 def _edges(faces: np.ndarray, n: int) -> sp.csr_matrix:
@@ -133,21 +134,20 @@ def _quadrics(v: np.ndarray, normals: np.ndarray, t1: np.ndarray, t2: np.ndarray
     return np.linalg.solve(m, r[..., None])[..., 0]
 
 
-def _visible(scene: RaycastScene, v: np.ndarray, normals: np.ndarray, kf, min_cos: float,
+def _visible(scene: RaycastScene, v: np.ndarray, normals: np.ndarray, kf, margin_px: float,
              tol_mm: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Vertices the keyframe sees at ``cos >= min_cos``, their cos and camera depth."""
+    """Vertices the keyframe sees at ``cos >= MIN_COS`` at least ``margin_px`` inside its
+    image (the patch's reach), their cos and camera depth."""
     c = camera_center(kf.R, kf.t)
     d = c - v
     dist = np.linalg.norm(d, axis=1)
     d /= dist[:, None]
     cos = np.einsum("ij,ij->i", normals, d)
-    ids = np.flatnonzero(cos >= min_cos)
-    pc = v[ids] @ kf.R.T + kf.t
-    z = pc[:, 2]
+    ids = np.flatnonzero(cos >= MIN_COS)
+    uv, z = project(v[ids], kf.R, kf.t, kf.intrinsics)
     intr = kf.intrinsics
-    u = intr.fx * pc[:, 0] / z + intr.cx
-    w = intr.fy * pc[:, 1] / z + intr.cy
-    inside = (z > 0) & (u >= 2) & (w >= 2) & (u <= intr.width - 3) & (w <= intr.height - 3)
+    inside = (z > 0) & (uv >= margin_px).all(axis=1) & \
+        (uv[:, 0] <= intr.width - 1 - margin_px) & (uv[:, 1] <= intr.height - 1 - margin_px)
     ids, z = ids[inside], z[inside]
     if not len(ids):
         return ids, cos[ids], z
@@ -161,14 +161,14 @@ def _grey(image: np.ndarray) -> np.ndarray:
     return g.astype(np.float32)
 
 
-def _views_per_vertex(scene, v, normals, keyframes, s: PhotometricConfig):
+def _views_per_vertex(scene, v, normals, keyframes, margin_px: float):
     """(n, K) keyframe indices (-1 none) and the pixel footprint (mm) in the best view."""
     n = len(v)
     cos_all = np.full((len(keyframes), n), -1.0, np.float32)
     footprint = np.full(n, np.inf)
     best = np.full(n, -1.0)
     for k, kf in enumerate(keyframes):
-        ids, cos, z = _visible(scene, v, normals, kf, MIN_COS)
+        ids, cos, z = _visible(scene, v, normals, kf, margin_px)
         cos_all[k, ids] = cos
         better = cos > best[ids]
         best[ids[better]] = cos[better]
@@ -192,9 +192,11 @@ def _views_per_vertex(scene, v, normals, keyframes, s: PhotometricConfig):
 @numba.njit(nogil=True, cache=True, fastmath=True)
 def _patch_scores(base, normals, views, offsets, images, rotations, translations, cameras,
                   rows, score):
-    """For the vertices ``rows``: the mean pairwise NCC of their views' grey samples of the
-    patch ``base[i]`` (G, 3) moved by each of ``offsets`` along ``normals[i]``, into
-    ``score[i]`` (D,). ``cameras[k]``: fx, fy, cx, cy, k1, k2 of keyframe k."""
+    """For the patches ``rows``: the mean pairwise NCC of the views ``views[i]``' grey
+    samples of the patch ``base[i]`` (G, 3) moved by each of ``offsets`` along
+    ``normals[i]``, into ``score[i]`` (D,). ``cameras[k]``: fx, fy, cx, cy, k1, k2 of
+    keyframe k. The samples are clamped to the image; the views are chosen with the patch's
+    reach inside it."""
     n_off, n_pts = len(offsets), base.shape[1]
     height, width = images.shape[1], images.shape[2]
     total = np.empty((n_off, n_pts))
@@ -215,10 +217,10 @@ def _patch_scores(base, normals, views, offsets, images, rotations, translations
                     px = base[i, g, 0] + offsets[d] * normals[i, 0]
                     py = base[i, g, 1] + offsets[d] * normals[i, 1]
                     pz = base[i, g, 2] + offsets[d] * normals[i, 2]
-                    cx_ = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-                    cy_ = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-                    cz_ = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
-                    x, y = cx_ / cz_, cy_ / cz_
+                    xc = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+                    yc = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+                    zc = max(R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2], 1e-6)
+                    x, y = xc / zc, yc / zc
                     r2 = x * x + y * y
                     f = 1.0 + k1 * r2 + k2 * r2 * r2
                     u = min(max(fx * x * f + cx, 0.0), width - 1.001)
@@ -252,75 +254,73 @@ def _patch_scores(base, normals, views, offsets, images, rotations, translations
 def _measure(v, normals, keyframes, images, views, footprint, quad, t1, t2,
              offsets: np.ndarray, s: PhotometricConfig):
     """Per vertex the best offset along the normal and its confidence (0: not measured)."""
-    n = len(v)
+    n, D = len(v), len(offsets)
     r = s.patch_radius
     g = np.arange(-r, r + 1, dtype=float)
     gu, gv = np.meshgrid(g, g, indexing="ij")
     gu, gv = gu.ravel(), gv.ravel()  # (G,)
     todo = np.flatnonzero(views[:, 1] >= 0)
-    base = np.zeros((n, len(gu), 3))
     step = (s.patch_step_px * footprint[todo])[:, None]  # mm
     u, w = gu[None] * step, gv[None] * step  # (m, G)
     a, b, c = quad[todo, 0:1], quad[todo, 1:2], quad[todo, 2:3]
     h = a * u * u + b * u * w + c * w * w
-    base[todo] = (v[todo, None] + u[..., None] * t1[todo, None] + w[..., None] * t2[todo, None]
-                  + h[..., None] * normals[todo, None])
+    base = np.ascontiguousarray(v[todo, None] + u[..., None] * t1[todo, None]
+                                + w[..., None] * t2[todo, None] + h[..., None] * normals[todo, None])
     rotations = np.ascontiguousarray([kf.R for kf in keyframes], float)
     translations = np.ascontiguousarray([kf.t for kf in keyframes], float)
     cameras = np.ascontiguousarray([[kf.intrinsics.fx, kf.intrinsics.fy, kf.intrinsics.cx,
                                      kf.intrinsics.cy, kf.intrinsics.k1, kf.intrinsics.k2]
                                     for kf in keyframes], float)
-    score = np.zeros((n, len(offsets)))
-    views = np.ascontiguousarray(views, np.int64)
-    normals_c = np.ascontiguousarray(normals, float)
-    parts = np.array_split(todo, 8 * FIT_THREADS)
+    score = np.zeros((len(todo), D))
+    todo_views = np.ascontiguousarray(views[todo], np.int64)
+    todo_normals = np.ascontiguousarray(normals[todo], float)
+    parts = np.array_split(np.arange(len(todo), dtype=np.int64), 8 * FIT_THREADS)
     with ThreadPoolExecutor(FIT_THREADS) as pool:  # the kernel lets go of the GIL
-        list(pool.map(lambda rows: _patch_scores(base, normals_c, views, offsets, images,
-                                                 rotations, translations, cameras,
-                                                 np.ascontiguousarray(rows, np.int64), score),
-                      parts))
-    D = len(offsets)
+        list(pool.map(lambda rows: _patch_scores(base, todo_normals, todo_views, offsets,
+                                                 images, rotations, translations, cameras,
+                                                 rows, score), parts))
     j = np.argmax(score, axis=1)
-    rows = np.arange(n)
+    rows = np.arange(len(todo))
     peak = score[rows, j]
-    inner = (j > 0) & (j < D - 1) & (views[:, 1] >= 0)
+    inner = (j > 0) & (j < D - 1)
     sl, sr = score[rows, np.clip(j - 1, 0, D - 1)], score[rows, np.clip(j + 1, 0, D - 1)]
     denom = sl - 2 * peak + sr
     frac = np.where(inner & (denom < 0), 0.5 * (sl - sr) / np.where(denom < 0, denom, -1), 0.0)
-    best_d = offsets[j] + frac * (offsets[1] - offsets[0])
-    conf = np.where(inner, np.maximum(peak - score.mean(axis=1), 0.0), 0.0)
+    best_d, conf = np.zeros(n), np.zeros(n)
+    best_d[todo] = offsets[j] + frac * (offsets[1] - offsets[0])
+    conf[todo] = np.where(inner, np.maximum(peak - score.mean(axis=1), 0.0), 0.0)
     return best_d, conf
 
 
-def refine(vertices: np.ndarray, faces: np.ndarray, keyframes, settings: PhotometricConfig
-           | None = None, measured: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+def refine(vertices: np.ndarray, faces: np.ndarray, keyframes,
+           settings: PhotometricConfig | None = None) -> tuple[np.ndarray, dict]:
     """The mesh's vertices moved along their normals to where the keyframes agree; and a
-    per-round log. ``measured``: the vertices the images may measure (default all); the
-    others follow their neighbours' offsets through the smoothing."""
+    log: per round, its reach, the vertices measured, their median confidence, the mean
+    move, its seconds. Fewer than two keyframes measure nothing: the mesh as given."""
     s = settings or PhotometricConfig()
     start = np.asarray(vertices, float)
+    if len(keyframes) < 2 or s.rounds == 0:
+        return start.copy(), {"rounds": [], "seconds": 0.0}
+    t_start = time.perf_counter()
     f = np.asarray(faces, np.int64)
     n = len(start)
-    v = start.copy()
     # Offsets are along the fitted mesh's normals, and the fit's surface is their prior.
     start_normals = vertex_normals(start, f)
-    offset = np.zeros(n)
+    v, offset = start.copy(), np.zeros(n)
     # Each vertex's latest measurement (the offset it asks for, its weight): a later round's
     # narrower search leaves some vertices unmeasured, and they keep what they had.
     target, weight = np.zeros(n), np.zeros(n)
     adjacency = _edges(f, n)
     laplacian = sp.diags(np.asarray(adjacency.sum(1)).ravel()) - adjacency
     images = np.ascontiguousarray(np.stack([_grey(kf.image) for kf in keyframes]))
-    measured = np.ones(n, bool) if measured is None else np.asarray(measured, bool)
-    rounds = []
-    typical = None
+    margin_px = s.patch_radius * s.patch_step_px + 2.0
+    rounds, typical = [], None
     for rnd in range(s.rounds):
         t0 = time.perf_counter()
         normals = vertex_normals(v, f)
         scene = RaycastScene()
         scene.add(v, f)
-        views, footprint = _views_per_vertex(scene, v, normals, keyframes, s)
-        views[~measured] = -1
+        views, footprint = _views_per_vertex(scene, v, normals, keyframes, margin_px)
         t1, t2 = _tangents(normals)
         quad = _quadrics(v, normals, t1, t2, adjacency)
         reach = s.search_mm * SHRINK ** rnd
@@ -328,24 +328,32 @@ def refine(vertices: np.ndarray, faces: np.ndarray, keyframes, settings: Photome
         d, conf = _measure(v, normals, keyframes, images, views, footprint, quad, t1, t2,
                            offsets, s)
         ok = conf > 0
-        if typical is None:  # the first round's, at the widest reach: later rounds' peaks
-            typical = float(np.median(conf[ok])) if ok.any() else 1.0  # are flatter
+        # The first round's median confidence, at the widest reach (later rounds' are lower).
+        if typical is None:
+            typical = float(np.median(conf[ok])) if ok.any() else 1.0
         scale = typical if s.confidence_scale is None else s.confidence_scale
         w = np.where(ok & (conf >= MIN_CONFIDENCE * typical),
                      np.minimum(conf / scale, MAX_WEIGHT), 0.0)
         new = w > 0
-        target[new], weight[new] = offset[new] + d[new], w[new]
+        # The offset along the start normal that reaches the measured point's tangent plane.
+        along = np.maximum(np.einsum("ij,ij->i", normals, start_normals), 0.5)
+        target[new], weight[new] = offset[new] + d[new] / along[new], w[new]
+        if not (weight > 0).any():
+            rounds.append({"reach_mm": reach, "measured": 0, "median_conf": 0.0,
+                           "mean_abs_move_mm": 0.0,
+                           "seconds": round(time.perf_counter() - t0, 2)})
+            continue
+        # The shape from the images, the position from the cloud: the measurements' weighted
+        # mean offset is the lighting's as much as the surface's (docs/fitting.md).
+        centred = target - np.average(target[weight > 0], weights=weight[weight > 0])
         a = sp.diags(weight + s.fit_weight + ANCHOR) + s.smoothness * laplacian
-        solved = spsolve(a.tocsc(), weight * target)
-        if (weight > 0).any():  # the shape from the images, the position from the cloud
-            solved -= np.average(solved[weight > 0], weights=weight[weight > 0])
+        solved = spsolve(a.tocsc(), weight * centred)
         delta = np.clip(solved - offset, -reach, reach)
         offset += delta
         v = start + offset[:, None] * start_normals
-        rounds.append({"reach_mm": reach, "measured": int((w > 0).sum()),
-                       "median_conf": float(np.median(conf[w > 0])) if (w > 0).any() else 0.0,
-                       "mean_abs_move_mm": float(np.abs(delta[w > 0]).mean())
-                       if (w > 0).any() else 0.0,
+        rounds.append({"reach_mm": reach, "measured": int(new.sum()),
+                       "median_conf": float(np.median(conf[new])) if new.any() else 0.0,
+                       "mean_abs_move_mm": float(np.abs(delta[weight > 0]).mean()),
                        "seconds": round(time.perf_counter() - t0, 2)})
         log.info("photometric round %d: %s", rnd, rounds[-1])
-    return v, {"rounds": rounds}
+    return v, {"rounds": rounds, "seconds": round(time.perf_counter() - t_start, 2)}
