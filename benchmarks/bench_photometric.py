@@ -22,36 +22,24 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from facecap.tasks.store import open_store  # noqa: E402
 from facecap_core.config import load_yaml  # noqa: E402
 from facecap_core.evaluation import score  # noqa: E402
-from facecap_core.frames import load_frame  # noqa: E402
+from facecap_core.fitting.stage import load_keyframes  # noqa: E402
 from facecap_core.meshio import load_landmarks, load_mesh  # noqa: E402
-from facecap_core.nonrigid.constraints import Keyframe  # noqa: E402
 from facecap_core.nonrigid.photometric import refine  # noqa: E402
 from facecap_core.pipeline import PipelineConfig  # noqa: E402
 from facecap_core.pose.cameras_json import read_cameras_json  # noqa: E402
 from facecap_core.template import Template  # noqa: E402
 
-FRAME_WIDTH = 960  # the fitting stage's keyframe width (facecap_core/fitting/stage.py)
 
-
-def keyframes(run: Path) -> list[Keyframe]:
+def keyframes(run: Path) -> list:
+    """The run's keyframes and metric cameras, as the fitting stage loads them."""
     report = json.loads((run / "report.json").read_text())
     frames = open_store(report["store"]).get(report["stages"]["frames"]["key"])
-    cams = read_cameras_json(run / "cameras.json")
-    out = []
-    for index, R, t in zip(cams.frame_indices, cams.R, cams.t):
-        image = load_frame(frames, index)
-        if image.shape[1] > FRAME_WIDTH:
-            height = int(round(image.shape[0] * FRAME_WIDTH / image.shape[1]))
-            image = cv2.resize(image, (FRAME_WIDTH, height), interpolation=cv2.INTER_AREA)
-        out.append(Keyframe(image, cams.intrinsics, R, t))
-    return out
+    return load_keyframes(frames, read_cameras_json(run / "cameras.json"))
 
 
 def main(argv=None) -> int:

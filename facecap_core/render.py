@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facecap_core.camera import Intrinsics, pixel_rays
+from facecap_core.camera import Intrinsics, camera_center, pixel_rays, project
 from facecap_core.lazy import LazyModule
 
 o3d = LazyModule("open3d")
@@ -94,6 +94,30 @@ def interpolate(values: np.ndarray, faces: np.ndarray, triangle: np.ndarray,
     """Interpolate per-vertex values (V, ...) at hits (triangle ids + barycentrics)."""
     corners = values[faces[triangle]]  # (..., 3, k)
     return np.einsum("...c,...ck->...k", bary, corners.reshape(corners.shape[:-1] + (-1,)))
+
+
+def visible_vertices(scene: RaycastScene, vertices: np.ndarray, normals: np.ndarray, R, t,
+                     intr: Intrinsics, min_cos: float, tol_mm: float, margin_px: float = 0.0
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The vertices a camera (world-to-camera ``R``, ``t``) sees: facing it at
+    ``cos >= min_cos``, projecting at least ``margin_px`` inside the image, and not occluded
+    (a ray from the camera centre reaches within ``tol_mm`` of them in ``scene``). Their
+    indices, cos, pixels and camera depths."""
+    c = camera_center(R, t)
+    d = c - vertices
+    dist = np.linalg.norm(d, axis=1)
+    d /= dist[:, None]
+    cos = np.einsum("ij,ij->i", normals, d)
+    ids = np.flatnonzero(cos >= min_cos)
+    uv, z = project(vertices[ids], R, t, intr)
+    inside = (z > 0) & (uv >= margin_px).all(axis=1) & \
+        (uv[:, 0] <= intr.width - 1 - margin_px) & (uv[:, 1] <= intr.height - 1 - margin_px)
+    ids, uv, z = ids[inside], uv[inside], z[inside]
+    if len(ids):
+        hit = scene.cast(np.broadcast_to(c, (len(ids), 3)), -d[ids])["t_hit"]
+        seen = hit >= dist[ids] - tol_mm
+        ids, uv, z = ids[seen], uv[seen], z[seen]
+    return ids, cos[ids], uv, z
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -31,9 +31,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facecap_core.camera import Intrinsics, camera_center, distort, pixel_rays, project
+from facecap_core.camera import Intrinsics, camera_center, distort, pixel_rays
 from facecap_core.keyframes import sharpness
-from facecap_core.render import RaycastScene, vertex_normals
+from facecap_core.render import RaycastScene, vertex_normals, visible_vertices
 
 __all__ = ["ATLAS_SIZE", "UVLayout", "template_uv", "bake_texture", "vertex_colours"]
 
@@ -110,22 +110,9 @@ def vertex_colours(vertices: np.ndarray, faces: np.ndarray, keyframes, min_cos: 
     view = np.full(n, -1)
     colours = np.zeros((n, 3))
     for k, kf in enumerate(keyframes):
-        c = camera_center(kf.R, kf.t)
-        d = c - v
-        dist = np.linalg.norm(d, axis=1)
-        d /= dist[:, None]
-        cos = np.einsum("ij,ij->i", normals, d)
-        cand = cos >= min_cos
-        if not cand.any():
-            continue
-        uv, z = project(v[cand], kf.R, kf.t, kf.intrinsics)
-        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & \
-                 (uv[:, 0] <= kf.intrinsics.width - 1) & (uv[:, 1] <= kf.intrinsics.height - 1)
-        ids = np.flatnonzero(cand)
-        hit = scene.cast(np.broadcast_to(c, (len(ids), 3)), -d[ids])["t_hit"]
-        vis = inside & (hit >= dist[ids] - depth_tol_mm)
-        ids, uv = ids[vis], uv[vis]
-        score = cos[ids] * sharp_rel[k]
+        ids, cos, uv, _ = visible_vertices(scene, v, normals, kf.R, kf.t, kf.intrinsics,
+                                           min_cos, depth_tol_mm)
+        score = cos * sharp_rel[k]
         better = score > best[ids]
         ids, uv = ids[better], uv[better]
         best[ids] = score[better]

@@ -48,6 +48,21 @@ def read_ear_points(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return ids, np.asarray(doc["points"], float).reshape(-1, 3), weights
 
 
+def load_keyframes(frames_dir: str | Path, cams, frame_width: int | None = 960
+                   ) -> list[Keyframe]:
+    """The keyframe PNGs of ``cams`` (a :func:`read_cameras_json` result) with their
+    cameras, at most ``frame_width`` pixels wide."""
+    def keyframe(i, R, t):
+        image = load_frame(frames_dir, i)
+        if frame_width and image.shape[1] > frame_width:
+            h = int(round(image.shape[0] * frame_width / image.shape[1]))
+            image = cv2.resize(image, (frame_width, h), interpolation=cv2.INTER_AREA)
+        return Keyframe(image, cams.intrinsics, R, t)
+
+    with ThreadPoolExecutor(FIT_THREADS) as pool:  # decoding lets go of the GIL
+        return list(pool.map(keyframe, cams.frame_indices, cams.R, cams.t))
+
+
 def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str | Path,
          out_dir: str | Path, config: FittingConfig | None = None,
          template: Template | None = None, frame_width: int | None = 960) -> Path:
@@ -57,15 +72,7 @@ def main(cloud_ply: str | Path | None, coarse_dir: str | Path, frames_dir: str |
     cams = read_cameras_json(coarse / CAMERAS_JSON)
     keyframes = []
     if config.use_edges or config.texture or config.photometric.rounds:
-        def keyframe(i, R, t):
-            image = load_frame(frames_dir, i)
-            if frame_width and image.shape[1] > frame_width:
-                h = int(round(image.shape[0] * frame_width / image.shape[1]))
-                image = cv2.resize(image, (frame_width, h), interpolation=cv2.INTER_AREA)
-            return Keyframe(image, cams.intrinsics, R, t)
-
-        with ThreadPoolExecutor(FIT_THREADS) as pool:  # decoding lets go of the GIL
-            keyframes = list(pool.map(keyframe, cams.frame_indices, cams.R, cams.t))
+        keyframes = load_keyframes(frames_dir, cams, frame_width)
     if cloud_ply is None:
         config = config.model_copy(update={"use_cloud": False})
     landmarks = load_landmarks(coarse / LANDMARKS_3D)

@@ -38,10 +38,10 @@ import scipy.sparse as sp
 from pydantic import Field
 from scipy.sparse.linalg import spsolve
 
-from facecap_core.camera import camera_center, project
 from facecap_core.config import StrictModel
 from facecap_core.nonrigid.constraints import FIT_THREADS
-from facecap_core.render import RaycastScene, vertex_normals
+from facecap_core.nonrigid.solver import edges_of
+from facecap_core.render import RaycastScene, vertex_normals, visible_vertices
 
 __all__ = ["PhotometricConfig", "refine"]
 
@@ -61,6 +61,9 @@ measured the same on the clean calibration capture)."""
 ANCHOR = 0.01
 """A pull of every vertex toward the fitted surface beside ``fit_weight``, so that the
 offsets' system stays regular with ``fit_weight`` 0."""
+VISIBILITY_TOL_MM = 0.5
+"""A vertex is occluded in a view when the view's ray hits the mesh more than this before
+it."""
 MIN_CONFIDENCE = 0.5
 """A measurement whose confidence is below this fraction of the first round's median
 confidence is not used (a flat score: texture-less skin, or a view that disagrees)."""
@@ -96,12 +99,16 @@ class PhotometricConfig(StrictModel):
     about four rings, some 5 mm on the default template)."""
 
 
-def _edges(faces: np.ndarray, n: int) -> sp.csr_matrix:
-    f = np.asarray(faces, np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    a = ((a + a.T) > 0).astype(np.float64)
-    return a.tocsr()
+def _graph(faces: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix]:
+    """The mesh's two-ring pairs (i, j), i ≠ j, both ways, and its graph Laplacian."""
+    e = edges_of(faces)
+    adjacency = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]],
+                                                     np.r_[e[:, 1], e[:, 0]])),
+                              shape=(n, n)).tocsr()
+    ring2 = ((adjacency @ adjacency + adjacency) > 0).tocoo()
+    keep = ring2.row != ring2.col
+    laplacian = sp.diags(np.asarray(adjacency.sum(1)).ravel()) - adjacency
+    return ring2.row[keep], ring2.col[keep], laplacian
 
 
 def _tangents(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -112,13 +119,9 @@ def _tangents(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _quadrics(v: np.ndarray, normals: np.ndarray, t1: np.ndarray, t2: np.ndarray,
-              adjacency: sp.csr_matrix) -> np.ndarray:
-    """Per vertex (a, b, c) of the height h = a u² + b u v + c v² of its two-ring over its
-    tangent plane (least squares, a small ridge toward flat)."""
-    ring2 = ((adjacency @ adjacency + adjacency) > 0).tocoo()
-    i, j = ring2.row, ring2.col
-    keep = i != j
-    i, j = i[keep], j[keep]
+              i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Per vertex (a, b, c) of the height h = a u² + b u v + c v² of its two-ring (the pairs
+    ``i``, ``j``) over its tangent plane (least squares, a small ridge toward flat)."""
     d = v[j] - v[i]
     u = np.einsum("ij,ij->i", d, t1[i])
     w = np.einsum("ij,ij->i", d, t2[i])
@@ -134,28 +137,6 @@ def _quadrics(v: np.ndarray, normals: np.ndarray, t1: np.ndarray, t2: np.ndarray
     return np.linalg.solve(m, r[..., None])[..., 0]
 
 
-def _visible(scene: RaycastScene, v: np.ndarray, normals: np.ndarray, kf, margin_px: float,
-             tol_mm: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Vertices the keyframe sees at ``cos >= MIN_COS`` at least ``margin_px`` inside its
-    image (the patch's reach), their cos and camera depth."""
-    c = camera_center(kf.R, kf.t)
-    d = c - v
-    dist = np.linalg.norm(d, axis=1)
-    d /= dist[:, None]
-    cos = np.einsum("ij,ij->i", normals, d)
-    ids = np.flatnonzero(cos >= MIN_COS)
-    uv, z = project(v[ids], kf.R, kf.t, kf.intrinsics)
-    intr = kf.intrinsics
-    inside = (z > 0) & (uv >= margin_px).all(axis=1) & \
-        (uv[:, 0] <= intr.width - 1 - margin_px) & (uv[:, 1] <= intr.height - 1 - margin_px)
-    ids, z = ids[inside], z[inside]
-    if not len(ids):
-        return ids, cos[ids], z
-    hit = scene.cast(np.broadcast_to(c, (len(ids), 3)), -d[ids])["t_hit"]
-    vis = hit >= dist[ids] - tol_mm
-    return ids[vis], cos[ids[vis]], z[vis]
-
-
 def _grey(image: np.ndarray) -> np.ndarray:
     g = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     return g.astype(np.float32)
@@ -168,7 +149,8 @@ def _views_per_vertex(scene, v, normals, keyframes, margin_px: float):
     footprint = np.full(n, np.inf)
     best = np.full(n, -1.0)
     for k, kf in enumerate(keyframes):
-        ids, cos, z = _visible(scene, v, normals, kf, margin_px)
+        ids, cos, _, z = visible_vertices(scene, v, normals, kf.R, kf.t, kf.intrinsics,
+                                          MIN_COS, VISIBILITY_TOL_MM, margin_px)
         cos_all[k, ids] = cos
         better = cos > best[ids]
         best[ids[better]] = cos[better]
@@ -310,8 +292,7 @@ def refine(vertices: np.ndarray, faces: np.ndarray, keyframes,
     # Each vertex's latest measurement (the offset it asks for, its weight): a later round's
     # narrower search leaves some vertices unmeasured, and they keep what they had.
     target, weight = np.zeros(n), np.zeros(n)
-    adjacency = _edges(f, n)
-    laplacian = sp.diags(np.asarray(adjacency.sum(1)).ravel()) - adjacency
+    ring_i, ring_j, laplacian = _graph(f, n)
     images = np.ascontiguousarray(np.stack([_grey(kf.image) for kf in keyframes]))
     margin_px = s.patch_radius * s.patch_step_px + 2.0
     rounds, typical = [], None
@@ -322,7 +303,7 @@ def refine(vertices: np.ndarray, faces: np.ndarray, keyframes,
         scene.add(v, f)
         views, footprint = _views_per_vertex(scene, v, normals, keyframes, margin_px)
         t1, t2 = _tangents(normals)
-        quad = _quadrics(v, normals, t1, t2, adjacency)
+        quad = _quadrics(v, normals, t1, t2, ring_i, ring_j)
         reach = s.search_mm * SHRINK ** rnd
         offsets = np.linspace(-reach, reach, CANDIDATES)
         d, conf = _measure(v, normals, keyframes, images, views, footprint, quad, t1, t2,
@@ -338,22 +319,21 @@ def refine(vertices: np.ndarray, faces: np.ndarray, keyframes,
         # The offset along the start normal that reaches the measured point's tangent plane.
         along = np.maximum(np.einsum("ij,ij->i", normals, start_normals), 0.5)
         target[new], weight[new] = offset[new] + d[new] / along[new], w[new]
-        if not (weight > 0).any():
-            rounds.append({"reach_mm": reach, "measured": 0, "median_conf": 0.0,
-                           "mean_abs_move_mm": 0.0,
-                           "seconds": round(time.perf_counter() - t0, 2)})
-            continue
-        # The shape from the images, the position from the cloud: the measurements' weighted
-        # mean offset is the lighting's as much as the surface's (docs/fitting.md).
-        centred = target - np.average(target[weight > 0], weights=weight[weight > 0])
-        a = sp.diags(weight + s.fit_weight + ANCHOR) + s.smoothness * laplacian
-        solved = spsolve(a.tocsc(), weight * centred)
-        delta = np.clip(solved - offset, -reach, reach)
-        offset += delta
-        v = start + offset[:, None] * start_normals
+        measured = weight > 0
+        delta = np.zeros(n)
+        if measured.any():
+            # The shape from the images, the position from the cloud: the measurements'
+            # weighted mean offset is the lighting's as much as the surface's
+            # (docs/fitting.md).
+            centred = target - np.average(target[measured], weights=weight[measured])
+            a = sp.diags(weight + s.fit_weight + ANCHOR) + s.smoothness * laplacian
+            delta = np.clip(spsolve(a.tocsc(), weight * centred) - offset, -reach, reach)
+            offset += delta
+            v = start + offset[:, None] * start_normals
         rounds.append({"reach_mm": reach, "measured": int(new.sum()),
                        "median_conf": float(np.median(conf[new])) if new.any() else 0.0,
-                       "mean_abs_move_mm": float(np.abs(delta[weight > 0]).mean()),
+                       "mean_abs_move_mm": float(np.abs(delta[measured]).mean())
+                       if measured.any() else 0.0,
                        "seconds": round(time.perf_counter() - t0, 2)})
         log.info("photometric round %d: %s", rnd, rounds[-1])
     return v, {"rounds": rounds, "seconds": round(time.perf_counter() - t_start, 2)}
