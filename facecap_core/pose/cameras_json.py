@@ -82,6 +82,9 @@ class SolveFigures(ArtifactJson):
     """Focal length fx, px (2 decimals)."""
     principal_point_px: Annotated[list[float], Field(min_length=2, max_length=2)]
     """Principal point (cx, cy), px."""
+    principal_point_held: bool = False
+    """The principal point was held at the image centre: the tracks put it further from it
+    than a phone camera's (``facecap_core.pose.geometric.PRINCIPAL_POINT_MAX_PCT``)."""
     field_of_view_deg: Annotated[list[float], Field(min_length=2, max_length=2)]
     """Horizontal and vertical field of view, degrees."""
     reprojection_px: Reprojection | None = None

@@ -10,10 +10,11 @@ solve with what it must agree with, and a failure is one line
   within what phone cameras have (``FOV_RANGE_DEG``);
 - **order** (:func:`order_jumps`): consecutive views of the capture (a video's keyframes;
   the photos of a folder numbered at a constant step, a video's frames) must be neighbours
-  in the solve: the rotation between them within ``JUMP_FACTOR`` times what the tracker
-  measured between them, scaled by how much more the whole solve turns than the tracker
-  (:func:`circling_factor`; or, without tracks, the folder's typical step) and
-  ``MIN_JUMP_DEG``;
+  in the solve: the rotation between them within ``JUMP_FACTOR`` times what the images say
+  it is, and ``MIN_JUMP_DEG``. A video's keyframes: the larger of what the tracker measured
+  between them, scaled by how much more the whole solve turns than the tracker
+  (:func:`circling_factor`), and the solve's typical turn per frame times the frames between
+  them (:func:`keyframe_steps_deg`); numbered photos: the folder's typical step;
 - **span** (:func:`span_ratio`): the views' rotation along the sweep, summed, against the
   tracker's (a video): within ``SPAN_RANGE``.
 
@@ -140,6 +141,21 @@ def circling_factor(steps_deg, expected_deg) -> float:
     return float(np.clip(ratio, 1.0, CIRCLING_MAX))
 
 
+def keyframe_steps_deg(steps_deg, tracked_deg, frames) -> tuple[np.ndarray, float]:
+    """What a video's keyframes ``frames`` (ascending frame numbers) may turn between
+    consecutive ones, and the :func:`circling_factor`: the larger of the tracker's angle
+    scaled by that factor and the solve's typical turn per frame times the frames between
+    them (:func:`numbered_steps_deg`). The tracker's angle is an essential matrix's rotation
+    over few tracks; where the tracks are lost (low texture, small frames) the next keyframe
+    is forced with whatever angle they last gave, a third of the turn on a 240×320 phone-like
+    render (3° of 12°). The frames between two keyframes do not under-measure; a sweep whose
+    speed changes is covered by the tracker; a view out of order is a jump against both."""
+    steps = np.asarray(steps_deg, float)
+    factor = circling_factor(steps, tracked_deg)
+    by_frames = numbered_steps_deg(steps, frames)
+    return np.maximum(np.asarray(tracked_deg, float) * factor, by_frames), factor
+
+
 def order_jumps(steps_deg, expected_deg) -> np.ndarray:
     """Indices k where views k and k + 1 of the capture are further apart in the solve than
     consecutive views can be: over ``MIN_JUMP_DEG`` and ``JUMP_FACTOR`` × expected."""
@@ -182,12 +198,12 @@ def frame_numbers(names) -> np.ndarray | None:
     return numbers
 
 
-def order_problem(R, expected_deg, labels, kind: str, factor: float = 1.0) -> str | None:
+def order_problem(R, expected_deg, labels, kind: str) -> str | None:
     """What is wrong with the order of the views ``R`` (in capture order; ``labels`` name
-    them) against the rotation ``expected_deg`` between consecutive ones, scaled by
-    ``factor`` (:func:`circling_factor`; None: none)."""
+    them) against the rotation ``expected_deg`` between consecutive ones (None: none)."""
     steps = rotation_angles_deg(R)
-    jumps = order_jumps(steps, np.asarray(expected_deg, float) * factor)
+    expected_deg = np.asarray(expected_deg, float)
+    jumps = order_jumps(steps, expected_deg)
     if not len(jumps):
         return None
     k = int(jumps[np.argmax(steps[jumps] - expected_deg[jumps])])
@@ -256,8 +272,8 @@ def solve_problem(poses, keyframes, numbers=None, names=None) -> str | None:
     if expected is None:
         return None
     if keyframes.ordered:
-        factor = circling_factor(rotation_angles_deg(R), expected)
-        return (order_problem(R, expected, [f"frame {i}" for i in frames], "keyframes", factor)
+        allowed, _ = keyframe_steps_deg(rotation_angles_deg(R), expected, frames)
+        return (order_problem(R, allowed, [f"frame {i}" for i in frames], "keyframes")
                 or span_problem(R, expected))
     labels = [str(names[i]) if names is not None else f"photo {i}" for i in frames]
     return order_problem(R, expected, labels, "photos (by file name)")
@@ -272,6 +288,7 @@ def solve_figures(poses, keyframes, numbers=None) -> dict:
     intr = poses.intrinsics
     doc = {"focal_px": round(float(intr.fx), 2),
            "principal_point_px": [round(float(intr.cx), 2), round(float(intr.cy), 2)],
+           "principal_point_held": bool(poses.principal_point_held),
            "field_of_view_deg": [round(x, 2) for x in fields_of_view_deg(intr)]}
     obs = np.asarray(poses.observations, float)
     if len(obs) and len(poses.points):
@@ -286,14 +303,13 @@ def solve_figures(poses, keyframes, numbers=None) -> dict:
         doc["reprojection_px"] = {"median": round(float(np.median(error)), 3),
                                   "rms": round(float(np.sqrt(np.mean(error ** 2))), 3)}
         doc["track_length"] = round(float(len(obs) / len(poses.points)), 2)
-    _, _, steps, expected = _steps(poses, keyframes, numbers)
+    _, frames, steps, expected = _steps(poses, keyframes, numbers)
     doc["turn_deg"] = round(float(steps.sum()), 1)
     if expected is not None:
         if keyframes.ordered:
             doc["tracked_turn_deg"] = round(float(np.sum(expected)), 1)
-            factor = circling_factor(steps, expected)
+            expected, factor = keyframe_steps_deg(steps, expected, frames)  # as the check
             doc["circling_factor"] = round(factor, 3)
-            expected = expected * factor  # as the order check
         floor = np.maximum(expected, MIN_JUMP_DEG / JUMP_FACTOR)
         doc["largest_step_ratio"] = round(float(np.max(steps / floor)), 3)
     return doc

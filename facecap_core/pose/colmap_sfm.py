@@ -36,6 +36,8 @@ class Poses:
     seconds: float = 0.0
     # Rows (point number, keyframe number in frame_indices, x, y): full-resolution pixels.
     observations: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    # The principal point was held at the image centre: the tracks put it beyond a phone's.
+    principal_point_held: bool = False
 
     def visibility(self) -> np.ndarray:
         """(keyframes, points) bool: which keyframe observes which sparse point."""

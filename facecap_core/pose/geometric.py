@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,14 @@ from facecap_core.pose.io import write_colmap_text
 # Imported where used: pycolmap only where the geometric refinement runs.
 
 log = logging.getLogger(__name__)
+
+PRINCIPAL_POINT_MAX_PCT = 3.0
+"""Furthest a phone camera's principal point lies from the image centre (% of the image's
+width for x, of its height for y): three standard deviations of facecap's sensor model (1 %);
+the real 240×320 phone sweep's own calibration puts it 0.4 % and 0.25 % off. The tracks put
+it further when they carry a distortion the camera model lacks: a 30 ms rolling shutter on a
+240×320 phone-like sweep moved it 4.5 % (14.5 px), turning every camera 3.4° with it. Beyond
+this the principal point is held at the centre."""
 
 
 def triangulate(observations: np.ndarray, R: list[np.ndarray], t: list[np.ndarray],
@@ -80,9 +89,10 @@ def triangulate(observations: np.ndarray, R: list[np.ndarray], t: list[np.ndarra
 
 
 def bundle_adjust(poses: Poses, work_dir: str | Path, refine_intrinsics: bool = True,
-                  names: list[str] | None = None) -> Poses:
+                  names: list[str] | None = None, hold_principal_point: bool = False) -> Poses:
     """Ceres bundle adjustment (pycolmap) of poses, points and, if asked, focal length,
-    principal point and k1, k2 over ``poses.observations``."""
+    principal point (unless ``hold_principal_point``) and k1, k2 over
+    ``poses.observations``."""
     import pycolmap
 
 
@@ -93,7 +103,7 @@ def bundle_adjust(poses: Poses, work_dir: str | Path, refine_intrinsics: bool = 
     rec = pycolmap.Reconstruction(str(work))
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_focal_length = refine_intrinsics
-    options.refine_principal_point = refine_intrinsics
+    options.refine_principal_point = refine_intrinsics and not hold_principal_point
     options.refine_extra_params = refine_intrinsics
     options.print_summary = False
     with native_stderr_to_log(log, prefix="colmap: "):
@@ -142,5 +152,22 @@ def refine_with_tracks(poses: Poses, keyframe_observations: np.ndarray, keyframe
     tracks = np.column_stack([obs[keep, 1], view[keep], obs[keep, 2:4]])
     merged = merge_observations(poses, tracks)
     refined = bundle_adjust(merged, work_dir, refine_intrinsics=True)
+    offset = principal_point_offset_pct(refined.intrinsics)
+    if offset.max() > PRINCIPAL_POINT_MAX_PCT:
+        log.warning("the tracks put the principal point %.1f %% × %.1f %% of the image from its "
+                    "centre, further than a phone camera's (a rolling shutter does): it is held "
+                    "at the centre", *offset)
+        centred = replace(merged.intrinsics, cx=(merged.intrinsics.width - 1) / 2,
+                          cy=(merged.intrinsics.height - 1) / 2)
+        refined = bundle_adjust(replace(merged, intrinsics=centred), work_dir,
+                                refine_intrinsics=True, hold_principal_point=True)
+        refined.principal_point_held = True
     refined.seconds = poses.seconds + (time.perf_counter() - start)
     return refined
+
+
+def principal_point_offset_pct(intr: Intrinsics) -> np.ndarray:
+    """How far the principal point lies from the image centre: % of the width (x) and of
+    the height (y)."""
+    return 100 * np.abs([(intr.cx - (intr.width - 1) / 2) / intr.width,
+                         (intr.cy - (intr.height - 1) / 2) / intr.height])

@@ -123,7 +123,7 @@ def photometric_refinement(poses: Poses, grey_keyframes: list[np.ndarray], confi
     points, rows = triangulate(poses.observations, result.R, result.t, result.intrinsics,
                                min_views=2, min_angle_deg=1.0)
     return Poses(result.intrinsics, list(poses.frame_indices), result.R, result.t, points,
-                 poses.seconds + result.seconds, rows)
+                 poses.seconds + result.seconds, rows, poses.principal_point_held)
 
 
 def sweep_order(poses: Poses) -> np.ndarray:
@@ -305,6 +305,9 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
         # Decoded straight to PBA's processing width: PBA holds every keyframe at once.
         greys = read_frames(video, keyframes.indices, width=config.pba.max_width, grey=True)
         grey_list = [greys[i] for i in current.frame_indices]
+        if current.principal_point_held:  # where the tracks would move it again
+            config = config.model_copy(update={"pba": config.pba.model_copy(
+                update={"hold_principal_point": True})})
         refined = photometric_refinement(current, grey_list, config, progress, keyframes)
         refined.seconds = current.seconds + time.perf_counter() - start
         refined = checked(refined, "photometric bundle adjustment", keyframes, numbers, names)
@@ -357,7 +360,7 @@ def run(inputs: Folders, out: Path, config: PoseConfig, params: dict) -> None:
     main(capture_in(inputs["video"]), inputs["keyframes"] / KEYFRAMES_JSON, out, config)
 
 
-STAGE = Stage("poses", version="6", inputs=("video", "keyframes"),
+STAGE = Stage("poses", version="7", inputs=("video", "keyframes"),
               work_seconds=106.8,
               section="poses", run=run, outputs=(CAMERAS_JSON, SPARSE, *COLMAP_MODEL),
               optional_outputs=(POINTS,),

@@ -138,7 +138,8 @@ def test_a_solve_that_turns_further_than_the_tracking_all_along_keeps_its_order(
     swapped = list(R)
     swapped[4], swapped[14] = swapped[14], swapped[4]
     problem = checks.solve_problem(Poses(PHONE, poses.frame_indices, swapped, t), keyframes)
-    assert "out of order" in problem and "~6° in the images" in problem  # the tracker's 6°
+    # The tracker's 6° scaled by the circling factor: 10° expected.
+    assert "out of order" in problem and "~10° in the images" in problem
     # Every two neighbours swapped (1, 0, 3, 2, ...): the steps alternate 1x and 3x.
     pairs = [R[k ^ 1] for k in range(len(R) - len(R) % 2)]
     n = len(pairs)
@@ -151,6 +152,51 @@ def test_a_solve_that_turns_further_than_the_tracking_all_along_keeps_its_order(
     keyframes = _keyframes(len(R), _nominal_angles(np.full(len(R) - 1, 6.0)))
     problem = checks.solve_problem(Poses(PHONE, list(keyframes.indices), R, t), keyframes)
     assert "in all along the sweep where the video's tracking measured" in problem
+
+
+def test_a_keyframe_forced_by_lost_tracks_is_judged_by_the_frames_between():
+    """Where the tracks are lost the tracker forces the next keyframe with the angle the
+    last tracks gave: 3° for a 12° turn over 6 frames of a 240×320 phone-like render, whose
+    solve was right (11.7°) and was refused as out of order. The frames between keyframes
+    say what the turn is: the solve's typical turn per frame times them. A view out of order
+    still jumps against both, and a sweep that speeds up is still covered by its tracking."""
+    frames = np.r_[np.arange(0, 60, 3), np.arange(66, 126, 3)]  # 6 frames from 57 to 66
+    yaws = -60.0 + 2.0 * frames  # 2° a frame: 6° between keyframes, 12° across the gap
+    R, t = _sweep(yaws, tremor_deg=0.3)
+    tracked = _nominal_angles(checks.rotation_angles_deg(R))
+    gap = int(np.flatnonzero(np.diff(frames) == 9)[0])
+    tracked[gap] = _nominal_angles([3.0])[0]  # the lost tracks' angle: a quarter of the turn
+    keyframes = Keyframes(indices=frames.tolist(), times=(frames / 30).tolist(),
+                          sharpness=[1.0] * len(frames), observations=np.zeros((0, 4)),
+                          video_size=(PHONE.width, PHONE.height), frames_read=126,
+                          angles_deg=list(tracked), ordered=True)
+    poses = Poses(PHONE, frames.tolist(), R, t)
+    steps = checks.rotation_angles_deg(R)
+    expected = checks.tracked_steps_deg(tracked, range(len(frames)), PHONE.width, PHONE.fx)
+    # Against the tracking alone, the step over the gap is a jump ...
+    assert checks.order_jumps(steps, expected * checks.circling_factor(steps, expected)
+                              ).tolist() == [gap]
+    # ... against the frames between, an ordinary step: 2° a frame times 9 (18°, ×2).
+    allowed, factor = checks.keyframe_steps_deg(steps, expected, frames)
+    assert allowed[gap] == pytest.approx(np.quantile(steps / np.diff(frames), 0.25) * 9,
+                                         rel=1e-12)
+    assert checks.solve_problem(poses, keyframes) is None
+    assert checks.solve_figures(poses, keyframes)["largest_step_ratio"] < checks.JUMP_FACTOR
+    # Two views swapped across the head jump against both.
+    swapped = list(R)
+    swapped[5], swapped[30] = swapped[30], swapped[5]
+    problem = checks.solve_problem(Poses(PHONE, frames.tolist(), swapped, t), keyframes)
+    assert "out of order" in problem and "frame 12 and frame 15" in problem
+    # A sweep that speeds up threefold for one step: the tracker saw it, the frames did not.
+    fast = yaws.copy()
+    fast[gap + 1:] += 3 * 2.0 * 9 - 2.0 * 9  # 54° over the gap's 9 frames
+    R, t = _sweep(fast, tremor_deg=0.3)
+    tracked = _nominal_angles(checks.rotation_angles_deg(R))
+    keyframes = Keyframes(indices=frames.tolist(), times=(frames / 30).tolist(),
+                          sharpness=[1.0] * len(frames), observations=np.zeros((0, 4)),
+                          video_size=(PHONE.width, PHONE.height), frames_read=126,
+                          angles_deg=list(tracked), ordered=True)
+    assert checks.solve_problem(Poses(PHONE, frames.tolist(), R, t), keyframes) is None
 
 
 def test_a_solve_that_turns_half_as_far_as_the_tracking_is_named():
