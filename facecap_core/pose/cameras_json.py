@@ -99,8 +99,9 @@ class SolveFigures(ArtifactJson):
     """How much further the solve turns than the tracker step by step (1-2; keyframes in
     sweep order): what the order check scales the tracking by."""
     largest_step_ratio: float | None = None
-    """Largest step between consecutive views over what the images say (keyframes: the
-    tracking times the circling factor; jumps are over 2)."""
+    """Largest step between consecutive views over the step expected between them
+    (keyframes: the tracking times the circling factor, or the frames between them at the
+    solve's typical turn per frame; jumps are over 2)."""
 
 
 class WorldFromGt(ArtifactJson):

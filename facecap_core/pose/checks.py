@@ -10,11 +10,12 @@ solve with what it must agree with, and a failure is one line
   within what phone cameras have (``FOV_RANGE_DEG``);
 - **order** (:func:`order_jumps`): consecutive views of the capture (a video's keyframes;
   the photos of a folder numbered at a constant step, a video's frames) must be neighbours
-  in the solve: the rotation between them within ``JUMP_FACTOR`` times what the images say
-  it is, and ``MIN_JUMP_DEG``. A video's keyframes: the larger of what the tracker measured
-  between them, scaled by how much more the whole solve turns than the tracker
-  (:func:`circling_factor`), and the solve's typical turn per frame times the frames between
-  them (:func:`keyframe_steps_deg`); numbered photos: the folder's typical step;
+  in the solve: the rotation between them within ``JUMP_FACTOR`` times what the sweep is
+  expected to turn between them, and ``MIN_JUMP_DEG``. A video's keyframes: the larger of
+  what the tracker measured between them, scaled by how much more the whole solve turns than
+  the tracker (:func:`circling_factor`), and the solve's typical turn per frame times the
+  frames between them, bounded (:func:`keyframe_steps_deg`); numbered photos: the folder's
+  typical step;
 - **span** (:func:`span_ratio`): the views' rotation along the sweep, summed, against the
   tracker's (a video): within ``SPAN_RANGE``.
 
@@ -43,8 +44,10 @@ frame of a 60° lens is 35° across its short side, a 2× telephoto's about 22°
 MIN_JUMP_DEG = 10.0
 """Consecutive views may be this far apart in the solve whatever the tracking says."""
 JUMP_FACTOR = 2.0
-"""... or this many times the rotation measured between them (keyframes: the tracker's
-angle, corrected to the solve's focal length; numbered photos: the folder's typical step)."""
+"""... or this many times the rotation expected between them (keyframes: the tracker's
+angle, corrected to the solve's focal length and scaled by the circling factor, or the
+frames between them at the solve's typical turn per frame, see :func:`keyframe_steps_deg`;
+numbered photos: the folder's typical step)."""
 SPAN_RANGE = (1 / 1.5, 2.0)
 """The views' summed rotation along the sweep over the tracker's. The tracker's angle is the
 image's motion over the focal length, right for a camera that turns on the spot; one that
@@ -59,7 +62,12 @@ NOMINAL_HFOV_DEG = 65.0
 (``KeyframeConfig.nominal_hfov_deg``'s default)."""
 CIRCLING_MAX = 2.0
 """Most that the tracker's angles are scaled by for the order check (see
-:func:`circling_factor`): a step is then a jump beyond 4× the tracking at most."""
+:func:`circling_factor`)."""
+UNDER_MEASURED_MAX = 3.0
+"""Most that the frames between two keyframes may make of the step between them, in the
+tracker's median steps (:func:`keyframe_steps_deg`): the tracker under-measured steps of a
+240×320 phone-like sweep by up to 4× (2.7° for 11.7°, 3.9× its median step of 3.0°), and
+a camera that pauses piles up frames without turning, which must not excuse a fold there."""
 FACE_SHAPE_MAX = 0.2
 """Largest rms distance of the triangulated inner landmarks from a mean face's after a
 similarity alignment, as a fraction of the eye-centre distance. Faces differ from the mean
@@ -142,18 +150,22 @@ def circling_factor(steps_deg, expected_deg) -> float:
 
 
 def keyframe_steps_deg(steps_deg, tracked_deg, frames) -> tuple[np.ndarray, float]:
-    """What a video's keyframes ``frames`` (ascending frame numbers) may turn between
-    consecutive ones, and the :func:`circling_factor`: the larger of the tracker's angle
-    scaled by that factor and the solve's typical turn per frame times the frames between
-    them (:func:`numbered_steps_deg`). The tracker's angle is an essential matrix's rotation
-    over few tracks; where the tracks are lost (low texture, small frames) the next keyframe
-    is forced with whatever angle they last gave, a third of the turn on a 240×320 phone-like
-    render (3° of 12°). The frames between two keyframes do not under-measure; a sweep whose
-    speed changes is covered by the tracker; a view out of order is a jump against both."""
+    """The rotation expected between a video's consecutive keyframes ``frames`` (ascending
+    frame numbers), and the :func:`circling_factor` it scales the tracking by: the larger of
+    the tracker's angle times that factor and the solve's typical turn per frame times the
+    frames between them (:func:`numbered_steps_deg`), the latter at most
+    ``UNDER_MEASURED_MAX`` of the scaled tracking's median step. The tracker's angle is an
+    essential matrix's rotation over the tracks shared with the last keyframe; where they are
+    lost (low texture, small frames) the next keyframe is forced with whatever angle they
+    last gave: 2.7° for a right 11.7° step over 6 frames of a 240×320 phone-like render. The
+    frames between keyframes count a sweep's steady turn; a sweep that speeds up is covered
+    by the tracker, one that pauses by the bound; a view out of order jumps against both."""
     steps = np.asarray(steps_deg, float)
     factor = circling_factor(steps, tracked_deg)
-    by_frames = numbered_steps_deg(steps, frames)
-    return np.maximum(np.asarray(tracked_deg, float) * factor, by_frames), factor
+    tracked = np.asarray(tracked_deg, float) * factor
+    by_frames = np.minimum(numbered_steps_deg(steps, frames),
+                           UNDER_MEASURED_MAX * np.median(tracked))
+    return np.maximum(tracked, by_frames), factor
 
 
 def order_jumps(steps_deg, expected_deg) -> np.ndarray:
@@ -200,7 +212,8 @@ def frame_numbers(names) -> np.ndarray | None:
 
 def order_problem(R, expected_deg, labels, kind: str) -> str | None:
     """What is wrong with the order of the views ``R`` (in capture order; ``labels`` name
-    them) against the rotation ``expected_deg`` between consecutive ones (None: none)."""
+    them) against the rotation ``expected_deg`` expected between consecutive ones; None when
+    they are in order."""
     steps = rotation_angles_deg(R)
     expected_deg = np.asarray(expected_deg, float)
     jumps = order_jumps(steps, expected_deg)
@@ -209,8 +222,8 @@ def order_problem(R, expected_deg, labels, kind: str) -> str | None:
     k = int(jumps[np.argmax(steps[jumps] - expected_deg[jumps])])
     return (f"{len(jumps)} of {len(steps)} steps between consecutive {kind} turn further "
             f"than the sweep does (the views are out of order round the head): {labels[k]} "
-            f"and {labels[k + 1]} are {steps[k]:.0f}° apart in the solve, ~{expected_deg[k]:.0f}°"
-            " in the images")
+            f"and {labels[k + 1]} are {steps[k]:.0f}° apart in the solve, where the sweep turns "
+            f"~{expected_deg[k]:.0f}° between them")
 
 
 def span_problem(R, expected_deg) -> str | None:
@@ -280,11 +293,12 @@ def solve_problem(poses, keyframes, numbers=None, names=None) -> str | None:
 
 
 def solve_figures(poses, keyframes, numbers=None) -> dict:
-    """The solve's own figures for the run's report: focal length, principal point and
-    field of view; the sparse points' reprojection error and track length; the views'
-    turn along the sweep, against the tracker's, and the largest step between consecutive
-    views over what the images say (a video: the tracking times :func:`circling_factor`,
-    also given; the order check's ratio: jumps are over 2)."""
+    """The solve's own figures for the run's report: focal length, principal point (and
+    whether it was held at the image centre) and field of view; the sparse points'
+    reprojection error and track length; the views' turn along the sweep, against the
+    tracker's, and the largest step between consecutive views over the step expected (a
+    video: :func:`keyframe_steps_deg`, with the :func:`circling_factor`; the order check's
+    ratio: jumps are over 2)."""
     intr = poses.intrinsics
     doc = {"focal_px": round(float(intr.fx), 2),
            "principal_point_px": [round(float(intr.cx), 2), round(float(intr.cy), 2)],

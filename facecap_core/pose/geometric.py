@@ -1,5 +1,6 @@
 """Geometric refinement of the SfM start: the keyframe tracker's long LK tracks as extra
-observations, and a bundle adjustment that also frees the principal point.
+observations, and a bundle adjustment that also frees the principal point (held at the
+image centre where the tracks would put it further than a phone camera's).
 
 SIFT matches between keyframes span a few keyframes at most (the face's appearance changes
 quickly as the camera circles it), while LK tracks follow a feature through every frame of
@@ -124,7 +125,7 @@ def _from_reconstruction(rec, poses: Poses, seconds: float) -> Poses:
         t.append(np.asarray(pose.translation))
     points = np.array([rec.points3D[n + 1].xyz for n in range(len(poses.points))]).reshape(-1, 3)
     return Poses(intr, list(poses.frame_indices), R, t, points, poses.seconds + seconds,
-                 poses.observations)
+                 poses.observations, principal_point_held=poses.principal_point_held)
 
 
 def merge_observations(poses: Poses, tracks: np.ndarray) -> Poses:
@@ -136,13 +137,15 @@ def merge_observations(poses: Poses, tracks: np.ndarray) -> Poses:
     rows[:, 0] += len(poses.points)
     return Poses(poses.intrinsics, list(poses.frame_indices), poses.R, poses.t,
                  np.concatenate([poses.points, points]), poses.seconds,
-                 np.concatenate([poses.observations, rows]))
+                 np.concatenate([poses.observations, rows]),
+                 principal_point_held=poses.principal_point_held)
 
 
 def refine_with_tracks(poses: Poses, keyframe_observations: np.ndarray, keyframe_indices,
                        work_dir: str | Path) -> Poses:
     """Our geometric solution: the SfM model plus the LK tracks, adjusted with the principal
-    point free. ``keyframe_observations`` rows are (keyframe number, track id, x, y) over
+    point free, or held at the image centre where it would end over
+    ``PRINCIPAL_POINT_MAX_PCT`` from it. ``keyframe_observations`` rows are (keyframe number, track id, x, y) over
     ``keyframe_indices``; tracks in unregistered keyframes are dropped."""
     start = time.perf_counter()
     view_of = {int(i): v for v, i in enumerate(poses.frame_indices)}
@@ -155,13 +158,12 @@ def refine_with_tracks(poses: Poses, keyframe_observations: np.ndarray, keyframe
     offset = principal_point_offset_pct(refined.intrinsics)
     if offset.max() > PRINCIPAL_POINT_MAX_PCT:
         log.warning("the tracks put the principal point %.1f %% × %.1f %% of the image from its "
-                    "centre, further than a phone camera's (a rolling shutter does): it is held "
+                    "centre, further than a phone camera's (a rolling shutter can): it is held "
                     "at the centre", *offset)
         centred = replace(merged.intrinsics, cx=(merged.intrinsics.width - 1) / 2,
                           cy=(merged.intrinsics.height - 1) / 2)
-        refined = bundle_adjust(replace(merged, intrinsics=centred), work_dir,
-                                refine_intrinsics=True, hold_principal_point=True)
-        refined.principal_point_held = True
+        refined = bundle_adjust(replace(merged, intrinsics=centred, principal_point_held=True),
+                                work_dir, refine_intrinsics=True, hold_principal_point=True)
     refined.seconds = poses.seconds + (time.perf_counter() - start)
     return refined
 

@@ -123,7 +123,8 @@ def photometric_refinement(poses: Poses, grey_keyframes: list[np.ndarray], confi
     points, rows = triangulate(poses.observations, result.R, result.t, result.intrinsics,
                                min_views=2, min_angle_deg=1.0)
     return Poses(result.intrinsics, list(poses.frame_indices), result.R, result.t, points,
-                 poses.seconds + result.seconds, rows, poses.principal_point_held)
+                 poses.seconds + result.seconds, rows,
+                 principal_point_held=poses.principal_point_held)
 
 
 def sweep_order(poses: Poses) -> np.ndarray:
@@ -159,7 +160,7 @@ def reorder(poses: Poses, order: np.ndarray) -> Poses:
         obs[:, 1] = position[obs[:, 1].astype(np.int64)]
     return Poses(poses.intrinsics, [poses.frame_indices[k] for k in order],
                  [poses.R[k] for k in order], [poses.t[k] for k in order], poses.points,
-                 poses.seconds, obs)
+                 poses.seconds, obs, principal_point_held=poses.principal_point_held)
 
 
 def view_span_deg(poses: Poses) -> float:

@@ -4,8 +4,14 @@ import numpy as np
 import pytest
 
 from facecap_core.camera import Intrinsics, project, rotation_matrix
-from facecap_core.pose import geometric
+from facecap_core.keyframes import Keyframes
+from facecap_core.pose import checks, geometric
 from facecap_core.pose.colmap_sfm import Poses
+
+PHOTOS = Keyframes(indices=list(range(16)), times=[0.0] * 16, sharpness=[1.0] * 16,
+                   observations=np.zeros((0, 4)), video_size=(240, 320), frames_read=16,
+                   ordered=False)
+"""Sixteen photos without an order: the solve's figures without the order check's."""
 
 
 def _orbit(intr, n=16, seed=0):
@@ -26,7 +32,7 @@ def _orbit(intr, n=16, seed=0):
 
 def _refined(true, tmp_path):
     """The refinement of SfM-like cameras (principal point at the image centre, every
-    camera turned by up to 0.3°) over exact observations of cameras with ``true``."""
+    camera turned by 0.3°) over exact observations of cameras with ``true``."""
     R, t, points, obs = _orbit(true)
     rng = np.random.default_rng(1)
     start_R = [rotation_matrix(rng.normal(size=3), np.radians(0.3)) @ Rk for Rk in R]
@@ -45,11 +51,12 @@ def test_a_phones_principal_point_is_found_and_one_no_phone_has_is_held_at_the_c
     assert not refined.principal_point_held
     assert refined.intrinsics.cx == pytest.approx(phone.cx, abs=0.05)
     assert refined.intrinsics.cy == pytest.approx(phone.cy, abs=0.05)
-    # 5 % off in y (16 px): what the tracks of a rolling shutter give, beyond the bound of
-    # 3 %: found, then held at the centre, the focal length still adjusted.
+    assert not checks.solve_figures(refined, PHOTOS)["principal_point_held"]
+    # 5 % off in y (16 px), as far as the tracks of a rolling shutter put it: beyond the
+    # bound, held at the centre, and the solve's figures say so.
     sheared = Intrinsics(240, 320, 300.0, 300.0, 119.5, 159.5 + 16.0)
+    assert geometric.principal_point_offset_pct(sheared)[1] > geometric.PRINCIPAL_POINT_MAX_PCT
     refined = _refined(sheared, tmp_path / "sheared")
     assert refined.principal_point_held
     assert (refined.intrinsics.cx, refined.intrinsics.cy) == (119.5, 159.5)
-    assert refined.intrinsics.fx != 300.0
-    assert geometric.PRINCIPAL_POINT_MAX_PCT == 3.0
+    assert checks.solve_figures(refined, PHOTOS)["principal_point_held"]
