@@ -60,12 +60,14 @@ class PBAConfig(StrictModel):
     """Refine focal length, principal point and k1, k2 with the poses, when the tracked points
     are in the solve (``track_weight``): photometric residuals over neighbouring keyframes
     alone leave the principal point free against a tilt of every camera."""
-    principal_point_prior_pct: float = Field(1.0, ge=0)
+    principal_point_prior_pct: float = Field(0.3, ge=0)
     """With the intrinsics refined, the principal point is held near the image centre with
-    this standard deviation (% of the image's width for x, of its height for y; the spread
-    of facecap's sensor model), weighed against the tracks by their noise: the data move it
-    as far as they pin it (a tilt of every camera and a shift of the principal point
-    reproject almost alike). 0: free."""
+    this standard deviation (% of the image's width for x, of its height for y), weighed as
+    one tracked observation off by the tracks' noise: the data move it as far as they pin it
+    (a tilt of every camera and a shift of the principal point reproject almost alike), and
+    their biases (noise, a codec, a rolling shutter) pull it less the narrower this is. 0.3
+    rather than the sensor model's spread of 1: better principal points on 11 of 12
+    calibration captures and rotations on 9 (docs/poses.md). 0: free."""
     hold_principal_point: bool = Field(False, json_schema_extra={KEY_NEUTRAL: False})
     """The principal point stays where the start (the geometric refinement) put it; focal
     length and distortion are still refined. Instead of the prior above."""
