@@ -138,7 +138,9 @@ def solve_summary(solve) -> str:
     if fov:
         parts.append(f"field of view {fov[0]:.0f}° × {fov[1]:.0f}°")
     if centre:
-        parts.append(f"principal point ({centre[0]:.1f}, {centre[1]:.1f}) px")
+        held = (" (held at the image centre: the tracks put it further than a phone's)"
+                if solve.get("principal_point_held") is True else "")
+        parts.append(f"principal point ({centre[0]:.1f}, {centre[1]:.1f}) px{held}")
     if finite_number(error.get("median")) is not None:
         parts.append(f"reprojection {error['median']:.2f} px median")
     if number["track_length"] is not None:

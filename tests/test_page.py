@@ -584,6 +584,12 @@ def test_the_camera_solve_is_said_in_words_and_odd_values_are_left_out(results):
     assert text == "field of view 44° × 56°; views turn 143° along the sweep"
     page = build_page(report, results, mesh_glb(results["mesh.ply"])).decode()
     assert "views turn 143° along the sweep" in page
+    # A principal point held at the centre is said to be; only a true flag says so.
+    for flag, said in ((True, True), (False, False), ("yes", False)):
+        held = {**solve, "principal_point_px": [119.5, 159.5], "principal_point_held": flag}
+        report = {**REPORT, "figures": {**REPORT["figures"], "solve": held}}
+        text = dict((key, text) for key, _, text in figure_rows(report))["solve"]
+        assert ("principal point (119.5, 159.5) px (held at the image centre" in text) is said
 
 
 def _measured_report(results) -> dict:

@@ -255,7 +255,7 @@ def face_shape_error(landmarks, reference) -> tuple[int, float]:
 def _steps(poses, keyframes, numbers=None):
     """The views of ``poses`` in capture order (rotations, frame numbers; photos without an
     order in their names: in the poses' own, sweep order), the solve's rotation between
-    consecutive ones and what the images say it is (None: nothing)."""
+    consecutive ones and what the capture says it is (None where it says nothing)."""
     ordered = keyframes.ordered or numbers is not None
     order = np.argsort(poses.frame_indices) if ordered else np.arange(len(poses.R))
     R = np.asarray(poses.R, float)[order]

@@ -105,15 +105,19 @@ def photometric_refinement(poses: Poses, grey_keyframes: list[np.ndarray], confi
     already at most ``config.pba.max_width`` wide); the sparse points are re-triangulated
     from their observations with the refined cameras (full-resolution intrinsics).
     ``keyframes``: the video's keyframes, whose times let PBA model motion blur and the
-    rolling shutter (None, or photos: neither is modelled)."""
+    rolling shutter (None, or photos: neither is modelled). A principal point the geometric
+    refinement held at the image centre stays there (the tracks would pull it away again)."""
 
+    pba_config = config.pba
+    if poses.principal_point_held:
+        pba_config = pba_config.model_copy(update={"hold_principal_point": True})
     times = interval = None
     if keyframes is not None and keyframes.ordered and len(keyframes.indices) > 1:
         at = dict(zip(keyframes.indices, keyframes.times))
         times = [at[i] for i in poses.frame_indices]
         interval = float(np.median(np.diff(keyframes.times) / np.diff(keyframes.indices)))
     result = photometric_bundle_adjustment(
-        grey_keyframes, poses.intrinsics, poses.R, poses.t, poses.points, config.pba,
+        grey_keyframes, poses.intrinsics, poses.R, poses.t, poses.points, pba_config,
         progress=progress, sparse_hosts=track_hosts(poses.observations, len(poses.points)),
         centre_prior=True, times=times, frame_interval_s=interval,
         tracks=(poses.points, poses.observations))
@@ -306,9 +310,6 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
         # Decoded straight to PBA's processing width: PBA holds every keyframe at once.
         greys = read_frames(video, keyframes.indices, width=config.pba.max_width, grey=True)
         grey_list = [greys[i] for i in current.frame_indices]
-        if current.principal_point_held:  # where the tracks would move it again
-            config = config.model_copy(update={"pba": config.pba.model_copy(
-                update={"hold_principal_point": True})})
         refined = photometric_refinement(current, grey_list, config, progress, keyframes)
         refined.seconds = current.seconds + time.perf_counter() - start
         refined = checked(refined, "photometric bundle adjustment", keyframes, numbers, names)

@@ -344,6 +344,30 @@ def test_a_held_principal_point_stays_where_it_started():
     assert after["focal_pct"] < 0.5 * before["focal_pct"], (before, after)
 
 
+def test_a_principal_point_the_geometric_refinement_held_stays_held():
+    """A principal point held at the image centre by the geometric refinement (the tracks put
+    it beyond a phone's) is held by PBA too, through the pose stage's own call, and the
+    cameras say so after any reordering; without the flag the same data move it (towards
+    the truth, 4 px away)."""
+    from facecap_core.pose.colmap_sfm import Poses
+    from facecap_core.pose.pba import PBAConfig
+    from facecap_core.pose.stage import PoseConfig, photometric_refinement, reorder
+
+    intr, R, t, points, rows, turned, start_t, start = _arc_scene(80.0, (163.0, 117.0), 0.0,
+                                                                   turn_deg=0.5)
+    blank = [np.full((240, 320), 100.0, np.float32) for _ in R]
+    config = PoseConfig(pba=PBAConfig(iterations=30, pyramid_levels=1, motion_blur=False,
+                                      principal_point_prior_pct=0.0))
+    for held in (True, False):
+        poses = Poses(start, list(range(len(R))), turned, start_t, points, 0.0, rows,
+                      principal_point_held=held)
+        refined = photometric_refinement(poses, blank, config)
+        shift = np.hypot(refined.intrinsics.cx - start.cx, refined.intrinsics.cy - start.cy)
+        assert bool(shift < 1e-6) is held, shift
+        assert refined.principal_point_held is held
+        assert reorder(refined, np.arange(len(R))[::-1]).principal_point_held is held
+
+
 @pytest.mark.parametrize("noise_px", [0.5, 0.01], ids=["noisy tracks", "exact tracks"])
 def test_the_principal_point_prior_gives_way_to_the_data(noise_px):
     """Twelve cameras on an 80° arc: a tilt of every camera and a shift of the principal
