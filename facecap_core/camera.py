@@ -44,6 +44,11 @@ class Intrinsics:
         return np.array([self.k1, self.k2, 0.0, 0.0, 0.0])
 
     @property
+    def image_centre(self) -> np.ndarray:
+        """The image's centre (x, y), px: pixel centres sit at integer coordinates."""
+        return np.array([(self.width - 1) / 2, (self.height - 1) / 2])
+
+    @property
     def horizontal_fov_deg(self) -> float:
         return float(np.degrees(2.0 * np.arctan(self.width / (2.0 * self.fx))))
 

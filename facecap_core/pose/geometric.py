@@ -145,8 +145,9 @@ def refine_with_tracks(poses: Poses, keyframe_observations: np.ndarray, keyframe
                        work_dir: str | Path) -> Poses:
     """Our geometric solution: the SfM model plus the LK tracks, adjusted with the principal
     point free, or held at the image centre where it would end over
-    ``PRINCIPAL_POINT_MAX_PCT`` from it. ``keyframe_observations`` rows are (keyframe number, track id, x, y) over
-    ``keyframe_indices``; tracks in unregistered keyframes are dropped."""
+    ``PRINCIPAL_POINT_MAX_PCT`` from it. ``keyframe_observations`` rows are (keyframe
+    number, track id, x, y) over ``keyframe_indices``; tracks in unregistered keyframes are
+    dropped."""
     start = time.perf_counter()
     view_of = {int(i): v for v, i in enumerate(poses.frame_indices)}
     obs = np.asarray(keyframe_observations, float)
@@ -160,8 +161,8 @@ def refine_with_tracks(poses: Poses, keyframe_observations: np.ndarray, keyframe
         log.warning("the tracks put the principal point %.1f %% × %.1f %% of the image from its "
                     "centre, further than a phone camera's (a rolling shutter can): it is held "
                     "at the centre", *offset)
-        centred = replace(merged.intrinsics, cx=(merged.intrinsics.width - 1) / 2,
-                          cy=(merged.intrinsics.height - 1) / 2)
+        cx, cy = merged.intrinsics.image_centre
+        centred = replace(merged.intrinsics, cx=cx, cy=cy)
         refined = bundle_adjust(replace(merged, intrinsics=centred, principal_point_held=True),
                                 work_dir, refine_intrinsics=True, hold_principal_point=True)
     refined.seconds = poses.seconds + (time.perf_counter() - start)
@@ -171,5 +172,4 @@ def refine_with_tracks(poses: Poses, keyframe_observations: np.ndarray, keyframe
 def principal_point_offset_pct(intr: Intrinsics) -> np.ndarray:
     """How far the principal point lies from the image centre: % of the width (x) and of
     the height (y)."""
-    return 100 * np.abs([(intr.cx - (intr.width - 1) / 2) / intr.width,
-                         (intr.cy - (intr.height - 1) / 2) / intr.height])
+    return 100 * np.abs(([intr.cx, intr.cy] - intr.image_centre) / [intr.width, intr.height])

@@ -392,7 +392,7 @@ class Problem:
         it weighs as a prior should against the data whatever their noise (exact tracks:
         nothing)."""
         config, intrinsics = self.config, self.intrinsics
-        self.pp0 = np.array([(intrinsics.width - 1) / 2, (intrinsics.height - 1) / 2])
+        self.pp0 = intrinsics.image_centre
         pp_sigma = config.principal_point_prior_pct / 100 * np.array([intrinsics.width,
                                                                       intrinsics.height])
         self.w_pp = np.zeros(2)
