@@ -54,6 +54,8 @@ CONTEXT: dict[str, dict] = {
     "coarse.nicp_stiffness": {"coarse.deformation": "nicp"},
     "mvs.depth.sweep_step_mm": {"mvs.depth.method": "sweep"},
     "mvs.depth.fine_iterations": {"mvs.depth.levels": 2},
+    "mvs.depth.sweep_iterations": {"mvs.depth.start": "sweep"},
+    "mvs.depth.start_normal_sigma_px": {"mvs.depth.start": "sweep"},
     # The render's shutter is global: a readout chosen from the candidates is 0 s.
     "poses.pba.rolling_shutter": {"poses.pba.readout_s": 0.02},
     "poses.pba.readout_s": {"poses.pba.rolling_shutter": True},

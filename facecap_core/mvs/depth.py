@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Literal
 
@@ -22,9 +23,14 @@ from facecap_core.errors import InputError
 from facecap_core.meshio import load_mesh
 from facecap_core.mvs.filtering import filter_with_prior
 from facecap_core.mvs.images import MVSView, downscale_view, load_view, metric_cameras
-from facecap_core.mvs.patchmatch import DepthMap, patchmatch_depth
+from facecap_core.mvs.patchmatch import (
+    DepthMap,
+    neighbour_pattern,
+    patchmatch_depth,
+    presmoothed,
+)
 from facecap_core.mvs.prior import CoarsePrior, coarse_prior
-from facecap_core.mvs.sweep import sweep_depth
+from facecap_core.mvs.sweep import smooth_normals, sweep_depth
 from facecap_core.mvs.views import VIEWS, read_views
 from facecap_core.render import RaycastScene
 from facecap_core.stage import Folders, Stage
@@ -51,6 +57,22 @@ class DepthMapConfig(StrictModel):
     sweep_step_mm: float = Field(0.5, gt=0, le=10)
     """Spacing of the sweep's planes (a parabola through the best one and its neighbours
     gives the depth between them)."""
+    start: Literal["random", "sweep"] = "random"
+    """Where PatchMatch's planes start. ``random``: random planes in the coarse mesh's range,
+    then ``iterations`` (the paper's). ``sweep``: the plane sweep's depths over PatchMatch's
+    pre-blurred images (``sweep_step_mm`` apart; 1 mm measured) with the slant of its depth
+    map smoothed over ``start_normal_sigma_px``, then ``sweep_iterations`` of PatchMatch from
+    them: the depth maps in 0.63 of the time, smoother meshes on the real photo set and a
+    better one on the real scan's phone-like capture, but worse ears on the ICT renders (up
+    to 9 %) and a phone-like render's face 3 % worse, so not the default (docs/mvs.md,
+    "PatchMatch from the sweep"). One level only (``levels: 1``)."""
+    sweep_iterations: int = Field(2, ge=1, le=8)
+    """PatchMatch iterations after the sweep's start (``start: sweep``), with ``neighbours``
+    and refinement steps from a quarter of the first ones; one cost the ears 8-13 %."""
+    start_normal_sigma_px: float = Field(6.0, gt=0, le=50)
+    """Gaussian (px) the sweep's depth map is smoothed by before its normals are taken
+    (``start: sweep``): the slant over a window, not a pixel's sub-step noise (3 and 10 px
+    were worse on the calibration render's maps)."""
     init_from_coarse: bool = True
     """Also test the coarse mesh's plane at initialisation (the paper initialises with it)."""
 
@@ -108,6 +130,12 @@ class DepthMapConfig(StrictModel):
     """Depths farther than this from the coarse mesh (along the ray) are rejected."""
 
     @model_validator(mode="after")
+    def _check_start(self):
+        if self.start == "sweep" and self.levels != 1:
+            raise ValueError("start: sweep is a one-level search; set levels: 1")
+        return self
+
+    @model_validator(mode="after")
     def _check_pixel_views(self):
         if 0 < self.pixel_views < self.num_best_views:
             raise ValueError(f"pixel_views ({self.pixel_views}) must be 0 or at least "
@@ -138,6 +166,8 @@ def compute_depth_map(ref: MVSView, sources: list[MVSView], coarse_vertices: np.
     if config.method == "sweep":
         raw = sweep_depth(ref, sources, prior, config.depth_margin_mm, config.sweep_step_mm,
                           config.window_radius, config.num_best_views)
+    elif config.start == "sweep":
+        raw = patchmatch_from_sweep(ref, sources, prior, config)
     else:
         raw = patchmatch_pyramid(ref, sources, prior, coarse_vertices, coarse_faces, scene,
                                  config)
@@ -150,6 +180,29 @@ FINE_FIRST_STEP = 2
 """The full-width level's refinement steps start at 0.5 ** this of the first level's: its
 planes are already within a few tenths of a mm (a half was worse on the calibration render's
 depth maps: 0.324 against 0.315 mm, docs/experiments/2026-11-28-coarse-to-fine-patchmatch.md)."""
+
+
+def patchmatch_from_sweep(ref: MVSView, sources: list[MVSView], prior: CoarsePrior,
+                          config: DepthMapConfig) -> DepthMap:
+    """The plane sweep's depths with its smoothed slant as the planes PatchMatch starts from,
+    then ``config.sweep_iterations`` of PatchMatch: the sweep finds the depth along each ray
+    at a few tenths of PatchMatch's cost, PatchMatch tilts and refines the planes."""
+    start, cpu = time.perf_counter(), time.thread_time()
+    # The sweep matches the images PatchMatch will (pre-blurred against the sensor's noise):
+    # unblurred, the phone-like calibration render's face median was 2 % worse.
+    blurred = [replace(v, grey=presmoothed(v.grey, config.presmooth_sigma))
+               for v in (ref, *sources)]
+    planes = sweep_depth(blurred[0], blurred[1:], prior, config.depth_margin_mm,
+                         config.sweep_step_mm, config.window_radius, config.num_best_views)
+    planes.normal = smooth_normals(planes.depth, ref.intr, config.start_normal_sigma_px)
+    # Gipuma's pattern, not the four nearest a pyramid's finer level uses: the sweep's
+    # planes are right per pixel but not yet per surface, and the ears need the far
+    # neighbours (docs/experiments/2026-11-29-patchmatch-from-the-sweep.md).
+    planes = patchmatch_depth(ref, sources, prior, config, planes, config.sweep_iterations,
+                              FINE_FIRST_STEP, neighbours=neighbour_pattern(config.neighbours))
+    planes.seconds = time.perf_counter() - start
+    planes.cpu_seconds = time.thread_time() - cpu
+    return planes
 
 
 def patchmatch_pyramid(ref: MVSView, sources: list[MVSView], prior: CoarsePrior,
@@ -238,7 +291,7 @@ def reference_keyframes(inputs: Folders) -> list[int]:
     return sorted(read_views(inputs["views"] / VIEWS))
 
 
-STAGE = Stage("depth", version="1", inputs=("frames", "coarse", "views"),
+STAGE = Stage("depth", version="2", inputs=("frames", "coarse", "views"),
               work_seconds=135.0,
               section="mvs.depth", run=run,
               outputs=("depth_{index:05d}.npz", "depth_{index:05d}.json"),

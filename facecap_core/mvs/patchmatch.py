@@ -391,7 +391,7 @@ def window_offsets(radius: int, step: int) -> tuple[np.ndarray, np.ndarray]:
     return dx.ravel().astype(np.int32), dy.ravel().astype(np.int32)
 
 
-def _smooth(grey: np.ndarray, sigma: float) -> np.ndarray:
+def presmoothed(grey: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian pre-smoothing: a sparse window samples every other pixel, so sensor noise
     above the sampling rate would otherwise alias straight into the NCC."""
     if sigma <= 0:
@@ -457,15 +457,22 @@ def planes_at(coarse: DepthMap, intr: Intrinsics) -> tuple[np.ndarray, np.ndarra
     return depth, normal
 
 
+def neighbour_pattern(name: str) -> np.ndarray:
+    """Gipuma's propagation pattern by its name (``DepthMapConfig.neighbours``)."""
+    return NEIGHBOURS_FAST if name == "fast" else NEIGHBOURS_FULL
+
+
 def patchmatch_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, config,
                      start_planes: DepthMap | None = None, iterations: int | None = None,
-                     first_step: int = 0) -> DepthMap:
+                     first_step: int = 0, neighbours: np.ndarray | None = None) -> DepthMap:
     """Depth, normal and cost maps of ``ref`` over the prior's region (``config``:
     :class:`~facecap_core.mvs.depth.DepthMapConfig`). Raw: no filtering.
 
     ``start_planes``: a coarser level's map of the same view, whose planes the pixels start
     from (:func:`planes_at`) instead of random ones; ``iterations`` (default
-    ``config.iterations``) then run with refinement steps from ``0.5 ** first_step``.
+    ``config.iterations``) then run with refinement steps from ``0.5 ** first_step``,
+    propagating from the four nearest neighbours unless ``neighbours`` (a pattern of
+    :func:`neighbour_pattern`) says otherwise.
     """
     start, cpu = time.perf_counter(), time.thread_time()
     check_inputs(ref, sources, prior)
@@ -479,13 +486,13 @@ def patchmatch_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, c
     wa = np.empty_like(wn)
     ok = np.empty(len(us), np.bool_)
     sigma_s = config.sigma_spatial or float(config.window_radius)
-    ref_grey = _smooth(ref.grey, config.presmooth_sigma)
+    ref_grey = presmoothed(ref.grey, config.presmooth_sigma)
     _bilateral_weights(ref_grey, us, vs, dxs, dys, config.sigma_color, sigma_s, wn, wa, ok)
 
-    srcs = np.ascontiguousarray(np.stack([_smooth(s.grey, config.presmooth_sigma)
+    srcs = np.ascontiguousarray(np.stack([presmoothed(s.grey, config.presmooth_sigma)
                                           for s in sources]), dtype=np.float32)
     A, b = _relative_poses(ref, sources)
-    nbr = NEIGHBOURS_FAST if config.neighbours == "fast" else NEIGHBOURS_FULL
+    nbr = neighbour_pattern(config.neighbours)
     if start_planes is None:
         depth = np.zeros((h, w), np.float32)
         normal = np.zeros((h, w, 3), np.float32)
@@ -497,6 +504,8 @@ def patchmatch_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, c
         # nearest make the map 22 % faster, as accurate
         # (docs/experiments/2026-11-28-coarse-to-fine-patchmatch.md).
         nbr = NEIGHBOURS_NEAR
+    if neighbours is not None:
+        nbr = neighbours
     cost = np.full((h, w), MAX_COST, np.float32)
     nbest = int(min(config.num_best_views, len(sources)))
     k = ref.intr

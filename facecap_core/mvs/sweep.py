@@ -48,6 +48,19 @@ def depth_normals(depth: np.ndarray, intr) -> np.ndarray:
     return np.where(np.sum(n * X, -1, keepdims=True) > 0, -n, n).astype(np.float32)
 
 
+def smooth_normals(depth: np.ndarray, intr, sigma_px: float) -> np.ndarray:
+    """Normals (H, W, 3) of a depth map smoothed by a Gaussian of ``sigma_px`` over its valid
+    (positive) pixels only: the slant of the surface over a matching window, not of one
+    pixel's sub-step noise. Zero where the depth is not."""
+    valid = (depth > 0).astype(np.float32)
+    weight = cv2.GaussianBlur(valid, (0, 0), sigma_px)
+    smooth = cv2.GaussianBlur(np.where(depth > 0, depth, 0).astype(np.float32), (0, 0), sigma_px)
+    # Normalised where any valid depth is near, so that the differences at a hole's rim
+    # (and the region's) compare two smoothed depths, never a depth with the hole's zero.
+    filled = np.where(weight > 1e-3, smooth / np.maximum(weight, 1e-3), 0).astype(np.float32)
+    return np.where((depth > 0)[..., None], depth_normals(filled, intr), 0).astype(np.float32)
+
+
 def sweep_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, margin_mm: float,
                 step_mm: float = 0.5, radius: int = 5, nbest: int = 8) -> DepthMap:
     """Depth, normal and cost maps of ``ref`` over the prior's region: the best of the
@@ -74,13 +87,23 @@ def sweep_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, margin
     agg = np.empty((len(offsets),) + base.shape, np.float32)
     nb = min(nbest, len(sources))
     costs = np.empty((len(sources),) + base.shape, np.float32)
+    # A point at depth d on a reference ray projects into a source at the homogeneous
+    # coordinates d * a + b (a: the ray in the source's pixel frame, b: the reference centre
+    # in it), so each plane costs a multiply-add per pixel and view, not a matrix product.
+    world_rays = rays @ ref.R  # R^T ray, row-wise
+    centre = -ref.R.T @ ref.t
+    proj = []
+    for src in sources:
+        a = (world_rays @ src.R.T) @ src.intr.K.T
+        b = src.intr.K @ (src.R @ centre + src.t)
+        proj.append(((a * base[..., None] + b).astype(np.float32), a.astype(np.float32)))
     for p, off in enumerate(offsets):
-        world = ((rays * (base + off)[..., None]) - ref.t) @ ref.R
         for s, src in enumerate(sources):
-            x = world @ src.R.T + src.t
+            x0, a = proj[s]
+            x = x0 + np.float32(off) * a
             z = np.maximum(x[..., 2], 1e-6)
-            mu = (src.intr.fx * x[..., 0] / z + src.intr.cx).astype(np.float32)
-            mv = (src.intr.fy * x[..., 1] / z + src.intr.cy).astype(np.float32)
+            mu = x[..., 0] / z
+            mv = x[..., 1] / z
             # Outside the source image reads -1, which no grey level is: such windows cost
             # MAX_COST.
             warped = cv2.remap(src.grey, mu, mv, cv2.INTER_LINEAR, borderValue=-1.0)
