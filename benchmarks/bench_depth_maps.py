@@ -14,8 +14,8 @@ ones: per setting the median over maps of the per-map median |depth error| on th
 sphere's pixels, the coverage there after the per-map filter, and on the ear region's pixels
 (in either ear sphere, outside the face sphere) the median error, the mean error with each
 clipped at 10 mm (the ears' outliers, without one wild pixel deciding it) and the coverage.
-Seconds are ``compute_depth_map``'s wall time per map: run on a quiet machine, after a
-first setting that warms numba's kernels.
+Seconds are ``compute_depth_map``'s wall time per map with OpenCV on one thread, after one
+untimed map that loads numba's kernels: run on a quiet machine.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import json
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from facecap.synthetic import load_gt_cameras
@@ -67,8 +68,8 @@ def score(maps, truth) -> dict:
         ear_ok += int(seen.sum())
         ear_all += int(ear.sum())
     ears = np.concatenate(ear_err) if ear_err else np.zeros(0)
-    return {"face_median_mm": float(np.nanmedian(face_err)),
-            "face_coverage_pct": float(np.median(face_cov)),
+    return {"face_median_mm": float(np.nanmedian(face_err)) if face_err else float("nan"),
+            "face_coverage_pct": float(np.median(face_cov)) if face_cov else float("nan"),
             "ears_median_mm": float(np.median(ears)) if ears.size else float("nan"),
             "ears_mean10_mm": (float(np.mean(np.minimum(ears, EAR_ERROR_CLIP_MM)))
                                if ears.size else float("nan")),
@@ -90,7 +91,8 @@ def main(argv=None) -> list[dict]:
     sources = read_views(views_dir / "views.json")
     indices = sorted(sources)
     gt_dir = Path(report["video"]).parent / "gt"
-    _, gt_frames = load_gt_cameras(gt_dir / "cameras.json")
+    _, frame_list = load_gt_cameras(gt_dir / "cameras.json")
+    gt_frames = {int(f["index"]): f for f in frame_list}
     est = np.array([camera_center(*cams.pose(i)) for i in indices])
     true = np.array([camera_center(gt_frames[i]["R"], gt_frames[i]["t"]) for i in indices])
     s, R, t = umeyama(true, est)
@@ -104,8 +106,13 @@ def main(argv=None) -> list[dict]:
     ears = (s * ear_centres @ R.T + t, s * ear_radius)
     coarse = load_mesh(coarse_dir / "coarse.ply")
 
-    pick = [indices[k] for k in np.linspace(0, len(indices) - 1, args.maps).round().astype(int)]
+    picks = np.linspace(0, len(indices) - 1, min(args.maps, len(indices))).round().astype(int)
+    pick = [indices[k] for k in np.unique(picks)]
+    # One core, as a depth map has in the stage (OpenCV would spread the sweep's filters over
+    # every core while numba's PatchMatch keeps to one).
+    cv2.setNumThreads(1)
     rows, truth, views = [], {}, {}
+    warm = True
     for text in args.settings:
         config = DepthMapConfig(**json.loads(text))
         width = config.processing_width
@@ -115,6 +122,10 @@ def main(argv=None) -> list[dict]:
                             for i in pick}
             truth[width] = [region_masks(views[width][i][0], V, F, face, ears) for i in pick]
         maps, seconds = [], []
+        if warm:  # numba's kernels loaded (or compiled) before anything is timed
+            ref, srcs = views[width][pick[0]]
+            compute_depth_map(ref, srcs, coarse.vertices, coarse.faces, config)
+            warm = False
         for i in pick:
             ref, srcs = views[width][i]
             start = time.perf_counter()

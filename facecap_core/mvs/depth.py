@@ -60,19 +60,20 @@ class DepthMapConfig(StrictModel):
     start: Literal["random", "sweep"] = "random"
     """Where PatchMatch's planes start. ``random``: random planes in the coarse mesh's range,
     then ``iterations`` (the paper's). ``sweep``: the plane sweep's depths over PatchMatch's
-    pre-blurred images (``sweep_step_mm`` apart; 1 mm measured) with the slant of its depth
-    map smoothed over ``start_normal_sigma_px``, then ``sweep_iterations`` of PatchMatch from
-    them: the depth maps in 0.63 of the time, smoother meshes on the real photo set and a
-    better one on the real scan's phone-like capture, but worse ears on the ICT renders (up
-    to 9 %) and a phone-like render's face 3 % worse, so not the default (docs/mvs.md,
-    "PatchMatch from the sweep"). One level only (``levels: 1``)."""
+    pre-blurred images (``sweep_step_mm`` apart; 1 mm measured) with the normals of the
+    planes fitted to its depths over ``start_normal_sigma_px``, then ``sweep_iterations`` of
+    PatchMatch from them: with 1 mm, the depth maps in 0.65 of the time, as good or better on the real scan
+    and the real photo set (smoother), but the phone-like ICT renders' ears 10-34 % worse, so
+    not the default (docs/mvs.md, "PatchMatch from the sweep"). One level only
+    (``levels: 1``)."""
     sweep_iterations: int = Field(2, ge=1, le=8)
     """PatchMatch iterations after the sweep's start (``start: sweep``), with ``neighbours``
-    and refinement steps from a quarter of the first ones; one cost the ears 8-13 %."""
+    and refinement steps from a quarter of the first ones; one cost the calibration render's
+    ears 6 % (its maps) to 13-26 % (its mesh)."""
     start_normal_sigma_px: float = Field(6.0, gt=0, le=50)
-    """Gaussian (px) the sweep's depth map is smoothed by before its normals are taken
-    (``start: sweep``): the slant over a window, not a pixel's sub-step noise (3 and 10 px
-    were worse on the calibration render's maps)."""
+    """Gaussian (px) weighting the sweep's depths each pixel's starting plane is fitted to
+    (``start: sweep``): the slant over a window, not a pixel's sub-step noise (4 and 10 px
+    were as good on the calibration render's maps)."""
     init_from_coarse: bool = True
     """Also test the coarse mesh's plane at initialisation (the paper initialises with it)."""
 
@@ -184,9 +185,10 @@ depth maps: 0.324 against 0.315 mm, docs/experiments/2026-11-28-coarse-to-fine-p
 
 def patchmatch_from_sweep(ref: MVSView, sources: list[MVSView], prior: CoarsePrior,
                           config: DepthMapConfig) -> DepthMap:
-    """The plane sweep's depths with its smoothed slant as the planes PatchMatch starts from,
-    then ``config.sweep_iterations`` of PatchMatch: the sweep finds the depth along each ray
-    at a few tenths of PatchMatch's cost, PatchMatch tilts and refines the planes."""
+    """The plane sweep's depths, with the slant of the planes fitted to them, as the planes
+    PatchMatch starts from, then ``config.sweep_iterations`` of PatchMatch: the sweep finds
+    the depth along each ray at a fraction of PatchMatch's cost, PatchMatch tilts and
+    refines the planes."""
     start, cpu = time.perf_counter(), time.thread_time()
     # The sweep matches the images PatchMatch will (pre-blurred against the sensor's noise):
     # unblurred, the phone-like calibration render's face median was 2 % worse.

@@ -468,10 +468,11 @@ def patchmatch_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, c
     """Depth, normal and cost maps of ``ref`` over the prior's region (``config``:
     :class:`~facecap_core.mvs.depth.DepthMapConfig`). Raw: no filtering.
 
-    ``start_planes``: a coarser level's map of the same view, whose planes the pixels start
-    from (:func:`planes_at`) instead of random ones; ``iterations`` (default
-    ``config.iterations``) then run with refinement steps from ``0.5 ** first_step``,
-    propagating from the four nearest neighbours unless ``neighbours`` (a pattern of
+    ``start_planes``: a map of the same view (a coarser level's, or the plane sweep's at the
+    same size), whose planes the pixels start from (:func:`planes_at`) instead of random
+    ones; ``iterations`` (default ``config.iterations``) then run with refinement steps from
+    ``0.5 ** first_step``. Propagation follows ``config.neighbours`` from random planes and
+    the four nearest neighbours from ``start_planes``, unless ``neighbours`` (a pattern of
     :func:`neighbour_pattern`) says otherwise.
     """
     start, cpu = time.perf_counter(), time.thread_time()

@@ -49,16 +49,46 @@ def depth_normals(depth: np.ndarray, intr) -> np.ndarray:
 
 
 def smooth_normals(depth: np.ndarray, intr, sigma_px: float) -> np.ndarray:
-    """Normals (H, W, 3) of a depth map smoothed by a Gaussian of ``sigma_px`` over its valid
-    (positive) pixels only: the slant of the surface over a matching window, not of one
-    pixel's sub-step noise. Zero where the depth is not."""
-    valid = (depth > 0).astype(np.float32)
-    weight = cv2.GaussianBlur(valid, (0, 0), sigma_px)
-    smooth = cv2.GaussianBlur(np.where(depth > 0, depth, 0).astype(np.float32), (0, 0), sigma_px)
-    # Normalised where any valid depth is near, so that the differences at a hole's rim
-    # (and the region's) compare two smoothed depths, never a depth with the hole's zero.
-    filled = np.where(weight > 1e-3, smooth / np.maximum(weight, 1e-3), 0).astype(np.float32)
-    return np.where((depth > 0)[..., None], depth_normals(filled, intr), 0).astype(np.float32)
+    """Camera-frame unit normals (H, W, 3) facing the camera: at each valid (positive) pixel
+    the plane fitted to its valid neighbours' depths, weighted by a Gaussian of
+    ``sigma_px``: the slant over a matching window, not one pixel's sub-step noise. Zero
+    where the depth is not, or where the neighbours are too few or in a line to fit a plane.
+
+    A plane's inverse depth is affine in the normalised image coordinates (n . X = delta
+    with X = d (x, y, 1) gives 1/d = (n0 x + n1 y + n2) / delta), so a weighted least-squares
+    fit of 1/d is exact on a plane, also at the edge of the valid region, where a smoothed
+    depth would flatten the slope (its weights one-sided)."""
+    valid = depth > 0
+    h, w = depth.shape
+    x, y = np.meshgrid((np.arange(w, dtype=np.float64) - intr.cx) / intr.fx,
+                       (np.arange(h, dtype=np.float64) - intr.cy) / intr.fy)
+    q = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
+    weight = valid.astype(np.float64)
+
+    def mean(a: np.ndarray) -> np.ndarray:  # the Gaussian-weighted sums, float64 throughout
+        return cv2.GaussianBlur(weight * a, (0, 0), sigma_px, borderType=cv2.BORDER_CONSTANT)
+
+    s0 = mean(np.ones_like(x))
+    # At least a twentieth of a full window's weight: fewer pixels fit no plane worth
+    # starting from.
+    fit = valid & (s0 > 0.05)
+    s0 = np.where(fit, s0, 1.0)
+    mx, my, mq = mean(x) / s0, mean(y) / s0, mean(q) / s0
+    cxx = mean(x * x) / s0 - mx * mx
+    cxy = mean(x * y) / s0 - mx * my
+    cyy = mean(y * y) / s0 - my * my
+    cxq = mean(x * q) / s0 - mx * mq
+    cyq = mean(y * q) / s0 - my * mq
+    det = cxx * cyy - cxy * cxy
+    fit &= det > 0.01 * (cxx + cyy) ** 2  # neighbours in a line: no slope across it
+    det = np.where(fit, det, 1.0)
+    a = (cyy * cxq - cxy * cyq) / det
+    b = (cxx * cyq - cxy * cxq) / det
+    c = mq - a * mx - b * my
+    # (a, b, c) = n / delta, and delta < 0 for a plane facing the camera.
+    n = -np.stack([a, b, c], -1)
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
+    return np.where(fit[..., None], n, 0).astype(np.float32)
 
 
 def sweep_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, margin_mm: float,
