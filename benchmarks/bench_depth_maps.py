@@ -15,7 +15,7 @@ sphere's pixels, the coverage there after the per-map filter, and on the ear reg
 (in either ear sphere, outside the face sphere) the median error, the mean error with each
 clipped at 10 mm (the ears' outliers, without one wild pixel deciding it) and the coverage.
 Seconds are ``compute_depth_map``'s wall time per map with OpenCV on one thread, after one
-untimed map that loads numba's kernels: run on a quiet machine.
+untimed map of each setting that loads the numba kernels it uses: run on a quiet machine.
 """
 
 from __future__ import annotations
@@ -110,10 +110,19 @@ def main(argv=None) -> list[dict]:
     pick = [indices[k] for k in np.unique(picks)]
     # One core, as a depth map has in the stage (OpenCV would spread the sweep's filters over
     # every core while numba's PatchMatch keeps to one).
+    threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
+    try:
+        return _compare(args.settings, pick, frames, cams, sources, coarse, V, F, face, ears)
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def _compare(settings, pick, frames, cams, sources, coarse, V, F, face, ears) -> list[dict]:
+    """Each setting's maps of ``pick``, scored and timed (one untimed map first, which loads
+    the numba kernels the setting uses)."""
     rows, truth, views = [], {}, {}
-    warm = True
-    for text in args.settings:
+    for text in settings:
         config = DepthMapConfig(**json.loads(text))
         width = config.processing_width
         if width not in views:
@@ -122,10 +131,8 @@ def main(argv=None) -> list[dict]:
                             for i in pick}
             truth[width] = [region_masks(views[width][i][0], V, F, face, ears) for i in pick]
         maps, seconds = [], []
-        if warm:  # numba's kernels loaded (or compiled) before anything is timed
-            ref, srcs = views[width][pick[0]]
-            compute_depth_map(ref, srcs, coarse.vertices, coarse.faces, config)
-            warm = False
+        ref, srcs = views[width][pick[0]]
+        compute_depth_map(ref, srcs, coarse.vertices, coarse.faces, config)
         for i in pick:
             ref, srcs = views[width][i]
             start = time.perf_counter()

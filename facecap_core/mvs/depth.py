@@ -69,7 +69,7 @@ class DepthMapConfig(StrictModel):
     sweep_iterations: int = Field(2, ge=1, le=8)
     """PatchMatch iterations after the sweep's start (``start: sweep``), with ``neighbours``
     and refinement steps from a quarter of the first ones; one cost the calibration render's
-    ears 6 % (its maps) to 13-26 % (its mesh)."""
+    ears 6-8 % (its maps) to 13-26 % (its mesh, with four neighbours)."""
     start_normal_sigma_px: float = Field(6.0, gt=0, le=50)
     """Gaussian (px) weighting the sweep's depths each pixel's starting plane is fitted to
     (``start: sweep``): the slant over a window, not a pixel's sub-step noise (4 and 10 px

@@ -141,7 +141,7 @@ def test_a_sweep_start_is_a_one_level_search():
 @pytest.mark.parametrize("tilt", [(0.3, -0.2, -1.0), (0.8, 0.0, -1.0)])
 def test_smooth_normals_are_the_slant_of_a_noisy_plane_up_to_its_edges(tilt):
     intr = Intrinsics(160, 120, 150.0, 150.0, 80.0, 60.0)
-    n_true = np.array(tilt) / np.linalg.norm(tilt)  # 21° and 39° from the optical axis
+    n_true = np.array(tilt) / np.linalg.norm(tilt)  # 20° and 39° from the optical axis
     u, v = np.meshgrid(np.arange(160.0), np.arange(120.0))
     rays = np.stack([(u - 80) / 150, (v - 60) / 150, np.ones_like(u)], -1)
     # The plane n . X = -400 (400 mm in front of the camera), sampled along each ray, with
@@ -167,3 +167,8 @@ def test_smooth_normals_are_the_slant_of_a_noisy_plane_up_to_its_edges(tilt):
     edge[:20] = edge[-20:] = False
     assert np.max(np.degrees(np.arccos(np.clip(smooth[edge] @ n_true, -1, 1)))) < 0.3
     assert np.all(smooth[~seen] == 0)
+    # Too few neighbours, or neighbours in a line, fit no plane: no normal (a random start).
+    alone = np.zeros_like(depth)
+    alone[60, 20] = 400.0
+    alone[10:110, 100] = 400.0
+    assert np.all(smooth_normals(alone, intr, 6.0) == 0)
