@@ -27,14 +27,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from captures import true_frames, truth_to_run
 
-from facecap.synthetic import load_gt_cameras
 from facecap.synthetic.ground_truth import gt_depth
 from facecap.tasks.store import open_store
-from facecap_core.camera import camera_center
 from facecap_core.evaluation import region_sphere
 from facecap_core.evaluation.region import ear_spheres
-from facecap_core.geometry import umeyama
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.mvs.depth import DepthMapConfig, compute_depth_map
 from facecap_core.mvs.images import load_view
@@ -91,11 +89,8 @@ def main(argv=None) -> list[dict]:
     sources = read_views(views_dir / "views.json")
     indices = sorted(sources)
     gt_dir = Path(report["video"]).parent / "gt"
-    _, frame_list = load_gt_cameras(gt_dir / "cameras.json")
-    gt_frames = {int(f["index"]): f for f in frame_list}
-    est = np.array([camera_center(*cams.pose(i)) for i in indices])
-    true = np.array([camera_center(gt_frames[i]["R"], gt_frames[i]["t"]) for i in indices])
-    s, R, t = umeyama(true, est)
+    _, gt_frames = true_frames(gt_dir)
+    s, R, t = truth_to_run(cams, gt_frames, indices)
     gt = load_mesh(gt_dir / "mesh.ply")
     V = s * np.asarray(gt.vertices, float) @ R.T + t
     F = np.asarray(gt.faces)

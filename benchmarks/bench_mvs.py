@@ -30,7 +30,7 @@ from pathlib import Path
 import numba
 import numpy as np
 import trimesh
-from captures import capture_for
+from captures import capture_for, true_frames, truth_to_run
 from scipy.spatial import cKDTree
 
 from facecap.synthetic import load_gt_cameras
@@ -185,8 +185,6 @@ def pipeline_subject(result: Path, config, peer: bool):
     from types import SimpleNamespace
 
     from facecap.tasks.store import open_store
-    from facecap_core.camera import camera_center
-    from facecap_core.geometry import umeyama
     from facecap_core.mvs.depth import load_depth_map
     from facecap_core.mvs.images import load_view
     from facecap_core.mvs.views import read_views
@@ -198,11 +196,9 @@ def pipeline_subject(result: Path, config, peer: bool):
                                                                             "views"))
     cams = read_cameras_json(coarse_dir / "cameras.json")
     gt_dir = Path(report["video"]).parent / "gt"
-    gt_intr, gt_frames = load_gt_cameras(gt_dir / "cameras.json")
+    gt_intr, gt_frames = true_frames(gt_dir)
     indices = sorted(read_views(views_dir / "views.json"))
-    est = np.array([camera_center(*cams.pose(i)) for i in indices])
-    true = np.array([camera_center(gt_frames[i]["R"], gt_frames[i]["t"]) for i in indices])
-    s, R, t = umeyama(true, est)  # ground truth -> the run's frame
+    s, R, t = truth_to_run(cams, gt_frames, indices)  # ground truth -> the run's frame
     gt = load_mesh(gt_dir / "mesh.ply")
     V, F = np.asarray(gt.vertices, float), np.asarray(gt.faces)
     Vp = s * V @ R.T + t

@@ -21,11 +21,9 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from captures import true_frames, truth_to_run
 
-from facecap.synthetic import load_gt_cameras
-from facecap_core.camera import camera_center
 from facecap_core.evaluation import distances, region_sphere
-from facecap_core.geometry import umeyama
 from facecap_core.meshio import load_landmarks, load_mesh
 from facecap_core.pose.cameras_json import read_cameras_json
 from facecap_core.pose.evaluate import pose_errors
@@ -44,15 +42,12 @@ def capture_figures(result: Path) -> dict:
         seconds[key] = seconds.get(key, 0.0) + (info["seconds"] or 0.0)
     seconds["depth"] = seconds.get("depth", 0.0) / WORKERS
     cams = read_cameras_json(result / "cameras.json")
-    gt_intr, frames = load_gt_cameras(gt_dir / "cameras.json")
-    gt = {f["index"]: f for f in frames}
+    gt_intr, gt = true_frames(gt_dir)
     indices = [i for i in cams.frame_indices if i in gt]
     poses = [cams.pose(i) for i in indices]
     pose = pose_errors([p[0] for p in poses], [p[1] for p in poses], cams.intrinsics,
                        [gt[i]["R"] for i in indices], [gt[i]["t"] for i in indices], gt_intr)
-    est = np.array([camera_center(*p) for p in poses])
-    true = np.array([camera_center(gt[i]["R"], gt[i]["t"]) for i in indices])
-    s, R, t = umeyama(true, est, with_scale=True)
+    s, R, t = truth_to_run(cams, gt, indices)
     scan = load_mesh(gt_dir / "mesh.ply")
     centre, radius = region_sphere(load_landmarks(gt_dir / "landmarks.json"))
     cloud = _cloud_points(result / "cloud.ply")
