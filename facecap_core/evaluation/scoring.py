@@ -175,13 +175,15 @@ def check_surface(vertices: np.ndarray, faces: np.ndarray, path: str | Path, wha
 
 def evaluate(mesh_path: str | Path, scan_path: str | Path,
              scan_landmarks_path: str | Path | None = None,
-             mesh_landmarks_path: str | Path | None = None,
+             mesh_landmarks: str | Path | np.ndarray | None = None,
              protocols: Sequence[str] = PROTOCOLS,
              config: EvaluationConfig | None = None) -> dict[str, Score]:
     """Score a mesh file against a scan file under each protocol; ``{protocol: Score}``.
 
     The scan's landmarks (68 3-D points, iBUG order, in the scan's frame) are required: they
-    define the face region. The mesh's landmarks are optional and only initialise alignment.
+    define the face region. The mesh's landmarks are optional and only initialise alignment:
+    a landmark file, or the 68 points themselves as an array (the template's landmark
+    vertices of a mesh in its topology, which need no file).
     """
     config = config or EvaluationConfig()
     unknown = [p for p in protocols if p not in PROTOCOLS]
@@ -200,10 +202,15 @@ def evaluate(mesh_path: str | Path, scan_path: str | Path,
         raise InputError(f"scan landmark file {scan_landmarks_path} holds 2-D points; the face "
                          "region needs 3-D landmarks in the scan's frame")
     mesh_lm = None
-    if mesh_landmarks_path is not None:
-        mesh_lm = load_landmarks(mesh_landmarks_path, expected=68)
+    if isinstance(mesh_landmarks, np.ndarray):
+        mesh_lm = np.asarray(mesh_landmarks, float)
+        if mesh_lm.shape != (68, 3) or not np.all(np.isfinite(mesh_lm)):
+            raise InputError(f"the mesh's landmarks are an array of shape {mesh_lm.shape}; "
+                             "alignment needs 68 finite 3-D points in the mesh's frame")
+    elif mesh_landmarks is not None:
+        mesh_lm = load_landmarks(mesh_landmarks, expected=68)
         if mesh_lm.shape[1] != 3:
-            raise InputError(f"mesh landmark file {mesh_landmarks_path} holds 2-D points; "
+            raise InputError(f"mesh landmark file {mesh_landmarks} holds 2-D points; "
                              "alignment needs 3-D landmarks in the mesh's frame")
     return {p: score(mesh.vertices, mesh.faces, scan.vertices, scan.faces, scan_lm, mesh_lm,
                      protocol=p, config=config)

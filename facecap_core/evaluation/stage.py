@@ -14,7 +14,7 @@ from facecap_core.evaluation.figures import error_heatmap
 from facecap_core.evaluation.scoring import evaluate, score_json
 from facecap_core.evaluation.settings import EvaluationConfig
 from facecap_core.fitting.run import MESH_LANDMARKS, MESH_PLY
-from facecap_core.meshio import load_mesh, save_landmarks
+from facecap_core.meshio import load_mesh
 from facecap_core.stage import Folders, Stage
 from facecap_core.template import Template
 
@@ -44,6 +44,20 @@ def find_file(folder: str | Path, suffixes: Sequence[str], what: str) -> Path:
     return found[0]
 
 
+def mesh_landmarks(mesh_dir: str | Path, vertices: np.ndarray) -> Path | np.ndarray | None:
+    """The mesh's 68 landmarks for the alignment's start: the fitting stage's landmark file
+    beside the mesh, else, for a mesh in the template's topology (a mesh ingested alone, as
+    ``evaluate-dataset`` does), the template's landmark vertices, taken in memory (the stage
+    writes no file its row does not list); None for any other mesh."""
+    path = Path(mesh_dir) / MESH_LANDMARKS
+    if path.is_file():
+        return path
+    template = Template.default()
+    if len(vertices) == len(template.vertices):
+        return np.asarray(vertices, float)[template.landmarks]
+    return None
+
+
 def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
                    scan_landmarks: str | Path | None = None,
                    config: EvaluationConfig | None = None) -> Path:
@@ -59,15 +73,7 @@ def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mesh = load_mesh(mesh_path, "mesh")
-    mesh_lm = Path(mesh_dir) / MESH_LANDMARKS
-    if not mesh_lm.is_file():
-        # A mesh in template topology carries its landmarks: the template's landmark vertices.
-
-        template = Template.default()
-        if len(mesh.vertices) == len(template.vertices):
-            mesh_lm = save_landmarks(out / "mesh_landmarks.json",
-                                     mesh.vertices[template.landmarks])
-    scores = evaluate(mesh_path, scan_path, lm_path, mesh_lm if mesh_lm.is_file() else None,
+    scores = evaluate(mesh_path, scan_path, lm_path, mesh_landmarks(mesh_dir, mesh.vertices),
                       config=config)
     for name, sc in scores.items():
         scored = scored_per_vertex(sc)

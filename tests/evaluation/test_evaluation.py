@@ -41,7 +41,7 @@ from facecap_core.evaluation import (
     score_json,
 )
 from facecap_core.landmarks.ears import CONTOUR_FILE, MODELS_DIR
-from facecap_core.meshio import save_landmarks
+from facecap_core.meshio import load_landmarks, save_landmarks
 from facecap_core.render import vertex_normals
 from facecap_core.template import Template
 
@@ -251,6 +251,11 @@ def test_evaluate_files(head_files):
     assert result["similarity"].accuracy.mean < 0.01
     assert result["metric"].scale == 1.0
     json.dumps(result["metric"].to_dict())  # JSON-ready
+    # The mesh's landmarks as the points themselves: the same scores as from their file.
+    given = evaluate(mesh, scan, scan_lm, load_landmarks(mesh_lm))
+    assert given["metric"].accuracy.mean == pytest.approx(result["metric"].accuracy.mean)
+    with pytest.raises(InputError, match="shape"):
+        evaluate(mesh, scan, scan_lm, np.zeros((5, 3)))
 
 
 def test_missing_scan_landmarks_is_a_one_line_input_error(head_files):
@@ -561,3 +566,47 @@ def test_the_stage_keeps_the_transform_that_brought_the_mesh_onto_the_scan(ict_m
     on_mesh, _ = scan_in_mesh_frame(tmp_path / "scan" / "scan.ply",
                                     read_alignment(tmp_path / "out", "metric"))
     assert np.abs(on_mesh - v).max() < 0.05
+
+
+@pytest.mark.parametrize("beside", [True, False], ids=["landmarks-beside", "mesh-alone"])
+def test_the_stage_run_by_the_runner_writes_what_its_row_lists(beside, tmp_path):
+    """The evaluation stage through the runner (which checks its files against its row), on
+    a mesh in the template's topology with its ``landmarks.json`` beside it (the fitting
+    stage's artifact) and alone (``evaluate-dataset`` ingests ``mesh.ply`` only): both
+    commit exactly the row's files, and a mesh alone is still aligned from the template's
+    landmark vertices (the scan is turned 70° and moved 120 mm, too far for ICP alone)."""
+    from facecap.tasks.graph import INPUT_VERSION
+    from facecap.tasks.runner import ingest, run_stage
+    from facecap.tasks.store import input_key, open_store
+    from facecap_core.evaluation.stage import EVALUATION_JSON, STAGE
+    from facecap_core.fitting.run import MESH_LANDMARKS, MESH_PLY
+
+    template = Template.default()
+    v, f, lm = template.vertices, template.faces, template.landmark_points
+    R, t = rotation_matrix([0.0, 1.0, 0.0], np.radians(70)), np.array([120.0, -40.0, 60.0])
+    files = tmp_path / "files"
+    files.mkdir()
+    trimesh.Trimesh(v, f, process=False).export(files / MESH_PLY)
+    trimesh.Trimesh(v @ R.T + t, f, process=False).export(files / "scan.ply")
+    save_landmarks(files / "scan_landmarks.json", lm @ R.T + t)
+    store_url = str(tmp_path / "store")
+    store = open_store(store_url)
+    if beside:
+        save_landmarks(files / MESH_LANDMARKS, lm)
+        mesh_key = input_key(files / MESH_LANDMARKS)
+        store.put(mesh_key, {MESH_PLY: files / MESH_PLY, MESH_LANDMARKS: files / MESH_LANDMARKS},
+                  stage="input", inputs={}, config=None, version=INPUT_VERSION)
+    else:
+        mesh_key = ingest(store_url, files / MESH_PLY, MESH_PLY)
+    inputs = {"mesh": mesh_key, "scan": ingest(store_url, files / "scan.ply", "scan.ply"),
+              "scan_landmarks": ingest(store_url, files / "scan_landmarks.json",
+                                       "scan_landmarks.json")}
+    key, computed = run_stage(store_url, STAGE, inputs, EvaluationConfig())
+    assert computed
+    folder = store.get(key)
+    written = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                     if p.is_file() and p.name != "manifest.json")
+    assert written == sorted((*STAGE.outputs, *STAGE.optional_outputs))
+    scores = json.loads((folder / EVALUATION_JSON).read_text())
+    for protocol in ("similarity", "metric"):
+        assert scores[protocol]["accuracy"]["median"] < 0.05, protocol
