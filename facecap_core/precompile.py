@@ -24,7 +24,7 @@ from numba import types as nt
 # Array types by dimension count, all C-contiguous as the callers make them.
 I32_1, I32_2 = nt.int32[::1], nt.int32[:, ::1]
 I64_1, I64_2 = nt.int64[::1], nt.int64[:, ::1]
-F32_2, F32_3 = nt.float32[:, ::1], nt.float32[:, :, ::1]
+F32_1, F32_2, F32_3 = nt.float32[::1], nt.float32[:, ::1], nt.float32[:, :, ::1]
 F64_1, F64_2 = nt.float64[::1], nt.float64[:, ::1]
 F64_3, F64_4 = nt.float64[:, :, ::1], nt.float64[:, :, :, ::1]
 BOOL_1 = nt.boolean[::1]
@@ -36,7 +36,7 @@ def _patchmatch_signature() -> tuple:
     """facecap_core.mvs.patchmatch.patchmatch_depth's call of ``_patchmatch``."""
     return (I32_1, I32_1, I32_2, BOOL_1, F32_2, F32_2, F32_2, F32_3, BOOL,  # .. use_prior
             F32_3, F64_3, F64_2, F64, F64, F64, F64,  # srcs, A, b, fx, fy, cx, cy
-            I32_1, I32_1, F32_2, F32_2, I64, I64, I64, I32_2, I64, F64, I64, I64,  # .. pixel_views
+            F32_1, F32_1, F32_2, F32_2, I64, I64, I64, I32_2, I64, F64, I64, I64,  # .. pixel_views
             F32_2, F32_3, F32_2)  # depth, normal, cost
 
 

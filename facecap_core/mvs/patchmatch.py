@@ -65,7 +65,7 @@ class DepthMap:
 # --------------------------------------------------------------------------- kernels
 
 
-@numba.njit(nogil=True, cache=True, fastmath=True)
+@numba.njit(nogil=True, cache=True, fastmath=True, error_model="numpy")
 def _bilateral_weights(ref, us, vs, dxs, dys, sigma_c, sigma_s, wn, wa, ok):
     """Per pixel and window sample: normalised bilateral weight ``wn`` and ``wa = wn (r - mean)
     / std`` so that NCC against a source needs only sum(wn s), sum(wn s^2), sum(wa s)."""
@@ -101,12 +101,19 @@ def _bilateral_weights(ref, us, vs, dxs, dys, sigma_c, sigma_s, wn, wa, ok):
             wa[r, k] = wn[r, k] * (vals[k] - mean) / sd
 
 
-@numba.njit(nogil=True, cache=True, fastmath=True)
-def _view_cost(s, u, v, row, m0, m1, m2, srcs, A, b, dxs, dys, wn, wa):
+@numba.njit(nogil=True, cache=True, fastmath=True, error_model="numpy", inline="always")
+def _view_cost(s, u, v, row, m0, m1, m2, srcs, flat, A, b, dxs, dys, wn, wa):
     """1 - NCC of the window at (u, v) against source ``s`` under the plane m (the
-    homography H = A + b m^T maps reference pixels to source pixels)."""
-    h = srcs.shape[1]
-    w = srcs.shape[2]
+    homography H = A + b m^T maps reference pixels to source pixels); MAX_COST where a
+    sample falls behind the source or off its image.
+
+    ``srcs`` are the sources with their last row and column repeated once (:func:`padded`),
+    ``flat`` the same array as one vector; the window's ``dxs``, ``dys`` and weights are
+    padded to whole vectors (:func:`padded_window`). The homography is built in float64 and
+    the samples are taken in float32: a 16-lane loop without a branch.
+    """
+    h = srcs.shape[1] - 1
+    w = srcs.shape[2] - 1
     h00 = A[s, 0, 0] + b[s, 0] * m0
     h01 = A[s, 0, 1] + b[s, 0] * m1
     h02 = A[s, 0, 2] + b[s, 0] * m2
@@ -119,27 +126,63 @@ def _view_cost(s, u, v, row, m0, m1, m2, srcs, A, b, dxs, dys, wn, wa):
     px = h00 * u + h01 * v + h02
     py = h10 * u + h11 * v + h12
     pz = h20 * u + h21 * v + h22
-    s1 = 0.0
-    s2 = 0.0
-    c = 0.0
+    # The window's samples include its corners, and a homography with z > 0 over the window
+    # maps it onto a convex quadrilateral: every sample lies inside the image when the four
+    # corners do (x in [0, w - 1), y in [0, h - 1); tested as x z and y z against z).
+    rad = float(dxs[dxs.shape[0] - 1])
+    xmax = w - 1.0
+    ymax = h - 1.0
+    inside = True
+    for cxs in (-rad, rad):
+        for cys in (-rad, rad):
+            z = pz + h20 * cxs + h21 * cys
+            xn = px + h00 * cxs + h01 * cys
+            yn = py + h10 * cxs + h11 * cys
+            inside &= (z > 1e-9) & (xn >= 0.0) & (yn >= 0.0) & (xn < xmax * z) & (yn < ymax * z)
+    if not inside:
+        return MAX_COST
+    f32 = np.float32
+    g00 = f32(h00)
+    g01 = f32(h01)
+    g10 = f32(h10)
+    g11 = f32(h11)
+    g20 = f32(h20)
+    g21 = f32(h21)
+    gx = f32(px)
+    gy = f32(py)
+    gz = f32(pz)
+    one = f32(1.0)
+    # 32-bit indices into the one flat array of the sources (a 16-lane gather; LLVM emits
+    # one only for an index it knows to be below 2**31).
+    below = np.uint32(0x7FFFFFFF)
+    w1 = np.uint32(w + 1)
+    base = np.uint32(s) * np.uint32((h + 1) * (w + 1))
+    # The sums are taken about the source's value nearest the window's centre: NCC does
+    # not see the offset, and float32 keeps the variance of a faint texture.
+    iz = one / gz
+    off = flat[(base + np.uint32(gy * iz) * w1 + np.uint32(gx * iz)) & below]
+    s1 = f32(0.0)
+    s2 = f32(0.0)
+    c = f32(0.0)
     for k in range(dxs.shape[0]):
         dx = dxs[k]
         dy = dys[k]
-        z = pz + h20 * dx + h21 * dy
-        if z <= 1e-9:
-            return MAX_COST
-        iz = 1.0 / z
-        x = (px + h00 * dx + h01 * dy) * iz
-        y = (py + h10 * dx + h11 * dy) * iz
-        if x < 0.0 or y < 0.0 or x >= w - 1 or y >= h - 1:
-            return MAX_COST
-        x0 = int(x)
-        y0 = int(y)
-        ax = x - x0
-        ay = y - y0
-        top = srcs[s, y0, x0] + ax * (srcs[s, y0, x0 + 1] - srcs[s, y0, x0])
-        bot = srcs[s, y0 + 1, x0] + ax * (srcs[s, y0 + 1, x0 + 1] - srcs[s, y0 + 1, x0])
-        val = top + ay * (bot - top)
+        iz = one / (gz + g20 * dx + g21 * dy)
+        x = (gx + g00 * dx + g01 * dy) * iz
+        y = (gy + g10 * dx + g11 * dy) * iz
+        # x, y lie in (-1, w - 1) and (-1, h - 1) up to float32's rounding (the corners
+        # are inside): truncation and the repeated last row and column keep every load in.
+        xi = np.uint32(x)
+        yi = np.uint32(y)
+        ax = x - f32(xi)
+        ay = y - f32(yi)
+        i = np.uint32(base + yi * w1 + xi) & below
+        a = flat[i]
+        top = a + ax * (flat[i + np.uint32(1)] - a)
+        i = (i + w1) & below
+        a = flat[i]
+        bot = a + ax * (flat[i + np.uint32(1)] - a)
+        val = top + ay * (bot - top) - off
         wk = wn[row, k]
         s1 += wk * val
         s2 += wk * val * val
@@ -150,7 +193,7 @@ def _view_cost(s, u, v, row, m0, m1, m2, srcs, A, b, dxs, dys, wn, wa):
     return min(max(1.0 - c / np.sqrt(var), 0.0), MAX_COST)
 
 
-@numba.njit(nogil=True, cache=True, fastmath=True)
+@numba.njit(nogil=True, cache=True, fastmath=True, error_model="numpy")
 def _plane(u, v, d, n0, n1, n2, fx, fy, cx, cy):
     """m = K^-T n / delta of the plane through depth ``d`` at pixel (u, v) with normal n;
     ok is False for a plane seen edge-on or from behind."""
@@ -164,49 +207,65 @@ def _plane(u, v, d, n0, n1, n2, fx, fy, cx, cy):
             (n2 - n0 * cx / fx - n1 * cy / fy) / delta, True)
 
 
-@numba.njit(nogil=True, cache=True, fastmath=True)
-def _hypothesis_cost(u, v, row, d, n0, n1, n2, views, srcs, A, b, fx, fy, cx, cy, dxs, dys,
-                     wn, wa, nbest, best, bound):
+@numba.njit(nogil=True, cache=True, fastmath=True, error_model="numpy")
+def _hypothesis_cost(u, v, row, d, n0, n1, n2, views, srcs, flat, A, b, fx, fy, cx, cy, dxs,
+                     dys, wn, wa, nbest, best, bound):
     """Aggregated cost of plane (depth ``d`` at pixel (u, v), normal n): the mean of the
     best ``nbest`` per-view costs over the sources ``views``; MAX_COST as soon as it is
-    certain not to be below ``bound`` (the caller keeps a hypothesis only if it is)."""
+    certain not to be below ``bound`` (the caller keeps a hypothesis only if it is).
+    ``best`` holds ``nbest`` + one entry per source: the sorted best costs, then each
+    view's cost (read by :func:`_worst_first`)."""
     m0, m1, m2, seen = _plane(u, v, d, n0, n1, n2, fx, fy, cx, cy)
     if not seen:
         return MAX_COST
     for k in range(nbest):
         best[k] = MAX_COST
     nviews = views.shape[0]
-    # A hair above bound * nbest, so that the two sums' rounding (in any order) can never
-    # stop a hypothesis the caller would have kept.
+    # A hair above bound * nbest, so that the sums' rounding (in any order) can never stop
+    # a hypothesis the caller would have kept.
     limit = bound * nbest * (1.0 + 1e-9)
+    lower = 0.0
     for i in range(nviews):
-        cost = _view_cost(views[i], u, v, row, m0, m1, m2, srcs, A, b, dxs, dys, wn, wa)
-        # Insert into the sorted list of the best ``nbest`` costs.
-        if cost < best[nbest - 1]:
-            j = nbest - 1
-            while j > 0 and best[j - 1] > cost:
-                best[j] = best[j - 1]
-                j -= 1
-            best[j] = cost
-        # Of the final best nbest, at least nbest - (views left) are among those scored:
-        # their sum bounds the total from below (every cost is >= 0). With bound = MAX_COST
-        # it stops only where every cost is MAX_COST: what the mean would be.
+        cost = _view_cost(views[i], u, v, row, m0, m1, m2, srcs, flat, A, b, dxs, dys, wn, wa)
+        best[nbest + views[i]] = cost
+        # Of the final best nbest, at least ``known`` = nbest - (views left) are among
+        # those scored: their sum bounds the total from below (every cost is >= 0). It
+        # grows by the smaller of this cost and the known-th smallest before it. With
+        # bound = MAX_COST it stops only where every cost is MAX_COST: what the mean would be.
         known = nbest - (nviews - 1 - i)
         if known > 0:
-            lower = 0.0
-            for k in range(known):
-                lower += best[k]
-            if lower >= limit:
-                return MAX_COST
+            lower += min(cost, best[known - 1])
+        # Into the sorted best nbest without a branch on the cost: entry j becomes the
+        # smaller of itself and the larger of its left neighbour and the cost.
+        for j in range(nbest - 1, 0, -1):
+            best[j] = min(best[j], max(best[j - 1], cost))
+        best[0] = min(best[0], cost)
+        if lower >= limit:
+            return MAX_COST
     total = 0.0
     for k in range(nbest):
         total += best[k]
     return total / nbest
 
 
-@numba.njit(nogil=True, cache=True, fastmath=True)
-def _select_views(us, vs, ok, depth, normal, srcs, A, b, fx, fy, cx, cy, dxs, dys, wn, wa,
-                  nbest, views, cost):
+@numba.njit(nogil=True, cache=True, fastmath=True, error_model="numpy")
+def _worst_first(order, best, nbest):
+    """Sort a pixel's sources by the per-view costs of the hypothesis just scored
+    (``best[nbest:]``), the worst first: the next hypotheses' lower bound then grows
+    fastest, and one that loses stops earliest. Their costs are the same in any order."""
+    for i in range(1, order.shape[0]):
+        o = order[i]
+        key = best[nbest + o]
+        j = i
+        while j > 0 and best[nbest + order[j - 1]] < key:
+            order[j] = order[j - 1]
+            j -= 1
+        order[j] = o
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True, error_model="numpy")
+def _select_views(us, vs, ok, depth, normal, srcs, flat, A, b, fx, fy, cx, cy, dxs, dys, wn,
+                  wa, nbest, views, cost):
     """Per pixel, the sources sorted by their cost under the pixel's current plane (best
     first), written into the rows of ``views``; the pixel's cost again from these."""
     costs = np.empty(srcs.shape[0])
@@ -219,7 +278,8 @@ def _select_views(us, vs, ok, depth, normal, srcs, A, b, fx, fy, cx, cy, dxs, dy
         if not seen:
             continue
         for s in range(srcs.shape[0]):
-            costs[s] = _view_cost(s, u, v, r, m0, m1, m2, srcs, A, b, dxs, dys, wn, wa)
+            costs[s] = _view_cost(s, u, v, r, m0, m1, m2, srcs, flat, A, b, dxs, dys, wn,
+                                  wa)
         order = np.argsort(costs, kind="mergesort")
         views[r] = order.astype(np.int32)
         total = 0.0
@@ -228,7 +288,7 @@ def _select_views(us, vs, ok, depth, normal, srcs, A, b, fx, fy, cx, cy, dxs, dy
         cost[v, u] = total / nbest
 
 
-@numba.njit(nogil=True, cache=True, fastmath=True)
+@numba.njit(nogil=True, cache=True, fastmath=True, error_model="numpy")
 def _random_normal(rx, ry, max_tilt):
     """Random unit normal facing the camera, within ``max_tilt`` (cosine) of the view ray."""
     inv = 1.0 / np.sqrt(rx * rx + ry * ry + 1.0)
@@ -250,7 +310,7 @@ def _random_normal(rx, ry, max_tilt):
     return -rx * inv, -ry * inv, -inv
 
 
-@numba.njit(nogil=True, cache=True, fastmath=True)
+@numba.njit(nogil=True, cache=True, fastmath=True, error_model="numpy")
 def _perturb_normal(n0, n1, n2, sigma, rx, ry):
     """Normal rotated by a random angle of about ``sigma`` radians, kept facing the camera."""
     m0 = n0 + sigma * np.random.normal()
@@ -265,18 +325,21 @@ def _perturb_normal(n0, n1, n2, sigma, rx, ry):
     return m0, m1, m2
 
 
-@numba.njit(nogil=True, cache=True, fastmath=True)
+@numba.njit(nogil=True, cache=True, fastmath=True, error_model="numpy")
 def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
                 srcs, A, b, fx, fy, cx, cy, dxs, dys, wn, wa, nbest, iterations, first_step,
                 nbr, refine_trials, normal_sigma, seed, pixel_views, depth, normal, cost):
     """Initialise and iterate PatchMatch in place on ``depth``, ``normal``, ``cost``; after
     the first iteration each pixel is matched against its best ``pixel_views`` sources
     (0: all). A pixel whose ``depth`` is set on entry starts from that plane instead of a
-    random one; the refinement steps start at ``0.5 ** first_step``."""
+    random one; the refinement steps start at ``0.5 ** first_step``. ``srcs`` are the
+    sources as :func:`padded` leaves them, the window's offsets and weights as
+    :func:`padded_window` does."""
     # Long on purpose: a numba kernel: the initialisation, propagation and refinement sweeps share
     # the per-pixel state in place.
     np.random.seed(seed)
-    best = np.empty(nbest)
+    best = np.empty(nbest + srcs.shape[0])
+    flat = srcs.reshape(srcs.size)
     h, w = idx.shape
     m = us.shape[0]
     max_tilt = 0.17  # cos(80°): steeper planes are not plausible skin
@@ -297,15 +360,18 @@ def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
         else:
             d = lo[v, u] + np.random.random() * (hi[v, u] - lo[v, u])
             n0, n1, n2 = _random_normal(rx, ry, max_tilt)
-        c = _hypothesis_cost(u, v, r, d, n0, n1, n2, views[r], srcs, A, b, fx, fy, cx, cy,
-                             dxs, dys, wn, wa, nbest, best, MAX_COST)
+        c = _hypothesis_cost(u, v, r, d, n0, n1, n2, views[r], srcs, flat, A, b, fx, fy, cx,
+                             cy, dxs, dys, wn, wa, nbest, best, MAX_COST)
+        if c < MAX_COST:
+            _worst_first(views[r], best, nbest)
         if use_prior and np.isfinite(prior_depth[v, u]):
             p0, p1, p2 = prior_normal[v, u, 0], prior_normal[v, u, 1], prior_normal[v, u, 2]
             pd = prior_depth[v, u]
-            pc = _hypothesis_cost(u, v, r, pd, p0, p1, p2, views[r], srcs, A, b, fx, fy, cx,
-                                  cy, dxs, dys, wn, wa, nbest, best, c)
+            pc = _hypothesis_cost(u, v, r, pd, p0, p1, p2, views[r], srcs, flat, A, b, fx, fy,
+                                  cx, cy, dxs, dys, wn, wa, nbest, best, c)
             if pc < c:
                 d, n0, n1, n2, c = pd, p0, p1, p2, pc
+                _worst_first(views[r], best, nbest)
         depth[v, u] = d
         normal[v, u, 0] = n0
         normal[v, u, 1] = n1
@@ -319,8 +385,8 @@ def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
             # surface's: the sources that see the pixel occluded or foreshortened drop
             # out, and each hypothesis costs pixel_views / nsrc as much. Chosen again every
             # iteration, from the plane the last one left.
-            _select_views(us, vs, ok, depth, normal, srcs, A, b, fx, fy, cx, cy, dxs, dys,
-                          wn, wa, nbest, views, cost)
+            _select_views(us, vs, ok, depth, normal, srcs, flat, A, b, fx, fy, cx, cy, dxs,
+                          dys, wn, wa, nbest, views, cost)
             nviews = pixel_views
         for colour in range(2):
             for r in range(m):
@@ -355,9 +421,12 @@ def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
                     if abs(dp - d) < 1e-5 * d and q0 == n0 and q1 == n1 and q2 == n2:
                         continue
                     cc = _hypothesis_cost(u, v, r, dp, q0, q1, q2, views[r, :nviews], srcs,
-                                          A, b, fx, fy, cx, cy, dxs, dys, wn, wa, nbest, best, c)
+                                          flat, A, b, fx, fy, cx, cy, dxs, dys, wn, wa, nbest,
+                                          best, c)
                     if cc < c:
                         d, n0, n1, n2, c = dp, q0, q1, q2, cc
+                        if nviews == nsrc:
+                            _worst_first(views[r], best, nbest)
                 # Refinement: perturb depth, normal, then both, by shrinking steps.
                 for j in range(refine_trials):
                     kind = j % 3
@@ -371,9 +440,12 @@ def _patchmatch(us, vs, idx, ok, lo, hi, prior_depth, prior_normal, use_prior,
                     if kind != 0:
                         m0, m1, m2 = _perturb_normal(n0, n1, n2, normal_sigma * step, rx, ry)
                     cc = _hypothesis_cost(u, v, r, dd, m0, m1, m2, views[r, :nviews], srcs,
-                                          A, b, fx, fy, cx, cy, dxs, dys, wn, wa, nbest, best, c)
+                                          flat, A, b, fx, fy, cx, cy, dxs, dys, wn, wa, nbest,
+                                          best, c)
                     if cc < c:
                         d, n0, n1, n2, c = dd, m0, m1, m2, cc
+                        if nviews == nsrc:
+                            _worst_first(views[r], best, nbest)
                 depth[v, u] = d
                 normal[v, u, 0] = n0
                 normal[v, u, 1] = n1
@@ -389,6 +461,30 @@ def window_offsets(radius: int, step: int) -> tuple[np.ndarray, np.ndarray]:
     k = np.arange(-(radius // step), radius // step + 1) * step
     dy, dx = np.meshgrid(k, k, indexing="ij")
     return dx.ravel().astype(np.int32), dy.ravel().astype(np.int32)
+
+
+LANES = 16
+"""The window is padded to a multiple of this many samples (AVX-512's float32 lanes, two of
+AVX2's): the vectorised sample loop of ``_view_cost`` then runs without a remainder."""
+
+
+def padded_window(dxs: np.ndarray, dys: np.ndarray, wn: np.ndarray, wa: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The window's offsets (float32) and per-pixel weights with weightless samples at its
+    centre put first, up to a multiple of :data:`LANES`: they add exactly zero to every sum,
+    and the last offset stays the window's corner (``_view_cost`` reads its radius there)."""
+    pad = -len(dxs) % LANES
+    return (np.concatenate([np.zeros(pad, np.float32), dxs.astype(np.float32)]),
+            np.concatenate([np.zeros(pad, np.float32), dys.astype(np.float32)]),
+            np.pad(wn, ((0, 0), (pad, 0))), np.pad(wa, ((0, 0), (pad, 0))))
+
+
+def padded(images: list[np.ndarray]) -> np.ndarray:
+    """The source images as one float32 array (S, H + 1, W + 1), each with its last row and
+    column repeated: a sample inside the image reads its 2x2 neighbours without a test, at
+    the border too, where float32 rounding may put it a hair past the last pixel."""
+    stack = np.stack(images).astype(np.float32, copy=False)
+    return np.ascontiguousarray(np.pad(stack, ((0, 0), (0, 1), (0, 1)), mode="edge"))
 
 
 def presmoothed(grey: np.ndarray, sigma: float) -> np.ndarray:
@@ -489,9 +585,8 @@ def patchmatch_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, c
     sigma_s = config.sigma_spatial or float(config.window_radius)
     ref_grey = presmoothed(ref.grey, config.presmooth_sigma)
     _bilateral_weights(ref_grey, us, vs, dxs, dys, config.sigma_color, sigma_s, wn, wa, ok)
-
-    srcs = np.ascontiguousarray(np.stack([presmoothed(s.grey, config.presmooth_sigma)
-                                          for s in sources]), dtype=np.float32)
+    dxs, dys, wn, wa = padded_window(dxs, dys, wn, wa)
+    srcs = padded([presmoothed(s.grey, config.presmooth_sigma) for s in sources])
     A, b = _relative_poses(ref, sources)
     nbr = neighbour_pattern(config.neighbours)
     if start_planes is None:

@@ -14,6 +14,8 @@ from facecap_core.mvs.patchmatch import (
     _bilateral_weights,
     _hypothesis_cost,
     _relative_poses,
+    padded,
+    padded_window,
     planes_at,
     window_offsets,
 )
@@ -84,12 +86,13 @@ def test_a_bounded_cost_is_exact_or_certainly_above_the_bound(scene):
     wa = np.empty_like(wn)
     ok = np.empty(len(us), np.bool_)
     _bilateral_weights(ref.grey, us, vs, dxs, dys, 0.2, 3.0, wn, wa, ok)
-    srcs = np.ascontiguousarray(np.stack([s.grey for s in sources]), np.float32)
+    dxs, dys, wn, wa = padded_window(dxs, dys, wn, wa)
+    srcs = padded([s.grey for s in sources])
     A, b = _relative_poses(ref, sources)
     k = ref.intr
     every = np.arange(len(sources), dtype=np.int32)
     nbest = 4
-    best = np.empty(nbest)
+    best = np.empty(nbest + len(sources))
     rng = np.random.default_rng(1)
     stopped = exact = 0
     for r in range(len(us)):
@@ -97,8 +100,8 @@ def test_a_bounded_cost_is_exact_or_certainly_above_the_bound(scene):
         d = float(d_gt[v, u]) + rng.normal(0, 3.0)
         n = np.array([rng.normal(0, 0.3), rng.normal(0, 0.3), -1.0])
         n /= np.linalg.norm(n)
-        args = (u, v, r, d, n[0], n[1], n[2], every, srcs, A, b, k.fx, k.fy, k.cx, k.cy,
-                dxs, dys, wn, wa, nbest, best)
+        args = (u, v, r, d, n[0], n[1], n[2], every, srcs, srcs.reshape(-1), A, b, k.fx, k.fy,
+                k.cx, k.cy, dxs, dys, wn, wa, nbest, best)
         full = _hypothesis_cost(*args, np.inf)
         bound = rng.uniform(0.0, 1.0)
         bounded = _hypothesis_cost(*args, bound)
