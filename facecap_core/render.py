@@ -59,12 +59,18 @@ class RaycastScene:
         return {k: v.numpy() for k, v in ans.items()}
 
     def cast_camera(self, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
-                    rays_cam: np.ndarray | None = None) -> Hits:
-        """Cast one ray through every pixel of a (distorted) camera with pose (R, t)."""
+                    rays_cam: np.ndarray | None = None,
+                    box: tuple[int, int, int, int] | None = None) -> Hits:
+        """Cast one ray through every pixel of a (distorted) camera with pose (R, t); with
+        ``box`` = (u0, u1, v0, v1), only through the pixels u0 <= u < u1, v0 <= v < v1
+        (the rest hit nothing)."""
         if rays_cam is None:
             rays_cam = pixel_rays(intr)
         h, w = rays_cam.shape[:2]
-        d_cam = rays_cam.reshape(-1, 3)
+        u0, u1, v0, v1 = box if box is not None else (0, w, 0, h)
+        inner = rays_cam[v0:v1, u0:u1]
+        bh, bw = inner.shape[:2]
+        d_cam = inner.reshape(-1, 3)
         d_world = d_cam @ np.asarray(R)  # R.T @ d for each row
         centre = -np.asarray(R).T @ np.asarray(t).reshape(3)
         ans = self.cast(np.broadcast_to(centre, d_world.shape), d_world)
@@ -80,13 +86,39 @@ class RaycastScene:
         bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1).astype(np.float32)
         # Positions from depth along the z=1 rays keep float64 precision for the hit point.
         points = centre + d_world * np.where(hit, depth, np.nan)[:, None].astype(np.float64)
-        return Hits(
-            depth=np.where(hit, depth, np.inf).reshape(h, w),
-            mesh=mesh.reshape(h, w),
-            triangle=tri.reshape(h, w),
-            bary=bary.reshape(h, w, 3),
-            points=points.reshape(h, w, 3),
-        )
+        inner_hits = (np.where(hit, depth, np.inf).reshape(bh, bw), mesh.reshape(bh, bw),
+                      tri.reshape(bh, bw), bary.reshape(bh, bw, 3), points.reshape(bh, bw, 3))
+        if (bh, bw) == (h, w):
+            return Hits(*inner_hits)
+        full = Hits(depth=np.full((h, w), np.inf, np.float32), mesh=np.full((h, w), -1, np.int32),
+                    triangle=np.full((h, w), -1, np.int64),
+                    bary=np.zeros((h, w, 3), np.float32),
+                    points=np.full((h, w, 3), np.nan))
+        for whole, part in zip((full.depth, full.mesh, full.triangle, full.bary, full.points),
+                               inner_hits, strict=True):
+            whole[v0:v1, u0:u1] = part
+        return full
+
+
+def projected_box(intr: Intrinsics, R: np.ndarray, t: np.ndarray, vertices: np.ndarray
+                  ) -> tuple[int, int, int, int] | None:
+    """The pixels (u0, u1, v0, v1) a mesh with these vertices can cover in a pinhole camera:
+    a triangle in front of the camera projects onto the triangle of its corners' projections,
+    so every pixel whose ray hits the mesh lies in their bounding box. None where a vertex is
+    not in front of the camera or the camera has distortion (no such bound then)."""
+    if intr.k1 or intr.k2:
+        return None
+    X = np.asarray(vertices, float) @ np.asarray(R).T + np.asarray(t).reshape(3)
+    if len(X) == 0 or not np.all(X[:, 2] > 0):
+        return None
+    u = intr.fx * X[:, 0] / X[:, 2] + intr.cx
+    v = intr.fy * X[:, 1] / X[:, 2] + intr.cy
+    # A pixel centre at integer (u, v); one pixel of slack for the rounding of the cast.
+    u0, v0 = int(np.floor(u.min())) - 1, int(np.floor(v.min())) - 1
+    u1, v1 = int(np.ceil(u.max())) + 2, int(np.ceil(v.max())) + 2
+    u0, u1 = min(max(u0, 0), intr.width), min(max(u1, 0), intr.width)
+    v0, v1 = min(max(v0, 0), intr.height), min(max(v1, 0), intr.height)
+    return u0, u1, v0, v1
 
 
 def interpolate(values: np.ndarray, faces: np.ndarray, triangle: np.ndarray,

