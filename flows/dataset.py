@@ -119,7 +119,8 @@ def reconstruct_dataset(root: str, out: str, config: ConfigParameter = None,
     if rows:
         create_table_artifact(rows, key="cross-capture-consistency",
                               description="same subject, two captures: vertex-to-vertex mm")
-    summary = {"captures": len(entries), "done": [f"{s}/{c}" for s, c in done],
+    summary = {"dataset": Path(root).resolve().name,  # the dataset page's title
+               "captures": len(entries), "done": [f"{s}/{c}" for s, c in done],
                "until": until, "failed": failed, "consistency": rows,
                "captures_at_once": at_once}
     write_results(out_root, {"dataset.json": json.dumps(summary, indent=1).encode()})

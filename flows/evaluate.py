@@ -139,7 +139,8 @@ def evaluate_dataset(root: str, out: str, store: str | None = None,
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
     flagged = regressions(current, previous, tolerance_mm, tolerance_rel, without_mesh)
     write_results(out_root, {f"evaluations/{stamp}.json": json.dumps(
-        {"time": stamp, "captures": current, "skipped": skipped, "regressions": flagged,
+        {"time": stamp, "dataset": Path(root).resolve().name,  # the dataset page's title
+         "captures": current, "skipped": skipped, "regressions": flagged,
          "carried": {name: previous[name] for name in without_mesh if name in previous}},
         indent=1).encode()})
     rewrite_dataset_page(out_root)  # with this evaluation in each capture's history

@@ -25,7 +25,7 @@ from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
 from prefect.events import emit_event
 
-from facecap.pages.dataset import store_dataset_page
+from facecap.pages.dataset import dataset_name, store_dataset_page
 from facecap.pages.figures import figure_rows, run_summary
 from facecap.pages.stored import PAGE_NAME, RESULTS_LINK_SECONDS, stored_link
 from facecap.tasks.lifecycle import report_keys
@@ -228,6 +228,6 @@ def publish_dataset_page(out: Path, store: str) -> None:
         _log.warning("the dataset page of %s was not kept in the store: %s", out, exc)
         key = None
     link, where = page_link(st, key, out)
-    name = Path(out).resolve().name
+    name = dataset_name(Path(out))
     create_link_artifact(link, link_text=f"results of {markdown_text(name)}",
                          key=dataset_link_key(out), description=f"dataset {name}: ({where})")

@@ -1,8 +1,10 @@
 """``OUT/index.html``: a dataset's results at a glance, one row per capture.
 
 Written by the dataset flow when its captures are done and again by each nightly evaluation:
-a thumbnail of each capture (its preview), its figures (keyframes, metric scale, surface,
-accuracy), its status (done, failed and why, regressed), a link to its own page
+titled with the dataset's name (its ROOT folder's, which the runs record in OUT), a
+thumbnail of each capture (its preview), its figures (keyframes, metric scale, surface,
+accuracy), its status (done, failed and why, regressed; the warnings of its page, counted,
+the worst in words), a link to its own page
 (``<subject>/<capture>/index.html``, :mod:`facecap.pages.capture`) and the history of its
 accuracy over the nightly evaluations as a small plot. The table sorts by any column (a click
 on its heading). Self-contained like the capture pages: it opens from disk. The HTML is
@@ -20,7 +22,7 @@ from urllib.parse import quote
 import cv2
 import numpy as np
 
-from facecap.pages.figures import finite_number
+from facecap.pages.figures import finite_number, warnings
 from facecap.pages.render import render
 from facecap.pages.stored import PAGE_NAME, keep_page, stored_link
 from facecap.tasks.lifecycle import report_keys
@@ -53,6 +55,22 @@ def _thumbnail(preview: Path) -> str:
     return "data:image/png;base64," + base64.b64encode(png.tobytes()).decode() if ok else ""
 
 
+def dataset_name(out: Path) -> str:
+    """The dataset's name for the page of ``out``: its ROOT folder's, as the dataset run
+    recorded it in ``dataset.json`` or the latest evaluation in its record, else the results
+    folder's own name (a folder neither wrote into)."""
+    records = [out / "dataset.json", *sorted((out / "evaluations").glob("*.json"),
+                                             reverse=True)[:1]]
+    for path in records:
+        try:
+            name = _mapping(json.loads(path.read_text())).get("dataset")
+        except (OSError, ValueError):
+            continue
+        if isinstance(name, str) and name.strip():
+            return name
+    return out.resolve().name
+
+
 def _history(out: Path) -> tuple[dict[str, list[float]], set[str]]:
     """Each capture's accuracy median (similarity, mm) over the nightly evaluations, oldest
     first, and the captures the latest one flagged as regressed."""
@@ -73,6 +91,15 @@ def _history(out: Path) -> tuple[dict[str, list[float]], set[str]]:
             regressed = {row["capture"] for row in rows
                          if isinstance(row, dict) and isinstance(row.get("capture"), str)}
     return series, regressed
+
+
+def _warnings(report: dict) -> list[str]:
+    """The warnings the capture's page shows (:func:`facecap.pages.figures.warnings`, the
+    worst first), or none where its figures are not what a run writes."""
+    try:
+        return [text for _, text in warnings({"figures": _mapping(report.get("figures"))})]
+    except (TypeError, AttributeError, ValueError, KeyError):
+        return []
 
 
 def _mapping(value) -> dict:
@@ -157,6 +184,7 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
             status, order = "done", 2
         else:
             status, order = "not run", 4
+        warned = _warnings(report) if report and name not in failed else []
         href, face = link(out, subject, capture, report)
         accuracy = _mapping(_mapping(_mapping(fig.get("evaluation")).get("similarity"))
                             .get("accuracy"))
@@ -170,9 +198,12 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
             "scale": finite_number(fig.get("metric_scale")),
             "rough": finite_number(_mapping(fig.get("roughness")).get("bent_share_pct")),
             "median": median, "history": _sparkline(series.get(name, [])),
-            "latest": (series.get(name) or [None])[-1]})
-    return render("dataset.html.j2", title=out.resolve().name, count=len(captures),
+            "latest": (series.get(name) or [None])[-1],
+            # The capture page's warnings (the worst first): counted, the worst in words.
+            "warnings": warned})
+    return render("dataset.html.j2", title=dataset_name(out), count=len(captures),
                   failed=len(failed), regressed=len(regressed), rows=rows,
+                  warned=sum(bool(row["warnings"]) for row in rows),
                   thumb_width=THUMB_WIDTH)
 
 

@@ -185,8 +185,8 @@ def _pct(share) -> str:
 
 
 def warnings(report: dict) -> list[tuple[str, str]]:
-    """(key, text) of what in ``report`` a user must know before trusting the mesh: a mesh
-    that fails its checks, keyframes left out, a narrow sweep, a noisy cloud."""
+    """(key, text) of what in ``report`` a user must know before trusting the mesh, the worst
+    first: a mesh that fails its checks, keyframes left out, a narrow sweep, a noisy cloud."""
     fig, found = report.get("figures", {}), []
     sanity = fig.get("mesh_sanity") or {}
     if sanity.get("ok") is False:

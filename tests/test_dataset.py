@@ -194,3 +194,38 @@ def test_the_dataset_run_s_last_line_says_what_it_made_and_names_its_page(tmp_pa
     assert "reconstructed" not in line
     assert "stopped after keyframes with no mesh" in line and line.endswith(
         f"their page: {out / 'index.html'}")
+
+
+def test_the_dataset_page_is_titled_by_the_dataset_and_a_row_shows_its_warnings(tmp_path):
+    """The title is the dataset's (its ROOT folder's name, as the dataset run and the
+    evaluations record it), not the results folder's; a row with warnings on its capture's
+    page says so: a mark, their count and the worst one in words; a row without says
+    nothing more than its status."""
+    from facecap.pages.dataset import rewrite_dataset_page
+
+    out = tmp_path / "nightly results"
+    warned = {"mesh_sanity": {"ok": False, "flipped": 2, "stretched_edges": 0,
+                              "self_intersecting_pairs": 314},
+              "cloud_noise": {"noise_mm": 0.4, "reference_mm": 0.2}}
+    _touch(out / "anna" / "take1" / "report.json",
+           json.dumps({"figures": {"keyframes": 20, **warned}}).encode())
+    _touch(out / "anna" / "take1" / "mesh.ply", b"ply")
+    _touch(out / "bob" / "take1" / "report.json", b'{"figures": {"keyframes": 21}}')
+    _touch(out / "bob" / "take1" / "mesh.ply", b"ply")
+    rewrite_dataset_page(out)
+    assert "<h1>nightly results</h1>" in (out / "index.html").read_text()  # nothing recorded
+    _touch(out / "evaluations" / "20261101T020000000000Z.json",
+           json.dumps({"dataset": "study <1>", "captures": {}}).encode())
+    rewrite_dataset_page(out)
+    assert "<h1>study &lt;1&gt;</h1>" in (out / "index.html").read_text()
+    (out / "dataset.json").write_text(json.dumps({"dataset": "study", "failed": {}}))
+    rewrite_dataset_page(out)
+    page = (out / "index.html").read_text()
+    assert "<title>study · facecap</title>" in page and "<h1>study</h1>" in page
+    assert "1 with warnings" in page
+    anna = page.split('data-capture="anna/take1"', 1)[1].split("</tr>", 1)[0]
+    assert 'data-warnings="2"' in anna and "⚠ 2 warnings" in anna
+    worst = anna.split('<div class="worst">', 1)[1].split("</div>", 1)[0]
+    assert worst.startswith("The mesh fails its checks: 314 self-intersecting triangle pairs")
+    bob = page.split('data-capture="bob/take1"', 1)[1].split("</tr>", 1)[0]
+    assert ">done</td>" in bob and "⚠" not in bob
