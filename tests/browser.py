@@ -39,15 +39,18 @@ def _pixels(png: bytes) -> np.ndarray:
     return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1].astype(int)
 
 
-def look_at_page(page_file: Path | str, shots: Path | None = None) -> dict:
+def look_at_page(page_file: Path | str, shots: Path | None = None, browser=None) -> dict:
     """Open ``page_file`` from disk (or from an ``http://`` address) and report: ``ready``
     (the viewer read the mesh) and the seconds until then, ``drawn`` (share of the view's
     middle that is not background),
     ``accuracy_change`` and ``cameras_change`` (mean absolute pixel change when the heat map
     or the cameras are switched on), ``keyframe_opened`` (a click on a camera showed its
     image), ``figures`` (data-figure key -> text shown), ``errors``
-    (console errors and uncaught exceptions). Screenshots go to ``shots`` when given."""
+    (console errors and uncaught exceptions). Screenshots go to ``shots`` when given. In
+    ``browser`` (one of :func:`chromium`'s) when given, else in a Chromium of its own."""
     found: dict = {"errors": [], "figures": {}}
+    if browser is not None:
+        return _look(browser, page_file, shots, found)
     with chromium() as browser:
         return _look(browser, page_file, shots, found)
 

@@ -13,9 +13,11 @@ from facecap_core.meshio import save_landmarks
 from facecap_core.template import Template
 
 
-def facecap(*args, cwd=None):
+def facecap(*args, cwd=None, env=None):
+    """``facecap ARGS`` in a process of its own (in ``env``, default this one's): exit code,
+    stdout, stderr."""
     proc = subprocess.run([sys.executable, "-m", "facecap", *map(str, args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=600)
+                          capture_output=True, text=True, cwd=cwd, env=env, timeout=600)
     return proc.returncode, proc.stdout, proc.stderr
 
 
