@@ -24,7 +24,8 @@ import cv2
 import numpy as np
 
 from facecap_core.mvs.images import MVSView
-from facecap_core.mvs.patchmatch import MAX_COST, DepthMap, check_inputs
+from facecap_core.mvs.ncc import MAX_COST
+from facecap_core.mvs.patchmatch import DepthMap, check_inputs
 from facecap_core.mvs.prior import CoarsePrior
 
 

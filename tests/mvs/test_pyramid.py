@@ -8,17 +8,15 @@ import numpy as np
 from facecap_core.camera import Intrinsics, project
 from facecap_core.mvs import compute_depth_map
 from facecap_core.mvs.images import downscale_view
-from facecap_core.mvs.patchmatch import (
+from facecap_core.mvs.ncc import (
     MAX_COST,
-    DepthMap,
-    _bilateral_weights,
-    _hypothesis_cost,
-    _relative_poses,
+    bilateral_weights,
+    hypothesis_cost,
     padded,
     padded_window,
-    planes_at,
     window_offsets,
 )
+from facecap_core.mvs.patchmatch import DepthMap, _relative_poses, planes_at
 from tests.mvs.test_depth import _face_pixels as _face
 
 
@@ -85,7 +83,7 @@ def test_a_bounded_cost_is_exact_or_certainly_above_the_bound(scene):
     wn = np.empty((len(us), len(dxs)), np.float32)
     wa = np.empty_like(wn)
     ok = np.empty(len(us), np.bool_)
-    _bilateral_weights(ref.grey, us, vs, dxs, dys, 0.2, 3.0, wn, wa, ok)
+    bilateral_weights(ref.grey, us, vs, dxs, dys, 0.2, 3.0, wn, wa, ok)
     dxs, dys, wn, wa = padded_window(dxs, dys, wn, wa)
     srcs = padded([s.grey for s in sources])
     A, b = _relative_poses(ref, sources)
@@ -102,9 +100,9 @@ def test_a_bounded_cost_is_exact_or_certainly_above_the_bound(scene):
         n /= np.linalg.norm(n)
         args = (u, v, r, d, n[0], n[1], n[2], every, srcs, srcs.reshape(-1), A, b, k.fx, k.fy,
                 k.cx, k.cy, dxs, dys, wn, wa, nbest, best)
-        full = _hypothesis_cost(*args, np.inf)
+        full = hypothesis_cost(*args, np.inf)
         bound = rng.uniform(0.0, 1.0)
-        bounded = _hypothesis_cost(*args, bound)
+        bounded = hypothesis_cost(*args, bound)
         if bounded == full:
             exact += 1
         else:

@@ -7,15 +7,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facecap_core.mvs.patchmatch import (
+from facecap_core.mvs.ncc import (
     MAX_COST,
-    _bilateral_weights,
-    _relative_poses,
-    _view_cost,
+    bilateral_weights,
     padded,
     padded_window,
+    view_cost,
     window_offsets,
 )
+from facecap_core.mvs.patchmatch import _relative_poses
 from tests.mvs.test_depth import _face_pixels
 
 
@@ -62,7 +62,7 @@ def test_the_float32_cost_is_the_float64_cost_to_its_rounding(scene, contrast):
     wn = np.empty((len(us), len(dxs)), np.float32)
     wa = np.empty_like(wn)
     ok = np.empty(len(us), np.bool_)
-    _bilateral_weights(ref.grey, us, vs, dxs, dys, 0.2, 5.0, wn, wa, ok)
+    bilateral_weights(ref.grey, us, vs, dxs, dys, 0.2, 5.0, wn, wa, ok)
     dxf, dyf, wnp, wap = padded_window(dxs, dys, wn, wa)
     greys = [np.float32(0.5) + np.float32(contrast) * (s.grey - np.float32(0.5))
              for s in sources]
@@ -86,7 +86,7 @@ def test_the_float32_cost_is_the_float64_cost_to_its_rounding(scene, contrast):
             H = A[s] + np.outer(b[s], m)
             want, sd = reference_cost(ref.grey, greys[s], H, u, v, dxs, dys,
                                       wn[r].astype(float))
-            got = _view_cost(np.int32(s), np.int32(u), np.int32(v), r, m[0], m[1], m[2], srcs,
+            got = view_cost(np.int32(s), np.int32(u), np.int32(v), r, m[0], m[1], m[2], srcs,
                              srcs.reshape(-1), A, b, dxf, dyf, wnp, wap)
             if want == MAX_COST or got == MAX_COST:
                 refused += 1
