@@ -58,7 +58,7 @@ from facecap.tasks.graph import (
 from facecap.tasks.outputs import ResultWriter, check_output_place
 from facecap.tasks.runner import default_store_url, run_leases
 from facecap.tasks.scratch import process_scratch
-from facecap.tasks.stages import call_ingest, call_stage, stage_result
+from facecap.tasks.stages import call_ingest, call_stage, first_finished, stage_result
 from facecap.tasks.store import open_store
 from facecap_core import assets
 from facecap_core.coarse import CoarseConfig
@@ -181,7 +181,7 @@ def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: BaseModel
             running.append((i, call_stage(stage.name, store, inputs, config, label,
                                           params={"index": i}, submit=True,
                                           deadline=deadline, started=started)))
-        i, future = running.pop(0)
+        i, future = running.pop(first_finished([f for _, f in running], started, deadline))
         results[stage.row_name({"index": i})] = stage_result(stage.name, future, label,
                                                              started, deadline)
         bar.update()
@@ -189,7 +189,8 @@ def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: BaseModel
             run_progress.update(f"{stage.name} map {len(results)} of {len(indices)}",
                                 len(results) / len(indices), every_s=run_progress.EVERY_S)
     bar.close()
-    return results
+    return {stage.row_name({"index": i}): results[stage.row_name({"index": i})]
+            for i in indices}
 
 
 def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str,
@@ -199,11 +200,27 @@ def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str
     (raw inputs by name, earlier stages) and receives the new ones; a stage whose required
     input is missing (the evaluation without a scan) is skipped. Returns ``{report row:
     (key, computed)}``. The run's progress artifact follows the stages and the depth maps.
-    Every stage ends by the capture's ``deadline`` (``time.monotonic()``) too."""
+    Every stage ends by the capture's ``deadline`` (``time.monotonic()``) too.
+
+    A stage starts as soon as the stages it reads have finished, beside the one before it
+    when it does not read that one (the frames are decoded while the landmarks are found);
+    a fanned-out stage starts alone, its maps on every worker."""
     stages = list(stages)
     run_progress = _RunProgress(label, [stage.name for stage in stages])
     runs: dict[str, tuple[str, bool]] = {}
+    running: dict[str, tuple[object, float]] = {}  # stage -> (its task's future, started)
+
+    def finish(names: Iterable[str]) -> None:
+        for name in [n for n in running if n in set(names)]:
+            future, started = running.pop(name)
+            runs[name] = stage_result(name, future, label, started, deadline)
+            keys[name] = runs[name][0]
+            run_progress.stage_done(name)
+
     for stage in stages:
+        finish([stage.source(i) for i in (*stage.inputs, *stage.optional)])
+        if stage.per_keyframe:
+            finish(list(running))
         inputs = _inputs(stage, keys)
         if inputs is None:
             run_progress.stage_done(stage.name, "skipped")
@@ -214,12 +231,19 @@ def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str
                              run_progress, deadline)
             keys.update({row: key for row, (key, _) in items.items()})
             runs.update(items)
+            run_progress.stage_done(stage.name)
         else:
-            runs[stage.name] = call_stage(stage.name, store, inputs, config, label,
-                                          deadline=deadline)
-            keys[stage.name] = runs[stage.name][0]
-        run_progress.stage_done(stage.name)
-    return runs
+            running[stage.name] = (call_stage(stage.name, store, inputs, config, label,
+                                              submit=True, deadline=deadline),
+                                   time.monotonic())
+    finish(list(running))
+    return {row: runs[row] for row in sorted(runs, key=list(_row_order(stages, runs)).index)}
+
+
+def _row_order(stages: list[Stage], runs: dict[str, tuple[str, bool]]) -> Iterable[str]:
+    """The report's rows in graph order, whatever order the stages finished in."""
+    for stage in stages:
+        yield from (row for row in runs if stage.is_row(row))
 
 
 def _export(store: str, keys: dict[str, str], writer: ResultWriter, scratch: Path

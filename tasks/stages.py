@@ -97,10 +97,10 @@ def call_stage(name: str, store: str, inputs: dict[str, str], config: BaseModel 
     """Run the task of stage ``name`` within ``FACECAP_STAGE_TIMEOUT_S`` and before the
     capture's ``deadline`` (``time.monotonic()``); returns ``(key, computed)``.
 
-    With ``submit`` (one map of a fanned-out stage, which ``started`` then), a future for
-    :func:`stage_result`: the fan-out as a whole keeps the limits, by the wait in
-    ``stage_result``; its maps carry no Prefect timeout of their own, which would warn on
-    every map."""
+    With ``submit``, a future for :func:`stage_result`: a whole stage carries its Prefect
+    timeout; one map of a fanned-out stage (``params``; ``started`` the fan-out's start)
+    none, the fan-out as a whole keeps the limits by the wait in ``stage_result`` (a timeout
+    per map would warn on every map)."""
     runner = TASKS[name]
     now = time.monotonic()
     end = _end(now if started is None else started, deadline)
@@ -111,9 +111,11 @@ def call_stage(name: str, store: str, inputs: dict[str, str], config: BaseModel 
     # A retry starts the attempt's time again: none once the limit has passed.
     runner = runner.with_options(retry_condition_fn=lambda task, run, state: (
         time.monotonic() < end and retry_condition(task, run, state)))
-    if submit:
+    if submit and params is not None:
         return runner.submit(store, inputs, config, params, label)
     runner = runner.with_options(timeout_seconds=end - now)
+    if submit:
+        return runner.submit(store, inputs, config, params, label)
     return stage_result(name, lambda: runner(store, inputs, config, params, label), label,
                         now, deadline)
 
@@ -122,6 +124,18 @@ def _end(started: float, deadline: float | None) -> float:
     """When a stage started at ``started`` must end: its own limit or the capture's."""
     end = started + settings().stage_timeout_s
     return end if deadline is None else min(end, deadline)
+
+
+def first_finished(futures: list[PrefectFuture], started: float,
+                   deadline: float | None = None) -> int:
+    """The position in ``futures`` (a fanned-out stage's maps, which ``started`` then) of
+    one that has finished, whichever finishes first: the next map starts on the worker it
+    frees. Past the stage's limit, the first (:func:`stage_result` then fails on it)."""
+    wrapped = [f.wrapped_future for f in futures]
+    done, _ = concurrent.futures.wait(wrapped, timeout=max(0.0, _end(started, deadline)
+                                                            - time.monotonic()),
+                                      return_when=concurrent.futures.FIRST_COMPLETED)
+    return next((k for k, f in enumerate(wrapped) if f in done), 0)
 
 
 def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: str,
@@ -136,24 +150,24 @@ def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: 
     where = label or "the capture"
     over = (capture_time_limit_message(where, name) if deadline is not None and end == deadline
             else stage_time_limit_message(where, name))
-    if isinstance(result, PrefectFuture):
-        done, _ = concurrent.futures.wait([result.wrapped_future],
-                                          timeout=max(0.0, end - time.monotonic()))
-        if not done:
-            raise FacecapError(over)
-        value = tuple(result.result())
-    else:
-        try:
+    try:
+        if isinstance(result, PrefectFuture):
+            done, _ = concurrent.futures.wait([result.wrapped_future],
+                                              timeout=max(0.0, end - time.monotonic()))
+            if not done:
+                raise FacecapError(over)
+            value = tuple(result.result())
+        else:
             value = result()
             value = tuple(value.result() if isinstance(value, State) else value)
-        except Exception as exc:
-            # Prefect stops a stage by raising in its thread, and code that catches and
-            # rewraps errors (pycolmap's import does) can turn that into another one: an
-            # error other than facecap's own, once the limit has passed, is the limit.
-            if isinstance(exc, TaskRunTimeoutError) or (
-                    not isinstance(exc, FacecapError) and time.monotonic() >= end):
-                raise FacecapError(over) from None
-            raise
+    except Exception as exc:
+        # Prefect stops a stage by raising in its thread, and code that catches and
+        # rewraps errors (pycolmap's import does) can turn that into another one: an
+        # error other than facecap's own, once the limit has passed, is the limit.
+        if isinstance(exc, TaskRunTimeoutError) or (
+                not isinstance(exc, FacecapError) and time.monotonic() >= end):
+            raise FacecapError(over) from None
+        raise
     # Prefect interrupts a stage by raising in its thread, which a native call holds off and
     # a logging or cleanup handler can swallow: the limits hold at the latest here, with
     # the stage's artifact stored (a rerun with a higher limit reuses it).

@@ -293,7 +293,7 @@ def reference_keyframes(inputs: Folders) -> list[int]:
     return sorted(read_views(inputs["views"] / VIEWS))
 
 
-STAGE = Stage("depth", version="2", inputs=("frames", "coarse", "views"),
+STAGE = Stage("depth", version="3", inputs=("frames", "coarse", "views"),
               work_seconds=135.0,
               section="mvs.depth", run=run,
               outputs=("depth_{index:05d}.npz", "depth_{index:05d}.json"),
