@@ -134,14 +134,13 @@ def view_angle_deg(a: np.ndarray, b: np.ndarray, focal_px: float, size: tuple[in
     if len(a) < 12:
         return float("nan")
     K = np.array([[focal_px, 0, (size[0] - 1) / 2], [0, focal_px, (size[1] - 1) / 2], [0, 0, 1]])
-    # RANSAC draws from OpenCV's random generator, one per thread: seeded here, the angle is
-    # the same whichever thread the stage runs in and whatever ran there before.
-    cv2.setRNGSeed(0)
     try:
         E, inliers = cv2.findEssentialMat(a, b, K, cv2.RANSAC, 0.999, 1.0)
-    except cv2.error:
+    except cv2.error as exc:
         # Matches that determine no motion (a still camera: every point where it was) can
-        # leave RANSAC's five-point solver a degenerate polynomial.
+        # leave RANSAC's five-point solver a degenerate polynomial (OpenCV's solvePoly).
+        if "solvePoly" not in str(exc):
+            raise
         return float("nan")
     if E is None or E.shape != (3, 3):
         return float("nan")
@@ -379,5 +378,5 @@ def run(inputs: Folders, out: Path, config: KeyframeConfig, params: dict) -> Non
     main(capture_in(inputs["video"]), out, config)
 
 
-STAGE = Stage("keyframes", version="3", inputs=("video",), work_seconds=7.6,
+STAGE = Stage("keyframes", version="2", inputs=("video",), work_seconds=7.6,
               section="keyframes", run=run, outputs=(KEYFRAMES_JSON, TRACKS_NPZ))

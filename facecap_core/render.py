@@ -92,7 +92,7 @@ class RaycastScene:
             return Hits(*inner_hits)
         full = Hits(depth=np.full((h, w), np.inf, np.float32), mesh=np.full((h, w), -1, np.int32),
                     triangle=np.full((h, w), -1, np.int64),
-                    bary=np.zeros((h, w, 3), np.float32),
+                    bary=np.tile(np.array([1, 0, 0], np.float32), (h, w, 1)),
                     points=np.full((h, w, 3), np.nan))
         for whole, part in zip((full.depth, full.mesh, full.triangle, full.bary, full.points),
                                inner_hits, strict=True):

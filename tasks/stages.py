@@ -112,10 +112,10 @@ def call_stage(name: str, store: str, inputs: dict[str, str], config: BaseModel 
     runner = runner.with_options(retry_condition_fn=lambda task, run, state: (
         time.monotonic() < end and retry_condition(task, run, state)))
     if submit and params is not None:
-        return runner.submit(store, inputs, config, params, label)
+        return _timed(runner.submit(store, inputs, config, params, label))
     runner = runner.with_options(timeout_seconds=end - now)
     if submit:
-        return runner.submit(store, inputs, config, params, label)
+        return _timed(runner.submit(store, inputs, config, params, label))
     return stage_result(name, lambda: runner(store, inputs, config, params, label), label,
                         now, deadline)
 
@@ -124,6 +124,21 @@ def _end(started: float, deadline: float | None) -> float:
     """When a stage started at ``started`` must end: its own limit or the capture's."""
     end = started + settings().stage_timeout_s
     return end if deadline is None else min(end, deadline)
+
+
+def _timed(future: PrefectFuture) -> PrefectFuture:
+    """``future`` noting when its task ended (``finished_at``, ``time.monotonic()``): a
+    stage waited for later, when a later stage reads it, is judged by its own end."""
+    future.wrapped_future.add_done_callback(
+        lambda done: setattr(done, "finished_at", time.monotonic()))
+    return future
+
+
+def _ended(result: PrefectFuture | Callable[[], tuple]) -> float:
+    """When a stage's task ended: a future's own end, now for a call just returned."""
+    if isinstance(result, PrefectFuture):
+        return getattr(result.wrapped_future, "finished_at", time.monotonic())
+    return time.monotonic()
 
 
 def first_finished(futures: list[PrefectFuture], started: float,
@@ -165,13 +180,13 @@ def stage_result(name: str, result: PrefectFuture | Callable[[], tuple], label: 
         # rewraps errors (pycolmap's import does) can turn that into another one: an
         # error other than facecap's own, once the limit has passed, is the limit.
         if isinstance(exc, TaskRunTimeoutError) or (
-                not isinstance(exc, FacecapError) and time.monotonic() >= end):
+                not isinstance(exc, FacecapError) and _ended(result) >= end):
             raise FacecapError(over) from None
         raise
     # Prefect interrupts a stage by raising in its thread, which a native call holds off and
     # a logging or cleanup handler can swallow: the limits hold at the latest here, with
     # the stage's artifact stored (a rerun with a higher limit reuses it).
-    now = time.monotonic()
+    now = _ended(result)
     if now > end:  # past the first of the two limits: the capture's, if it is past too
         raise FacecapError(capture_time_limit_message(where, name)
                            if deadline is not None and now > deadline

@@ -269,3 +269,38 @@ def test_core_logs_go_to_runs_once_whatever_the_extra_loggers_say(tmp_path):
         out = subprocess.run([sys.executable, "-c", script], cwd=root, env=env, check=True,
                              capture_output=True, text=True, timeout=120).stdout
         assert out.splitlines() == ["facecap_core 20 ['RunLogHandler']", "facecap_core.mvs 0 []"]
+
+
+def test_a_stage_waited_for_after_its_limit_is_judged_by_its_own_end(monkeypatch):
+    """A stage the flow waits for only when a later stage reads it (the frames, beside the
+    landmarks): finished within its time limit, it is not over it because the wait came
+    later; one that ended past the limit is."""
+    import concurrent.futures
+    import uuid
+
+    from prefect.futures import PrefectConcurrentFuture
+
+    from facecap.tasks.stages import _timed, first_finished, stage_result
+
+    monkeypatch.setenv("FACECAP_STAGE_TIMEOUT_S", "0.2")
+
+    def finished(after_s: float) -> tuple[PrefectConcurrentFuture, float]:
+        started = time.monotonic()
+        wrapped = concurrent.futures.Future()
+        future = _timed(PrefectConcurrentFuture(task_run_id=uuid.uuid4(),
+                                                wrapped_future=wrapped))
+        time.sleep(after_s)
+        wrapped.set_result(("frames-key", True))
+        return future, started
+
+    on_time, started = finished(0.01)
+    time.sleep(0.3)  # the flow waits for it past its limit
+    assert stage_result("frames", on_time, "t", started) == ("frames-key", True)
+    late, started = finished(0.3)
+    with pytest.raises(FacecapError, match="frames stage of t was stopped after its time limit"):
+        stage_result("frames", late, "t", started)
+    # Of two maps running, the one that finished is taken, whichever started first.
+    slow = PrefectConcurrentFuture(task_run_id=uuid.uuid4(),
+                                   wrapped_future=concurrent.futures.Future())
+    done, _ = finished(0.0)
+    assert first_finished([slow, done], time.monotonic()) == 1

@@ -363,6 +363,10 @@ def patchmatch_depth(ref: MVSView, sources: list[MVSView], prior: CoarsePrior, c
     bilateral_weights(ref_grey, us, vs, dxs, dys, config.sigma_color, sigma_s, wn, wa, ok)
     dxs, dys, wn, wa = padded_window(dxs, dys, wn, wa)
     srcs = padded([presmoothed(s.grey, config.presmooth_sigma) for s in sources])
+    if srcs.size >= 2**31:  # the cost's 32-bit sample indices (mvs.ncc.view_cost)
+        raise InputError(f"keyframe {ref.index}: {len(sources)} source views of {w}x{h} are "
+                         "more pixels than PatchMatch indexes (2**31); lower "
+                         "mvs.depth.processing_width or mvs.views.num_sources")
     A, b = _relative_poses(ref, sources)
     nbr = neighbour_pattern(config.neighbours)
     if start_planes is None:

@@ -36,7 +36,8 @@ class CoarsePrior:
 def coarse_prior(view: MVSView, vertices: np.ndarray, faces: np.ndarray,
                  margin_mm: float, dilation_px: int,
                  scene: RaycastScene | None = None) -> CoarsePrior:
-    """Ray cast the coarse mesh through ``view``; raises InputError if it is not in sight."""
+    """Ray cast the coarse mesh through ``view``; raises InputError if it is not in sight.
+    ``scene``: one holding that mesh alone (its rays are cast only where it can be seen)."""
     if scene is None:
         scene = RaycastScene()
         scene.add(vertices, faces)

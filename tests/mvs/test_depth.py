@@ -114,6 +114,8 @@ def test_the_coarse_mesh_is_cast_only_where_it_can_be_seen(scene):
         assert np.array_equal(whole.depth, part.depth)
         assert np.array_equal(whole.triangle, part.triangle)
         assert np.array_equal(whole.mesh, part.mesh)
+        assert np.array_equal(whole.bary, part.bary)
+        assert np.array_equal(whole.points, part.points, equal_nan=True)
     assert boxes[-1] is None and all(b is not None for b in boxes[:-1])
     u0, u1, v0, v1 = boxes[0]
     assert (u1 - u0) * (v1 - v0) < 0.6 * v.intr.width * v.intr.height, boxes[0]
