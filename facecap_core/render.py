@@ -108,11 +108,10 @@ def projected_box(intr: Intrinsics, R: np.ndarray, t: np.ndarray, vertices: np.n
     not in front of the camera or the camera has distortion (no such bound then)."""
     if intr.k1 or intr.k2:
         return None
-    X = np.asarray(vertices, float) @ np.asarray(R).T + np.asarray(t).reshape(3)
-    if len(X) == 0 or not np.all(X[:, 2] > 0):
+    uv, z = project(vertices, R, t, intr)
+    if len(z) == 0 or not np.all(z > 0):
         return None
-    u = intr.fx * X[:, 0] / X[:, 2] + intr.cx
-    v = intr.fy * X[:, 1] / X[:, 2] + intr.cy
+    u, v = uv[:, 0], uv[:, 1]
     # A pixel centre at integer (u, v); one pixel of slack for the rounding of the cast.
     u0, v0 = int(np.floor(u.min())) - 1, int(np.floor(v.min())) - 1
     u1, v1 = int(np.ceil(u.max())) + 2, int(np.ceil(v.max())) + 2

@@ -211,7 +211,8 @@ def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str
     running: dict[str, tuple[object, float]] = {}  # stage -> (its task's future, started)
 
     def finish(names: Iterable[str]) -> None:
-        for name in [n for n in running if n in set(names)]:
+        names = set(names)
+        for name in [n for n in running if n in names]:
             future, started = running.pop(name)
             runs[name] = stage_result(name, future, label, started, deadline)
             keys[name] = runs[name][0]
@@ -237,13 +238,8 @@ def run_stages(store: str, keys: dict[str, str], cfg: PipelineConfig, label: str
                                               submit=True, deadline=deadline),
                                    time.monotonic())
     finish(list(running))
-    return {row: runs[row] for row in sorted(runs, key=list(_row_order(stages, runs)).index)}
-
-
-def _row_order(stages: list[Stage], runs: dict[str, tuple[str, bool]]) -> Iterable[str]:
-    """The report's rows in graph order, whatever order the stages finished in."""
-    for stage in stages:
-        yield from (row for row in runs if stage.is_row(row))
+    # The report's rows in graph order, whatever order the stages finished in.
+    return {row: runs[row] for stage in stages for row in runs if stage.is_row(row)}
 
 
 def _export(store: str, keys: dict[str, str], writer: ResultWriter, scratch: Path

@@ -111,9 +111,8 @@ def call_stage(name: str, store: str, inputs: dict[str, str], config: BaseModel 
     # A retry starts the attempt's time again: none once the limit has passed.
     runner = runner.with_options(retry_condition_fn=lambda task, run, state: (
         time.monotonic() < end and retry_condition(task, run, state)))
-    if submit and params is not None:
-        return _timed(runner.submit(store, inputs, config, params, label))
-    runner = runner.with_options(timeout_seconds=end - now)
+    if not submit or params is None:  # a whole stage; a fanned-out map carries none
+        runner = runner.with_options(timeout_seconds=end - now)
     if submit:
         return _timed(runner.submit(store, inputs, config, params, label))
     return stage_result(name, lambda: runner(store, inputs, config, params, label), label,
