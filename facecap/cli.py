@@ -152,7 +152,7 @@ def _cmd_serve(args) -> int:
         os.environ[INPUT_ROOTS_ENV] = str(Path(args.root).resolve())
     if configured.output_root is None:
         os.environ[OUTPUT_ROOT_ENV] = str(Path(args.out).resolve())
-    console.prefect_env("INFO")  # a server's console is its log
+    console.prefect_env("INFO", heartbeats=True)  # a server's console is its log
     _serve_pages(args.pages_host, args.pages_port)
     from facecap.deploy.serve import serve  # Every flow, Prefect's serve: only for `serve`
 

@@ -85,14 +85,34 @@ VERBOSE = False
 on the console."""
 
 
-def prefect_env(console_level: str = "WARNING") -> None:
+def prefect_env(console_level: str = "WARNING", heartbeats: bool = False) -> None:
     """What a command that runs flows sets up first: its scratch folder under FACECAP_HOME
     (the folders of killed commands removed), quiet consoles (unless ``--verbose``) and its
-    own Prefect server unless PREFECT_API_URL names one."""
+    own Prefect server unless PREFECT_API_URL names one.
+
+    On a server of its own, the command's flow runs send no heartbeats unless
+    ``heartbeats`` (a served deployment's runs do): a heartbeat tells a server that a run
+    whose process died has crashed, and this server dies with the process. Prefect's
+    heartbeat thread wakes once a second to see whether its run ended, so every flow run
+    waited up to a second at its end for it (a capture whose stages are all stored takes
+    seconds)."""
     remove_orphans()
     process_scratch()  # before COLMAP loads: its glog files go there too
     _logging(console_level)
-    start_local_server(quiet=not VERBOSE)
+    if start_local_server(quiet=not VERBOSE) is not None and not heartbeats:
+        _without_heartbeats()
+
+
+def _without_heartbeats() -> None:
+    """No flow run heartbeats for the rest of this process (its main thread, where the flow
+    engine reads the setting)."""
+    from prefect.context import SettingsContext, get_settings_context
+    from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY
+
+    context = get_settings_context()
+    settings = context.settings.copy_with_update(updates={PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None})
+    # Entered for good: the command ends with its process.
+    SettingsContext(profile=context.profile, settings=settings).__enter__()
 
 
 def _logging(console_level: str) -> None:

@@ -21,6 +21,7 @@ a worker without a second process or API server), and exports the results to ``o
 from __future__ import annotations
 
 import json
+import logging
 import re
 import shutil
 import tempfile
@@ -39,9 +40,9 @@ from tqdm import tqdm
 
 from facecap.flows.service import guard
 from facecap.flows.ui import mesh_preview, publish_capture
-from facecap.pages.capture import GLB_NAME, build_page, mesh_glb
+from facecap.pages.capture import GLB_NAME, build_page, mesh_glb, page_parts
 from facecap.pages.figures import run_summary
-from facecap.pages.stored import store_page
+from facecap.pages.stored import keep_parts, store_page, stored_parts
 from facecap.tasks.graph import (
     BY_NAME,
     EXPORTED,
@@ -58,7 +59,14 @@ from facecap.tasks.graph import (
 from facecap.tasks.outputs import ResultWriter, check_output_place
 from facecap.tasks.runner import default_store_url, run_leases
 from facecap.tasks.scratch import process_scratch
-from facecap.tasks.stages import call_ingest, call_stage, first_finished, stage_result
+from facecap.tasks.stages import (
+    all_stored,
+    call_ingest,
+    call_stage,
+    call_stored_maps,
+    first_finished,
+    stage_result,
+)
 from facecap.tasks.store import open_store
 from facecap_core import assets
 from facecap_core.coarse import CoarseConfig
@@ -80,6 +88,8 @@ path of a YAML file of them, or nothing for the defaults."""
 BACKSTOP_S = 60.0
 """Prefect's own limit on a capture run comes this long after FACECAP_CAPTURE_TIMEOUT_S,
 which the stages keep themselves: it stops a run stuck outside any stage."""
+_log = logging.getLogger(__name__)
+
 MAX_WORKERS = 16
 """Threads of a capture run's task runner: the most depth maps ``mvs.workers`` can ask for
 at once."""
@@ -168,11 +178,18 @@ def _fan_out(stage: Stage, store: str, inputs: dict[str, str], config: BaseModel
              label: str, workers: int, progress: bool, run_progress: _RunProgress,
              deadline: float | None = None) -> dict[str, tuple[str, bool]]:
     """One task per keyframe, at most ``workers`` at once; the run's progress artifact (and
-    with ``progress`` a console bar) advanced after each."""
+    with ``progress`` a console bar) advanced after each. Maps all stored already: one task
+    run for the stage."""
 
     indices = stage.per_keyframe(_StoredFolders(store, inputs))
     bar = tqdm(total=len(indices), desc=f"{stage.name} maps", unit="map",
                disable=not progress)
+    if indices and all_stored(stage.name, store, inputs, config, indices):
+        runs = call_stored_maps(stage.name, store, inputs, config, indices, label, deadline)
+        bar.update(len(indices))
+        bar.close()
+        return {stage.row_name({"index": i}): tuple(run) for i, run in zip(indices, runs,
+                                                                           strict=True)}
     pending, results, started = list(indices), {}, time.monotonic()
     running: list[tuple[int, object]] = []
     while pending or running:
@@ -269,18 +286,27 @@ def _export(store: str, keys: dict[str, str], writer: ResultWriter, scratch: Pat
     return staged
 
 
-def _page(store: str, keys: dict[str, str], report: dict, results: dict[str, Path]) -> bytes:
+def _page(store: str, keys: dict[str, str], report: dict, results: dict[str, Path]
+          ) -> tuple[bytes, str | None]:
     """``index.html`` of the run (:mod:`facecap.pages.capture`), the heat map on the mesh from the
-    evaluation's metric protocol."""
-
-
+    evaluation's metric protocol, and the key of its parts in the store (None where they could
+    not be kept there): parts a run of the same artifacts kept are taken as they are."""
     st, accuracy = open_store(store), None
     if "evaluation" in keys:
         path = st.get(keys["evaluation"]) / ACCURACY_NPY.format(protocol="metric")
         accuracy = np.load(path) if path.is_file() else None
     glb = results[GLB_NAME].read_bytes() if GLB_NAME in results else None
-    frames = st.get(keys["frames"]) if "frames" in keys else None
-    return build_page(report, results, glb, accuracy, frames)
+    parts_key, parts = stored_parts(st, report)
+    if parts is None:
+        frames = st.get(keys["frames"]) if "frames" in keys else None
+        parts = page_parts(report, results, bool(glb), frames)
+        try:
+            keep_parts(st, report, parts)
+        except Exception as exc:  # noqa: BLE001 - a rerun makes them again; the run is made
+            _log.warning("the page's parts were not kept in the store, so a rerun makes them "
+                         "again: %s", exc)
+            parts_key = None
+    return build_page(report, results, glb, accuracy, parts=parts), parts_key
 
 
 def _stage_report(store: str, runs: dict[str, tuple[str, bool]]) -> dict:
@@ -351,9 +377,10 @@ def reconstruct_capture(video: str, out: str, config: ConfigParameter = None,
             with ResultWriter(out_dir, inputs) as writer:
                 results = _export(store, keys, writer, scratch)
 
-                page = _page(store, keys, report, results)
+                page, parts = _page(store, keys, report, results)
                 try:
-                    report["page"] = {"key": store_page(open_store(store), report, page)}
+                    report["page"] = {"key": store_page(open_store(store), report, page),
+                                      **({"parts": parts} if parts else {})}
                 except Exception as exc:  # noqa: BLE001 - the results are made; the UI's link is not worth losing them for
                     logger.warning(f"{label}: the page was not kept in the store, so the UI's "
                                    f"link opens it only from disk: {exc}")

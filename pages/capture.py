@@ -196,33 +196,51 @@ def _scan(vertices: np.ndarray, faces: np.ndarray) -> dict:
             "index": _b64(np.asarray(faces, np.uint32)), "faces": int(len(faces))}
 
 
+def page_parts(report: dict, results: dict[str, Path], has_mesh: bool,
+               frames: Path | None = None,
+               scan: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+    """What the page shows that the run's artifacts alone decide, as JSON-ready data: the
+    fused cloud's sample, the scan (given, or the one the run was scored against), the
+    keyframe cameras with their images and the view they saw the head from. The slow part
+    of a page (the keyframes decoded, the cloud sampled): a rerun of the same artifacts
+    takes it from the store (:func:`facecap.pages.stored.stored_parts`)."""
+    parts: dict = {}
+    if not has_mesh:
+        return parts
+    if "cloud.ply" in results:
+        parts["cloud"] = _cloud(results["cloud.ply"])
+    scan = scan if scan is not None else stored_scan(report)
+    if scan is not None:
+        parts["scan"] = _scan(*scan)
+    if "cameras.json" in results:
+        parts["cameras"], parts["view_direction"], parts["view_up"] = _cameras(
+            results["cameras.json"], _box_centre(results["mesh.ply"]), frames)
+    return parts
+
+
 def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
                accuracy_mm: np.ndarray | None = None, frames: Path | None = None,
-               scan: tuple[np.ndarray, np.ndarray] | None = None) -> bytes:
+               scan: tuple[np.ndarray, np.ndarray] | None = None,
+               parts: dict | None = None) -> bytes:
     """The page of one capture run: ``report`` (as in ``report.json``), ``results`` (name ->
     this run's file: cameras.json, cloud.ply, ...), the mesh's glTF bytes (None without a
     mesh), the per-vertex accuracy in mm (metric protocol; nan outside the scored regions)
     if scored, the frames stage's folder (the keyframe images) if there is one, and the scan
     (vertices in the mesh's frame, triangles) to show beside the mesh: by default the one
     the run was scored against, from its store (:func:`facecap.pages.scan.stored_scan`).
-    Without a mesh the page has no 3D view: it says where the run stopped and what it made."""
+    ``parts``: :func:`page_parts` of the same, made already. Without a mesh the page has no
+    3D view: it says where the run stopped and what it made."""
+    if parts is None:
+        parts = page_parts(report, results, bool(glb), frames, scan)
     data: dict = {"mesh_glb": base64.b64encode(glb).decode("ascii") if glb else None}
-    centre = None
-    if glb:
-        centre = _box_centre(results["mesh.ply"])
     if glb and accuracy_mm is not None:
         data["accuracy"] = {"colours": _b64(turbo(accuracy_mm, HEAT_MAX_MM)),
                             "max_mm": HEAT_MAX_MM}
-    if glb and "cloud.ply" in results:
-        data["cloud"] = _cloud(results["cloud.ply"])
     if glb:
+        data.update({name: parts[name] for name in ("cloud",) if name in parts})
         data["measure"] = _measure_data(report)
-        scan = scan if scan is not None else stored_scan(report)
-        if scan is not None:
-            data["scan"] = _scan(*scan)
-    if "cameras.json" in results and centre is not None:
-        data["cameras"], data["view_direction"], data["view_up"] = _cameras(
-            results["cameras.json"], centre, frames)
+        data.update({name: parts[name] for name in ("scan", "cameras", "view_direction",
+                                                    "view_up") if name in parts})
     made = [name for name in report.get("stages", {}) if not is_keyframe_row(name)]
     if any(is_keyframe_row(name) for name in report.get("stages", {})):
         made.append("depth")

@@ -8,8 +8,11 @@ the face it shows, as it was made from that face's artifacts.
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
+from pathlib import Path
 
+import facecap.pages.capture as capture_page
 from facecap.tasks.runner import lease, network_errors
 from facecap.tasks.store import artifact_key
 from facecap.tasks.store.keys import KEY_PATTERN
@@ -36,11 +39,56 @@ def keep_page(store, inputs: dict[str, str], page: bytes) -> str:
     return key
 
 
+PARTS_NAME = "parts.json"
+"""The page parts artifact's one file (:func:`facecap.pages.capture.page_parts`)."""
+
+
+def _parts_config() -> dict:
+    # The code that makes the parts is part of what they are made from: a changed page
+    # module never reads parts an older one kept.
+    return {"parts": hashlib.sha256(Path(capture_page.__file__).read_bytes()).hexdigest()}
+
+
+def _parts_key(inputs: dict[str, str]) -> str:
+    return artifact_key(PAGE_STAGE, inputs, _parts_config(), "1")
+
+
+def stage_keys(report: dict) -> dict[str, str]:
+    """The run's stage artifacts (report row -> key): what its page is made from."""
+    return {name: info["key"] for name, info in report.get("stages", {}).items()}
+
+
+def stored_parts(store, report: dict) -> tuple[str, dict | None]:
+    """The key of the page parts of the run's stage artifacts, and the parts themselves
+    where a run of the same artifacts kept them (None otherwise), held for the run in
+    progress."""
+    key = _parts_key(stage_keys(report))
+    lease(store, key)
+    if not store.exists(key):
+        return key, None
+    try:
+        return key, json.loads((store.get(key) / PARTS_NAME).read_text())
+    except (OSError, ValueError, FacecapError) as exc:  # made again, as if never kept
+        _log.warning("the page parts %s are made again: %s", key, str(exc).splitlines()[0]
+                     if str(exc) else type(exc).__name__)
+        return key, None
+
+
+def keep_parts(store, report: dict, parts: dict) -> str:
+    """Keep the page ``parts`` of the run's stage artifacts in the store; returns their
+    key."""
+    inputs = stage_keys(report)
+    key = _parts_key(inputs)
+    lease(store, key)
+    store.put(key, {PARTS_NAME: json.dumps(parts).encode()}, stage=PAGE_STAGE, inputs=inputs,
+              config=_parts_config(), version="1")
+    return key
+
+
 def store_page(store, report: dict, page: bytes) -> str:
     """Keep ``page`` (this run's ``index.html``) in the store, made from the run's stage
     artifacts; returns its key."""
-    return keep_page(store, {name: info["key"] for name, info in
-                             report.get("stages", {}).items()}, page)
+    return keep_page(store, stage_keys(report), page)
 
 
 RESULTS_LINK_SECONDS = 24 * 3600

@@ -216,14 +216,16 @@ def _run_reports(folder: Path, paths: Iterable[Path] | None = None) -> Iterator[
 
 def report_keys(doc: dict) -> tuple[str | None, list[str]]:
     """The artifact keys a run report names: its page's
-    (:func:`facecap.pages.stored.store_page`; None without one) and its stages', leaving out
-    whatever is not a key (a results folder is anyone's to write)."""
-    def key(row) -> str | None:
-        value = row.get("key") if isinstance(row, dict) else None
+    (:func:`facecap.pages.stored.store_page`; None without one), and its stages' with its
+    page's parts' (:func:`facecap.pages.stored.keep_parts`, what a rerun's page reuses),
+    leaving out whatever is not a key (a results folder is anyone's to write)."""
+    def key(row, field: str = "key") -> str | None:
+        value = row.get(field) if isinstance(row, dict) else None
         return value if isinstance(value, str) and KEY_PATTERN.fullmatch(value) else None
 
     stages = doc.get("stages") if isinstance(doc.get("stages"), dict) else {}
-    return key(doc.get("page")), [k for k in map(key, stages.values()) if k]
+    made = [k for k in (*map(key, stages.values()), key(doc.get("page"), "parts")) if k]
+    return key(doc.get("page")), made
 
 
 def _reported_keys(folder: Path, paths: Iterable[Path] | None = None

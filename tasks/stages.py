@@ -25,7 +25,7 @@ from prefect.states import Completed, State
 from prefect.task_engine import TaskRunTimeoutError
 from pydantic import BaseModel
 
-from facecap.tasks.graph import BY_NAME, STAGES
+from facecap.tasks.graph import BY_NAME, STAGES, stage_key
 from facecap.tasks.logs import send_core_logs_to_runs
 from facecap.tasks.runner import default_store_url, ingest, retry_condition, run_stage
 from facecap.tasks.store import open_store
@@ -81,6 +81,59 @@ def _stage_task(name: str):
 
 TASKS = {stage.name: _stage_task(stage.name) for stage in STAGES}
 """The Prefect task of every stage, by name."""
+
+
+def _stored_maps_task(name: str):
+    stage = BY_NAME[name]
+
+    def body(store: str, inputs: dict[str, str], config: BaseModel | None,
+             indices: list[int], label: str = "") -> list[tuple[str, bool]]:
+        send_core_logs_to_runs()
+        # Stored when the flow looked; a map pruned since is made again here, in turn.
+        runs = [run_stage(store, stage, inputs, config, {"index": i}) for i in indices]
+        computed = sum(made for _, made in runs)
+        get_run_logger().info(f"{label + ': ' if label else ''}{name} {len(runs) - computed} "
+                              f"maps reused" + (f", {computed} computed" if computed else ""))
+        if computed:
+            return runs
+        return Completed(data=runs, name="Reused",
+                         message=f"{len(runs)} maps were in the store: reused, nothing computed")
+
+    def run_name() -> str:
+        params = task_run.parameters
+        return (f"{name} ({len(params.get('indices') or [])} maps reused) "
+                f"{params.get('label') or ''}").strip()
+
+    body.__name__ = f"{name}_stored_maps_task"
+    return task(body, name=name, cache_policy=NO_CACHE, persist_result=False, retries=2,
+                retry_delay_seconds=[2, 10, 30], retry_jitter_factor=0.5,
+                retry_condition_fn=retry_condition, task_run_name=run_name)
+
+
+STORED_MAPS_TASKS = {stage.name: _stored_maps_task(stage.name) for stage in STAGES
+                     if stage.per_keyframe}
+"""Per fanned-out stage, the one task run that stands for all its maps when the store
+holds every one: a rerun shows the stage once ("depth (40 maps reused)"), not a task run
+per map, each costing the server as much as a computed one."""
+
+
+def all_stored(name: str, store: str, inputs: dict[str, str], config: BaseModel | None,
+               indices: list[int]) -> bool:
+    """Whether the store holds the artifact of every map ``indices`` of stage ``name``."""
+    st = open_store(store)
+    return all(st.exists(stage_key(name, inputs, config, {"index": i})) for i in indices)
+
+
+def call_stored_maps(name: str, store: str, inputs: dict[str, str], config: BaseModel | None,
+                     indices: list[int], label: str = "", deadline: float | None = None
+                     ) -> list[tuple[str, bool]]:
+    """``(key, computed)`` of each map ``indices`` of fanned-out stage ``name``, all
+    stored (:func:`all_stored`), from one task run within the stage's limits."""
+    now = time.monotonic()
+    end = _end(now, deadline)
+    runner = STORED_MAPS_TASKS[name].with_options(timeout_seconds=max(0.0, end - now))
+    return stage_result(name, lambda: runner(store, inputs, config, indices, label), label,
+                        now, deadline)
 
 
 @task(name="ingest", cache_policy=NO_CACHE, retries=2, retry_delay_seconds=[2, 10],

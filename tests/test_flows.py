@@ -211,7 +211,7 @@ def test_the_ui_link_opens_the_capture_page(first_run, tmp_path, monkeypatch):
     out = tmp_path / "results (1)"
     with ResultWriter(out) as writer:
         results = _export(first_run["store"], keys, writer, tmp_path)
-        page = _page(first_run["store"], keys, report, results)
+        page, _ = _page(first_run["store"], keys, report, results)
         report["page"] = {"key": store_page(open_store(first_run["store"]), report, page)}
         writer.add(PAGE_NAME, page)
         writer.commit()
@@ -235,6 +235,39 @@ def test_the_ui_link_opens_the_capture_page(first_run, tmp_path, monkeypatch):
         f"mean {metric['mean']:.3f} mm, median {metric['median']:.3f} mm")
 
 
+def test_a_rerun_s_page_takes_its_parts_from_the_store(first_run, tmp_path, monkeypatch):
+    """The page's slow parts (the keyframes' images, the cloud's sample, the scan) are kept
+    in the store under the run's stage keys, made from them: a rerun of the same artifacts
+    gives the same page without decoding a keyframe, a run of other artifacts makes its
+    own, and ``forget``'s walk down the inputs finds them."""
+    import facecap.pages.capture as capture_page
+    from facecap.flows.capture import _export, _page
+    from facecap.tasks.lifecycle import derived
+    from facecap.tasks.outputs import ResultWriter
+
+    store = open_store(first_run["store"])
+    keys, report = first_run["keys"], _capture_report(first_run)
+    with ResultWriter(tmp_path / "out") as writer:
+        results = _export(first_run["store"], keys, writer, tmp_path)
+        page, parts = _page(first_run["store"], keys, report, results)
+
+        def no_decoding(*args):
+            raise AssertionError("a keyframe was decoded for parts the store holds")
+
+        with monkeypatch.context() as patch:
+            patch.setattr(capture_page, "_keyframe_images", no_decoding)
+            again, parts_again = _page(first_run["store"], keys, report, results)
+        assert (again, parts_again) == (page, parts)
+        assert b"data:image/jpeg;base64," in page  # the keyframes' images are in it
+        other = {**report, "stages": {**report["stages"], "fusion": {
+            **report["stages"]["fusion"], "key": keys["frames"]}}}
+        _, other_parts = _page(first_run["store"], keys, other, results)
+    assert parts.startswith("page-") and other_parts not in (None, parts)
+    assert store.manifest(parts).inputs == {name: info["key"]
+                                            for name, info in report["stages"].items()}
+    assert parts in derived(store, {keys["frames"]})
+
+
 def test_without_a_page_server_the_ui_link_names_the_page_on_disk(first_run, tmp_path,
                                                                      monkeypatch):
     from facecap.pages.stored import store_page
@@ -251,7 +284,7 @@ def test_without_a_page_server_the_ui_link_names_the_page_on_disk(first_run, tmp
 
 def test_rerun_is_all_cached(first_run, capture):
     """A rerun computes nothing, and its task runs say so in the UI: each stage's task run
-    ends in a state named Reused."""
+    ends in a state named Reused, the depth maps all in one ("depth (N maps reused)")."""
     from tests.servers import final_task_runs
 
     store = open_store(first_run["store"])
@@ -261,12 +294,16 @@ def test_rerun_is_all_cached(first_run, capture):
     assert result["keys"] == first_run["keys"]
     assert set(store.keys()) == before
     assert result["computed"] == []
-    count = len(first_run["computed"]) + 2  # each stage's task run and the two ingests
+    maps = [row for row in first_run["computed"] if row.startswith("depth_")]
+    assert len(maps) == len(KEYFRAMES)
+    count = len(first_run["computed"]) - len(maps) + 1 + 2  # each stage's and the two ingests
     every = final_task_runs(result["flow_run_id"], count)
     assert len(every) == count, sorted(run.name for run in every)
     stages = [run for run in every if not run.name.startswith("ingest")]
     assert stages and {run.state and run.state.name for run in stages} == {"Reused"}, \
         sorted((run.name, run.state and run.state.name) for run in stages)
+    depth = [run.name for run in stages if run.name.startswith("depth")]
+    assert depth == [f"depth ({len(maps)} maps reused) t"], depth
 
 
 def test_fusion_change_recomputes_only_fusion_fitting_evaluation(first_run, capture):

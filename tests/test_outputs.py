@@ -491,6 +491,39 @@ def test_the_local_server_logs_to_a_file_and_dies_with_its_command(tmp_path):
     assert log == str(tmp_path / "home" / "logs" / "server.log")
 
 
+HEARTBEAT_SCRIPT = """
+import sys
+from facecap import console
+from prefect import flow
+from prefect.settings import get_current_settings
+
+console.prefect_env(heartbeats=sys.argv[1] == "served")
+
+@flow
+def one() -> object:
+    return get_current_settings().flows.heartbeat_frequency
+
+print(one())
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command", ["reconstruct", "served"])
+def test_flow_runs_on_the_command_s_own_server_send_no_heartbeats(tmp_path, command):
+    """A heartbeat tells a server that a run whose process died has crashed; the server a
+    command starts for itself dies with it, so its flow runs send none (Prefect's heartbeat
+    thread held every run's end up to a second). A served deployment's runs keep them."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_API")}
+    env.update(FACECAP_HOME=str(tmp_path / "home"), PREFECT_HOME=str(tmp_path / "ph"),
+               PREFECT_SERVER_ANALYTICS_ENABLED="false",
+               PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS="180")
+    env.pop("PREFECT_FLOWS_HEARTBEAT_FREQUENCY", None)
+    proc = subprocess.run([sys.executable, "-c", HEARTBEAT_SCRIPT, command], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.split()[-1] == ("None" if command == "reconstruct" else "180")
+
+
 @pytest.mark.slow
 def test_a_server_database_that_cannot_open_is_one_line(tmp_path):
     """A damaged Prefect database (a first start stopped while it set the database up
