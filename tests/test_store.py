@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import os
 import threading
+import time
 import uuid
 from pathlib import Path
 
@@ -273,6 +274,35 @@ def test_corrupted_file_is_detected(store, store_url):
         assert mesh_key() in message and "maps/depth.npy" in message and "delete" in message
     # Unverified reads still work, for debugging.
     assert store.read_bytes(mesh_key(), "maps/depth.npy", verify=False) == b"DEPTH"
+
+
+def test_a_file_checked_once_is_read_again_only_once_it_changes(tmp_path, monkeypatch):
+    """A local store reads a file it checked already in this process only when its
+    identity changed since (forty depth maps read the frames' artifact): a file rewritten
+    with other bytes of the same size is still refused; a file changed within the file
+    system's timestamp granularity of its check is read on every check."""
+    import facecap.tasks.store.base as base
+
+    store = open_store(str(tmp_path / "store"))
+    put_mesh(store, {"mesh.ply": b"good bytes"})
+    stored = tmp_path / "store" / "artifacts" / mesh_key() / "mesh.ply"
+    reads = []
+    hash_stream = base.hash_stream
+    monkeypatch.setattr(base, "hash_stream", lambda f: reads.append(1) or hash_stream(f))
+    store.get(mesh_key())
+    store.get(mesh_key())
+    assert len(reads) == 2  # just written: read each time
+    an_hour_ago = time.time() - 3600
+    os.utime(stored, (an_hour_ago, an_hour_ago))
+    store.get(mesh_key())
+    store.get(mesh_key())
+    assert len(reads) == 3
+    stored.write_bytes(b"evil bytes")  # the same size
+    with pytest.raises(CorruptArtifactError, match="mesh.ply"):
+        store.get(mesh_key())
+    os.utime(stored, (an_hour_ago, an_hour_ago))  # the old times back: the change time is new
+    with pytest.raises(CorruptArtifactError, match="mesh.ply"):
+        store.get(mesh_key())
 
 
 def test_missing_stored_file_is_corruption(store, store_url):
