@@ -10,6 +10,7 @@ the same test as the fusion's, applied per map.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -88,10 +89,13 @@ def _partners(maps: list[DepthMap], i: int) -> list[int]:
 
 
 def geometric_filter(maps: list[DepthMap], min_views: int, max_depth_mm: float,
-                     max_reprojection_px: float, max_normal_deg: float) -> list[DepthMap]:
-    """Keep the depths at least ``min_views`` other depth maps agree with."""
-    out = []
-    for i, dm in enumerate(maps):
+                     max_reprojection_px: float, max_normal_deg: float,
+                     threads: int = 1) -> list[DepthMap]:
+    """Keep the depths at least ``min_views`` other depth maps agree with. Each map is
+    checked against the unfiltered others, so ``threads`` maps at once give the same maps."""
+
+    def filtered(i: int) -> DepthMap:
+        dm = maps[i]
         rows, cols = np.nonzero(dm.depth > 0)
         pts, nrm = backproject(dm, rows, cols)
         count = np.zeros(len(rows), np.int32)
@@ -100,6 +104,8 @@ def geometric_filter(maps: list[DepthMap], min_views: int, max_depth_mm: float,
                                max_reprojection_px, max_normal_deg)[0]
         keep = np.zeros(dm.depth.shape, bool)
         keep[rows[count >= min_views], cols[count >= min_views]] = True
-        out.append(replace(dm, depth=np.where(keep, dm.depth, 0).astype(np.float32),
-                           normal=np.where(keep[..., None], dm.normal, 0).astype(np.float32)))
-    return out
+        return replace(dm, depth=np.where(keep, dm.depth, 0).astype(np.float32),
+                       normal=np.where(keep[..., None], dm.normal, 0).astype(np.float32))
+
+    with ThreadPoolExecutor(threads) as pool:  # numpy's array loops let go of the GIL
+        return list(pool.map(filtered, range(len(maps))))

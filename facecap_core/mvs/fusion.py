@@ -16,6 +16,7 @@ import json
 import logging
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,6 +55,9 @@ log = logging.getLogger(__name__)
 
 CLOUD = "cloud.ply"
 FUSION = "fusion.json"
+FUSION_THREADS = 2
+"""Threads that load the depth maps and images and check each map against the others
+(the fusion itself goes map after map: each map's points use up its partners' pixels)."""
 
 
 @dataclass
@@ -155,13 +159,16 @@ def main(depth_npzs: list[str | Path], frames_dir: str | Path, cameras_json: str
     config = config or FusionConfig()
     start = time.perf_counter()
     cams = metric_cameras(cameras_json)
-    maps = sorted((load_depth_map(p) for p in depth_npzs), key=lambda m: m.index)
-    if len(maps) < 2:
-        raise InputError(f"fusion needs at least 2 depth maps; got {len(maps)}")
-    # The colours at the depth maps' own resolution (the depth stage's processing width).
-    images = [load_view(frames_dir, cams, m.index, m.intr.width).rgb for m in maps]
+    with ThreadPoolExecutor(FUSION_THREADS) as pool:  # zlib and PNG decoding let go of the GIL
+        maps = sorted(pool.map(load_depth_map, depth_npzs), key=lambda m: m.index)
+        if len(maps) < 2:
+            raise InputError(f"fusion needs at least 2 depth maps; got {len(maps)}")
+        # The colours at the depth maps' own resolution (the depth stage's processing width).
+        images = list(pool.map(lambda m: load_view(frames_dir, cams, m.index,
+                                                   m.intr.width).rgb, maps))
     maps = geometric_filter(maps, config.min_consistent_views, config.max_depth_mm,
-                            config.max_reprojection_px, config.max_normal_deg)
+                            config.max_reprojection_px, config.max_normal_deg,
+                            threads=FUSION_THREADS)
     cloud = fuse(maps, images, config.min_consistent_views, config.max_depth_mm,
                  config.max_reprojection_px, config.max_normal_deg)
     if len(cloud.points) == 0:

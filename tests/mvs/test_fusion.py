@@ -63,3 +63,24 @@ def test_fusing_exact_depth_maps_lands_on_the_surface(scene, tmp_path):
     # (Near view 3's silhouette the 4 mm shift runs almost along the surface, so a few of
     # its points legitimately agree; measured max 0.43 mm.)
     assert np.median(d2) < 0.02 and d2.max() < 1.0
+
+
+def test_the_views_check_keeps_what_the_other_views_confirm_on_any_thread_count(scene):
+    """The check of each map against the others (the fusion's first step): exact maps keep
+    most of their depths (those of the sweep's end views fewer: less of what they see is
+    seen by two others), a map 4 mm off almost none, and maps checked two at a time are the
+    same maps, to the bit, as one at a time."""
+    from facecap_core.mvs import geometric_filter
+
+    views = scene["views"]
+    maps = [_gt_map(v, scene) for v in views]
+    maps[3] = _gt_map(views[3], scene, offset_mm=4.0)
+    one, two = (geometric_filter(maps, 2, 1.0, 1.0, 30.0, threads=t) for t in (1, 2))
+    kept = [np.count_nonzero(m.depth) / max(np.count_nonzero(o.depth), 1)
+            for m, o in zip(one, maps, strict=True)]
+    exact = [k for i, k in enumerate(kept) if i != 3]
+    assert np.median(exact) > 0.85 and min(exact) > 0.6, kept
+    assert kept[3] < 0.05, kept  # near its silhouette a few depths run along the surface
+    for a, b in zip(one, two, strict=True):
+        assert a.index == b.index
+        assert np.array_equal(a.depth, b.depth) and np.array_equal(a.normal, b.normal)
