@@ -67,9 +67,11 @@ class PoseConfig(StrictModel):
     """Fewest registered keyframes as a fraction of all: below it the capture is refused, as
     the views that did register are then as likely a lucky subset as the face."""
     threads: int = Field(1, ge=1, le=256)
-    """Threads for SfM's matching and mapping. One makes the stage reproducible (a rerun
-    gives the same cameras, so nightly re-evaluations compare like with like); with more,
-    COLMAP's threaded matching moves the focal length by up to 0.2 % from run to run."""
+    """Threads for SfM's matching and mapping and for the geometric refinement's bundle
+    adjustment. One makes the stage reproducible (a rerun gives the same cameras, so nightly
+    re-evaluations compare like with like); with more, COLMAP's threaded matching moves the
+    focal length by up to 0.2 % from run to run, and Ceres's threaded Schur complement the
+    cameras in their last digits."""
     extraction_threads: int = Field(2, ge=1, le=256)
     """Threads for SfM's SIFT extraction (one image each): an image's features do not
     depend on them (the same keypoints from 1 and 2 threads), so they cost no
@@ -301,7 +303,7 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
     current = sfm
     if config.use_tracks and len(keyframes.observations):
         refined = checked(refine_with_tracks(sfm, keyframes.observations, keyframes.indices,
-                                             work / "geometric"),
+                                             work / "geometric", threads=config.threads),
                           "the bundle adjustment with the tracks", keyframes, numbers, names)
         if refined is not None:
             current = steps["geometric"] = refined
@@ -362,7 +364,7 @@ def run(inputs: Folders, out: Path, config: PoseConfig, params: dict) -> None:
     main(capture_in(inputs["video"]), inputs["keyframes"] / KEYFRAMES_JSON, out, config)
 
 
-STAGE = Stage("poses", version="7", inputs=("video", "keyframes"),
+STAGE = Stage("poses", version="8", inputs=("video", "keyframes"),
               work_seconds=106.8,
               section="poses", run=run, outputs=(CAMERAS_JSON, SPARSE, *COLMAP_MODEL),
               optional_outputs=(POINTS,),
