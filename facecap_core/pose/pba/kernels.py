@@ -413,7 +413,9 @@ def accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, hos
         bh = affine[h, 1]
         tgs = targets[target_start[p]:target_start[p + 1]]
         n_loc = N_INTR + N_FRAME * (1 + tgs.shape[0])
-        Hcc = np.zeros((n_loc, n_loc))
+        # The local camera block (~100 KB a point) only where it is summed.
+        m = n_loc if with_cameras and jacobians else 0
+        Hcc = np.zeros((m, m))
         hcp, bc, J = np.zeros(n_loc), np.zeros(n_loc), np.zeros(n_loc)
         hpp, bp = 0.0, 0.0
         cache, host_X, target_X, host_ray = _sample_pattern(
