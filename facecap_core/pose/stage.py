@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Literal
 
@@ -301,6 +302,21 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
     work = Path(work_dir)
     names, numbers = photo_order(video, keyframes)
     images = read_frames(video, keyframes.indices, width=config.sfm_width)
+    with ThreadPoolExecutor(1) as pool:
+        # PBA's keyframes, decoded straight to its processing width (it holds every keyframe
+        # at once) in a thread while SfM runs: its mapping, on one thread, leaves a core free.
+        greys = (pool.submit(read_frames, video, keyframes.indices,
+                             width=config.pba.max_width, grey=True)
+                 if config.method == "pba" else None)
+        return refined_steps(images, work, keyframes, config, numbers, names, greys,
+                             progress)
+
+
+def refined_steps(images, work: Path, keyframes: Keyframes, config: PoseConfig,
+                  numbers, names, greys: Future | None, progress: bool
+                  ) -> tuple[dict[str, Poses], list | None]:
+    """:func:`estimate_poses` from SfM's keyframes ``images`` and PBA's being decoded
+    (``greys``)."""
     sfm, numbers = structure_from_motion(images, work, keyframes, config, numbers, names)
     if not keyframes.ordered:
         sfm = reorder(sfm, sweep_order(sfm))
@@ -314,9 +330,8 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
             current = steps["geometric"] = refined
     if config.method == "pba":
         start = time.perf_counter()
-        # Decoded straight to PBA's processing width: PBA holds every keyframe at once.
-        greys = read_frames(video, keyframes.indices, width=config.pba.max_width, grey=True)
-        grey_list = [greys[i] for i in current.frame_indices]
+        grey = greys.result()
+        grey_list = [grey[i] for i in current.frame_indices]
         refined = photometric_refinement(current, grey_list, config, progress, keyframes)
         refined.seconds = current.seconds + time.perf_counter() - start
         refined = checked(refined, "photometric bundle adjustment", keyframes, numbers, names)
