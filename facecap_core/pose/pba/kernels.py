@@ -403,6 +403,8 @@ def accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, hos
     constant velocity) for that long. A host pixel's ray is cast from its row's camera; the
     point is found in the target's row that sees it (two fixed-point steps).
     """
+    # Long on purpose: a numba kernel, one pass over the points and their residuals (the
+    # steps of a point are inlined helpers above).
     dxd = np.zeros((2, N_INTR))
     dxn = np.zeros((2, N_INTR))
     # A residual's camera columns: the intrinsics and the host's (fixed), then its target's.
