@@ -90,10 +90,13 @@ def triangulate(observations: np.ndarray, R: list[np.ndarray], t: list[np.ndarra
 
 
 def bundle_adjust(poses: Poses, work_dir: str | Path, refine_intrinsics: bool = True,
-                  names: list[str] | None = None, hold_principal_point: bool = False) -> Poses:
+                  names: list[str] | None = None, hold_principal_point: bool = False,
+                  threads: int = 1) -> Poses:
     """Ceres bundle adjustment (pycolmap) of poses, points and, if asked, focal length,
     principal point (unless ``hold_principal_point``) and k1, k2 over
-    ``poses.observations``."""
+    ``poses.observations``. On one of ``threads`` the result is the same on every run; on
+    more (COLMAP's default is every core), Ceres's threads sum in the order they finish,
+    which moves the cameras in their last digits from run to run."""
     import pycolmap
 
 
@@ -107,6 +110,7 @@ def bundle_adjust(poses: Poses, work_dir: str | Path, refine_intrinsics: bool = 
     options.refine_principal_point = refine_intrinsics and not hold_principal_point
     options.refine_extra_params = refine_intrinsics
     options.print_summary = False
+    options.ceres.solver_options.num_threads = threads
     with native_stderr_to_log(log, prefix="colmap: "):
         pycolmap.bundle_adjustment(rec, options)
     return _from_reconstruction(rec, poses, time.perf_counter() - start)
@@ -142,12 +146,12 @@ def merge_observations(poses: Poses, tracks: np.ndarray) -> Poses:
 
 
 def refine_with_tracks(poses: Poses, keyframe_observations: np.ndarray, keyframe_indices,
-                       work_dir: str | Path) -> Poses:
+                       work_dir: str | Path, threads: int = 1) -> Poses:
     """Our geometric solution: the SfM model plus the LK tracks, adjusted with the principal
     point free, or held at the image centre where it would end over
     ``PRINCIPAL_POINT_MAX_PCT`` from it. ``keyframe_observations`` rows are (keyframe
     number, track id, x, y) over ``keyframe_indices``; tracks in unregistered keyframes are
-    dropped."""
+    dropped. ``threads``: the bundle adjustment's (:func:`bundle_adjust`)."""
     start = time.perf_counter()
     view_of = {int(i): v for v, i in enumerate(poses.frame_indices)}
     obs = np.asarray(keyframe_observations, float)
@@ -155,7 +159,7 @@ def refine_with_tracks(poses: Poses, keyframe_observations: np.ndarray, keyframe
     keep = view >= 0
     tracks = np.column_stack([obs[keep, 1], view[keep], obs[keep, 2:4]])
     merged = merge_observations(poses, tracks)
-    refined = bundle_adjust(merged, work_dir, refine_intrinsics=True)
+    refined = bundle_adjust(merged, work_dir, refine_intrinsics=True, threads=threads)
     offset = principal_point_offset_pct(refined.intrinsics)
     if offset.max() > PRINCIPAL_POINT_MAX_PCT:
         log.warning("the tracks put the principal point %.1f %% × %.1f %% of the image from its "
@@ -164,7 +168,8 @@ def refine_with_tracks(poses: Poses, keyframe_observations: np.ndarray, keyframe
         cx, cy = merged.intrinsics.image_centre
         centred = replace(merged.intrinsics, cx=cx, cy=cy)
         refined = bundle_adjust(replace(merged, intrinsics=centred, principal_point_held=True),
-                                work_dir, refine_intrinsics=True, hold_principal_point=True)
+                                work_dir, refine_intrinsics=True, hold_principal_point=True,
+                                threads=threads)
     refined.seconds = poses.seconds + (time.perf_counter() - start)
     return refined
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Literal
 
@@ -67,14 +68,20 @@ class PoseConfig(StrictModel):
     """Fewest registered keyframes as a fraction of all: below it the capture is refused, as
     the views that did register are then as likely a lucky subset as the face."""
     threads: int = Field(1, ge=1, le=256)
-    """Threads for SfM's matching and mapping. One makes the stage reproducible (a rerun
-    gives the same cameras, so nightly re-evaluations compare like with like); with more,
-    COLMAP's threaded matching moves the focal length by up to 0.2 % from run to run."""
+    """Threads for SfM's mapping and for the geometric refinement's bundle adjustment. One
+    makes the stage reproducible (a rerun gives the same cameras, so nightly re-evaluations
+    compare like with like); with more, the order in which their threads' sums finish moves
+    the cameras from run to run (by up to 0.2 % of the focal length)."""
     extraction_threads: int = Field(2, ge=1, le=256)
     """Threads for SfM's SIFT extraction (one image each): an image's features do not
     depend on them (the same keypoints from 1 and 2 threads), so they cost no
     reproducibility; two halve the extraction, a third of SfM's time at 720p. The row lists it
     as key-neutral: a changed value reuses the stored cameras."""
+    matching_threads: int = Field(2, ge=1, le=256)
+    """Threads for SfM's sequential matching and its geometric verification (one pair each,
+    its RANSAC seeded alone): the same matches, verified geometries and cameras from 1 and 2
+    threads, so no cost in reproducibility; two take about a third off the matching's wall
+    time at 720p. Key-neutral, as ``extraction_threads``."""
 
 
 POINTS = "points.ply"
@@ -224,7 +231,8 @@ def structure_from_motion(images: dict[int, np.ndarray], work: Path, keyframes: 
     def solve(ordered: bool, focal_px: float | None, folder: str) -> Poses:
         poses = run_sfm(images, work / folder, keyframes.video_size,
                         overlap=config.match_overlap, threads=config.threads, ordered=ordered,
-                        focal_px=focal_px, extraction_threads=config.extraction_threads)
+                        focal_px=focal_px, extraction_threads=config.extraction_threads,
+                        matching_threads=config.matching_threads)
         registered_enough(poses, len(keyframes.indices), config)
         return poses
 
@@ -294,6 +302,21 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
     work = Path(work_dir)
     names, numbers = photo_order(video, keyframes)
     images = read_frames(video, keyframes.indices, width=config.sfm_width)
+    with ThreadPoolExecutor(1) as pool:
+        # PBA's keyframes, decoded straight to its processing width (it holds every keyframe
+        # at once) in a thread while SfM runs: its mapping, on one thread, leaves a core free.
+        greys = (pool.submit(read_frames, video, keyframes.indices,
+                             width=config.pba.max_width, grey=True)
+                 if config.method == "pba" else None)
+        return refined_steps(images, work, keyframes, config, numbers, names, greys,
+                             progress)
+
+
+def refined_steps(images, work: Path, keyframes: Keyframes, config: PoseConfig,
+                  numbers, names, greys: Future | None, progress: bool
+                  ) -> tuple[dict[str, Poses], list | None]:
+    """:func:`estimate_poses` from SfM's keyframes ``images`` and PBA's being decoded
+    (``greys``)."""
     sfm, numbers = structure_from_motion(images, work, keyframes, config, numbers, names)
     if not keyframes.ordered:
         sfm = reorder(sfm, sweep_order(sfm))
@@ -301,15 +324,14 @@ def estimate_poses(video: str | Path, keyframes, work_dir: str | Path,
     current = sfm
     if config.use_tracks and len(keyframes.observations):
         refined = checked(refine_with_tracks(sfm, keyframes.observations, keyframes.indices,
-                                             work / "geometric"),
+                                             work / "geometric", threads=config.threads),
                           "the bundle adjustment with the tracks", keyframes, numbers, names)
         if refined is not None:
             current = steps["geometric"] = refined
     if config.method == "pba":
         start = time.perf_counter()
-        # Decoded straight to PBA's processing width: PBA holds every keyframe at once.
-        greys = read_frames(video, keyframes.indices, width=config.pba.max_width, grey=True)
-        grey_list = [greys[i] for i in current.frame_indices]
+        grey = greys.result()
+        grey_list = [grey[i] for i in current.frame_indices]
         refined = photometric_refinement(current, grey_list, config, progress, keyframes)
         refined.seconds = current.seconds + time.perf_counter() - start
         refined = checked(refined, "photometric bundle adjustment", keyframes, numbers, names)
@@ -362,10 +384,12 @@ def run(inputs: Folders, out: Path, config: PoseConfig, params: dict) -> None:
     main(capture_in(inputs["video"]), inputs["keyframes"] / KEYFRAMES_JSON, out, config)
 
 
-STAGE = Stage("poses", version="7", inputs=("video", "keyframes"),
+STAGE = Stage("poses", version="8", inputs=("video", "keyframes"),
               work_seconds=106.8,
               section="poses", run=run, outputs=(CAMERAS_JSON, SPARSE, *COLMAP_MODEL),
               optional_outputs=(POINTS,),
               exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=figures,
               key_neutral={"extraction_threads": "an image's SIFT features do not depend on "
-                           "the threads that extract them: the same cameras from 1, 2 or 3"})
+                           "the threads that extract them: the same cameras from 1, 2 or 3",
+                           "matching_threads": "each pair is matched and verified alone, its "
+                           "RANSAC seeded alone: the same matches and cameras from 1 and 2"})

@@ -1,6 +1,5 @@
 """Photometric bundle adjustment: its residual kernel against a direct numpy computation."""
 
-import numba as nb
 import numpy as np
 import pytest
 
@@ -11,15 +10,12 @@ from tests.tolerances import expect_exact_cameras
 
 
 def _smooth_images(rng, count: int):
-    """``count`` smooth random 320x240 images and their gradients, as the kernel takes them."""
-    imgs = [np.asarray(__import__("cv2").GaussianBlur(rng.uniform(0, 255, (240, 320)).astype(
-        np.float32), (0, 0), 2.0)) for _ in range(count)]
-    gx, gy = nb.typed.List(), nb.typed.List()
-    for im in imgs:
-        a, b = problem.gradients(im)
-        gx.append(a)
-        gy.append(b)
-    return imgs, gx, gy
+    """``count`` smooth random 320x240 images and their gradients, as the kernel takes them
+    ((count, 240, 320) each)."""
+    imgs = np.stack([__import__("cv2").GaussianBlur(rng.uniform(0, 255, (240, 320)).astype(
+        np.float32), (0, 0), 2.0) for _ in range(count)])
+    grads = [problem.gradients(im) for im in imgs]
+    return imgs, np.stack([g[0] for g in grads]), np.stack([g[1] for g in grads])
 
 
 def test_kernel_residuals_match_a_direct_warp():
@@ -35,7 +31,7 @@ def test_kernel_residuals_match_a_direct_warp():
     n = len(uv)
     stats = np.zeros(3)
     kernels.accumulate(np.zeros(n, np.int64), uv, rho, np.arange(n + 1, dtype=np.int64),
-                       np.ones(n, np.int64), nb.typed.List(imgs), gx, gy, np.ones((n, 8)),
+                       np.ones(n, np.int64), imgs, gx, gy, np.ones((n, 8)),
                        np.zeros((2, 6)), 9, np.zeros((2, 6)), 0.0, 240, R_rel, t_rel,
                        np.zeros((2, 2)),
                        np.array([intr.fx, intr.cx, intr.cy, intr.k1, intr.k2]), 1e9, 1e9, False,
@@ -76,7 +72,7 @@ def test_the_normal_equations_do_not_depend_on_how_the_points_are_split():
                np.zeros((n, local)), np.full((n, local), -1, np.int64), np.zeros(3),
                np.zeros(8 * len(targets))]
         normal.accumulate_in_chunks(
-            host, uv, rho, target_start, targets, nb.typed.List(imgs), gx, gy,
+            host, uv, rho, target_start, targets, imgs, gx, gy,
             np.ones((n, 8)), np.zeros((3, 6)), 9,
             np.zeros((3, 6)), 0.0, 240, R_rel, t_rel, np.zeros((3, 2)),
             np.array([intr.fx, intr.cx, intr.cy, intr.k1, intr.k2]), 4.0, 12.0, True, *out,

@@ -403,6 +403,8 @@ def accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, hos
     constant velocity) for that long. A host pixel's ray is cast from its row's camera; the
     point is found in the target's row that sees it (two fixed-point steps).
     """
+    # Long on purpose: a numba kernel, one pass over the points and their residuals (the
+    # steps of a point are inlined helpers above).
     dxd = np.zeros((2, N_INTR))
     dxn = np.zeros((2, N_INTR))
     # A residual's camera columns: the intrinsics and the host's (fixed), then its target's.
@@ -413,7 +415,9 @@ def accumulate(host, uv, rho, target_start, targets, images, grad_x, grad_y, hos
         bh = affine[h, 1]
         tgs = targets[target_start[p]:target_start[p + 1]]
         n_loc = N_INTR + N_FRAME * (1 + tgs.shape[0])
-        Hcc = np.zeros((n_loc, n_loc))
+        # The local camera block (~100 KB a point) only where it is summed.
+        m = n_loc if with_cameras and jacobians else 0
+        Hcc = np.zeros((m, m))
         hcp, bc, J = np.zeros(n_loc), np.zeros(n_loc), np.zeros(n_loc)
         hpp, bp = 0.0, 0.0
         cache, host_X, target_X, host_ray = _sample_pattern(

@@ -193,10 +193,24 @@ def search_depth(host, uv, host_values, rho_lo, rho_hi, samples, neighbours, ima
         out_quality[p] = second / (costs[best] + 1e-6) if used > 0 else 0.0
 
 
-def _pyramid(img: np.ndarray, levels: int) -> list[np.ndarray]:
-    out = [img]
+def _pyramids(images, max_width: int | None, levels: int) -> list[np.ndarray]:
+    """Every keyframe's image pyramid (float32 grey, at most ``max_width`` wide, halved by
+    cv2.pyrDown), one (keyframes, h, w) array per level: the kernels index the keyframes of
+    a level in one array (a numba typed list costs a second of compiling in every run)."""
+    first = _processing_grey(images[0], max_width)
+    stack = np.empty((len(images), *first.shape), np.float32)
+    stack[0] = first
+    for k in range(1, len(images)):
+        stack[k] = _processing_grey(images[k], max_width)
+    out = [stack]
     for _ in range(levels - 1):
-        out.append(cv2.pyrDown(out[-1]))
+        finer = out[-1]
+        coarser = cv2.pyrDown(finer[0])
+        stack = np.empty((len(finer), *coarser.shape), np.float32)
+        stack[0] = coarser
+        for k in range(1, len(finer)):
+            stack[k] = cv2.pyrDown(finer[k])
+        out.append(stack)
     return out
 
 
@@ -278,10 +292,11 @@ def points_from_sparse(points, hosts, R, t, intrinsics: Intrinsics, shape):
             np.concatenate(rho))
 
 
-def _points_by_search(greys, pyr, R, t, intr, sparse_points, config: PBAConfig, log):
+def _points_by_search(pyramid, R, t, intr, sparse_points, config: PBAConfig, log):
     """Strong-gradient pixels with inverse depths from an epipolar search."""
-    K = len(greys)
-    uvs = [_select_points(greys[k], config.cell, config.min_gradient, margin=8) for k in range(K)]
+    K = len(pyramid[0])
+    uvs = [_select_points(pyramid[0][k], config.cell, config.min_gradient, margin=8)
+           for k in range(K)]
     host = np.concatenate([np.full(len(u), k) for k, u in enumerate(uvs)]).astype(np.int64)
     uv0 = np.concatenate(uvs)
     depths = np.concatenate([(sparse_points @ R[k].T + t[k])[:, 2] for k in range(K)])
@@ -296,12 +311,12 @@ def _points_by_search(greys, pyr, R, t, intr, sparse_points, config: PBAConfig, 
     for k in range(K):
         sel = host == k
         for q, d in enumerate(PATTERN):
-            vals_s[sel, q] = sample(pyr[k][config.search_level], uv_s[sel] + d)
+            vals_s[sel, q] = sample(pyramid[config.search_level][k], uv_s[sel] + d)
     R_rel, t_rel = relative_poses(R, t)
     rho = np.empty(len(host))
     quality = np.empty(len(host))
     search_depth(host, uv_s, vals_s, rho_lo, rho_hi, config.search_samples, 2,
-                  nb.typed.List([pyr[k][config.search_level] for k in range(K)]), R_rel, t_rel,
+                  pyramid[config.search_level], R_rel, t_rel,
                   level_intrinsics(intr, ss), rho, quality)
     keep = quality >= config.min_search_quality
     log.append(f"{keep.sum()} of {len(keep)} points kept after the depth search")
@@ -334,12 +349,11 @@ class Problem:
     def __init__(self, images, intrinsics: Intrinsics, R, t, sparse_points, config: PBAConfig,
                  progress, sparse_hosts, centre_prior, times, frame_interval_s, tracks):
         self.config, self.progress, self.log = config, progress, []
-        greys = [_processing_grey(im, config.max_width) for im in images]
-        self.K = K = len(greys)
-        self.shape = greys[0].shape
+        self.pyramid = _pyramids(images, config.max_width, config.pyramid_levels)
+        self.K = K = len(self.pyramid[0])
+        self.shape = self.pyramid[0].shape[1:]
         self.full = intrinsics
-        self.intrinsics = _at_size(intrinsics, greys[0].shape[1], greys[0].shape[0])
-        self.pyr = [_pyramid(g, config.pyramid_levels) for g in greys]
+        self.intrinsics = _at_size(intrinsics, self.shape[1], self.shape[0])
         R = [np.asarray(r, float) for r in R]
         t = [np.asarray(x, float) for x in t]
         self.baseline_ref = np.linalg.norm(R[1].T @ t[1] - R[0].T @ t[0])
@@ -357,7 +371,7 @@ class Problem:
                                                            self.intrinsics, self.shape)
             self.log.append(f"{len(self.host)} points from the initial reconstruction")
         else:
-            self.host, self.uv0, rho = _points_by_search(greys, self.pyr, R, t, intr,
+            self.host, self.uv0, rho = _points_by_search(self.pyramid, R, t, intr,
                                                          sparse_points, config, self.log)
         if len(self.host) == 0:
             raise FacecapError("photometric bundle adjustment found no usable points: the "

@@ -7,7 +7,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-import numba as nb
 import numpy as np
 
 from facecap_core.camera import Intrinsics
@@ -53,13 +52,11 @@ class _Level:
         self.level, self.s = level, 2.0 ** level
         self.frozen_velocity = None
         self.huber = self.max_residual = 1e9
-        self.imgs, self.gxs, self.gys = nb.typed.List(), nb.typed.List(), nb.typed.List()
+        # (keyframes, h, w) each, as the kernel indexes them.
+        self.imgs = p.pyramid[level]
+        self.gxs, self.gys = np.empty_like(self.imgs), np.empty_like(self.imgs)
         for k in range(p.K):
-            img = p.pyr[k][level]
-            gx, gy = gradients(img)
-            self.imgs.append(img)
-            self.gxs.append(gx)
-            self.gys.append(gy)
+            self.gxs[k], self.gys[k] = gradients(self.imgs[k])
         self.uv = p.uv0 / self.s
         self.host_weights = np.empty((len(p.host), 8))
         c2 = p.config.gradient_weight ** 2
@@ -105,40 +102,47 @@ class _Level:
         return self.evaluate(st, st.R, st.t, st.affine, st.intr, st.rho, st.X, with_cameras,
                              **kwargs)
 
-    def robust_scale(self, st: State) -> float:
-        """1.4826 x the median residual magnitude at the current cameras (grey levels): the
-        residuals' standard deviation, whatever the outliers."""
+    def magnitudes(self, st: State) -> tuple[Normal, np.ndarray]:
+        """The photometric cost at the state and every residual's magnitude."""
         buf = np.empty(8 * len(self.p.targets))
         e = self.at(st, with_tracks=False, residuals=buf, jacobians=False)
-        n = int(e.stats[2])
+        return e, buf[:int(e.stats[2])]
+
+    def robust_scale(self, st: State, magnitudes: np.ndarray | None = None) -> float:
+        """1.4826 x the median residual magnitude at the current cameras (grey levels): the
+        residuals' standard deviation, whatever the outliers. ``magnitudes``: those of the
+        state, when an evaluation already gave them (they do not depend on the loss)."""
+        buf = self.magnitudes(st)[1] if magnitudes is None else magnitudes
+        n = len(buf)
         # At least the noise of 8-bit quantisation (1/sqrt(12) grey levels): exact renders
         # would otherwise make every residual an outlier.
         return max(1.4826 * float(np.median(buf[:n])) if n else 1.0, 12 ** -0.5)
 
-    def set_robust_loss(self, st: State) -> float:
+    def set_robust_loss(self, st: State, magnitudes: np.ndarray | None = None) -> float:
         """The robust loss in units of the residuals' own spread (noise, codec, blur differ
         from capture to capture): Huber, and the outlier bound of a pattern in one target.
-        Returns the spread."""
-        sigma = self.robust_scale(st)
+        Returns the spread. ``magnitudes``: as :meth:`robust_scale` takes them."""
+        sigma = self.robust_scale(st, magnitudes)
         self.huber = self.p.config.huber * sigma
         self.max_residual = self.p.config.max_residual * sigma
         return sigma
 
     def choose(self, st: State, candidates, field: str, scale: float | None, name: str,
-               unit: str) -> float:
+               unit: str) -> np.ndarray:
         """Sets ``st.<field>`` to the candidate (times ``scale``) whose model makes the
-        residuals smallest."""
-        costs = []
+        residuals smallest; returns their magnitudes under it (the robust scale's)."""
+        costs, magnitudes = [], []
         for value in candidates:
             setattr(st, field, value if scale is None else value * scale)
-            e = self.at(st, with_tracks=False, jacobians=False)
+            e, buf = self.magnitudes(st)
             costs.append(e.cost / max(e.count, 1))
+            magnitudes.append(buf)
         best = candidates[int(np.argmin(costs))]
         setattr(st, field, best if scale is None else best * scale)
         self.p.say(f"{name} " + ", ".join(f"{v:g}: rms {np.sqrt(c):.3f}"
                                           for v, c in zip(candidates, costs))
                    + f"; chose {best:g} {unit} at level {self.level}")
-        return best
+        return magnitudes[int(np.argmin(costs))]
 
     def readout_from_tracks(self, st: State) -> None:
         """The readout from the tracks, each candidate after its own adjustment of the
@@ -176,16 +180,19 @@ class _Level:
         sigma = self.set_robust_loss(st)
         choose_readout = p.shutter and config.readout_s is None
         choose_exposure = p.blur and config.exposure_fraction is None
+        # The residuals under the last choice, which left the state as it is now.
+        magnitudes = None
         if choose_readout and self.level == config.pyramid_levels - 1:
             if len(st.X):
                 self.readout_from_tracks(st)
             else:
-                self.choose(st, config.readout_candidates, "readout_s", None, "readout", "s")
+                magnitudes = self.choose(st, config.readout_candidates, "readout_s", None,
+                                         "readout", "s")
         if choose_exposure:
-            self.choose(st, config.exposure_candidates, "exposure_s", p.frame_interval_s,
-                        "exposure", "of a frame")
+            magnitudes = self.choose(st, config.exposure_candidates, "exposure_s",
+                                     p.frame_interval_s, "exposure", "of a frame")
         if choose_readout or choose_exposure:
-            sigma = self.set_robust_loss(st)
+            sigma = self.set_robust_loss(st, magnitudes)
         p.log.append(f"level {self.level}: residual scale {sigma:.2f} grey levels")
         if p.w_centre_unit:
             st.w_centre = self.huber ** 2 * p.w_centre_unit
