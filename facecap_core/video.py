@@ -10,6 +10,8 @@ decodes is accepted.
 
 from __future__ import annotations
 
+import queue
+import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -147,9 +149,62 @@ def _upright(image: np.ndarray, rotation: int) -> np.ndarray:
     return np.ascontiguousarray(np.rot90(image, k=rotation // 90)) if rotation else image
 
 
+READ_AHEAD = 4
+"""Frames :func:`iter_frames` decodes ahead of its caller."""
+
+
 def iter_frames(path: str | Path, width: int | None = None, grey: bool = False,
                 indices: Iterable[int] | None = None) -> Iterator[Frame]:
-    """Frames in order, upright, at most ``width`` pixels wide; only ``indices`` if given."""
+    """Frames in order, upright, at most ``width`` pixels wide; only ``indices`` if given.
+    They are decoded up to :data:`READ_AHEAD` frames ahead in a thread of their own (the
+    decoder and the resize let go of the GIL): a caller's work on a frame (tracking,
+    detection, a PNG's encoding) runs beside the decoding of the next."""
+    return _read_ahead(_decoded(path, width, grey, indices), READ_AHEAD)
+
+
+_END = object()
+
+
+def _read_ahead(frames: Iterator[Frame], count: int) -> Iterator[Frame]:
+    """``frames`` made in a thread, at most ``count`` ahead of the caller; what the thread
+    raises is raised here, and a caller that stops early stops the thread."""
+    ahead: queue.Queue = queue.Queue(count)
+    stop = threading.Event()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                ahead.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for frame in frames:
+                if not put(frame):
+                    return
+            put(_END)
+        except BaseException as exc:  # noqa: BLE001 - raised again in the caller's thread
+            put(exc)
+        finally:
+            frames.close()
+
+    thread = threading.Thread(target=produce, name="frames", daemon=True)
+    thread.start()
+    try:
+        while (item := ahead.get()) is not _END:
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        thread.join()
+
+
+def _decoded(path: str | Path, width: int | None, grey: bool,
+             indices: Iterable[int] | None) -> Iterator[Frame]:
     path = Path(path)
     wanted = None if indices is None else sorted(set(int(i) for i in indices))
     if wanted == []:

@@ -51,3 +51,37 @@ def test_bad_videos(tmp_path):
     (tmp_path / "photo.mp4").write_bytes(b"\xff\xd8\xff\xe0" + b"\x00" * 200)
     with pytest.raises(InputError):
         probe(tmp_path / "photo.mp4")
+
+
+def test_frames_read_ahead_in_their_own_thread_stop_with_their_caller(clip, monkeypatch):
+    """The frames are decoded ahead in a thread: the caller gets them all in order, an error
+    of the decoding thread is raised in the caller's, and a caller that stops early (a
+    ``break``, its own error) leaves no thread behind."""
+    import threading
+
+    import facecap_core.video as video
+
+    def alive() -> int:
+        return sum(t.name == "frames" and t.is_alive() for t in threading.enumerate())
+
+    assert [f.index for f in iter_frames(clip)] == list(range(12))
+    for frame in iter_frames(clip):
+        if frame.index == 1:
+            break
+    assert alive() == 0
+    with pytest.raises(ZeroDivisionError):
+        for frame in iter_frames(clip):
+            1 / (frame.index - 2)
+    assert alive() == 0
+
+    decoded = video._decoded
+
+    def broken(path, width, grey, indices):
+        yield from list(decoded(path, width, grey, indices))[:3]
+        raise InputError(f"{path}: decoding stopped (InvalidDataError); the file is damaged")
+
+    monkeypatch.setattr(video, "_decoded", broken)
+    seen = []
+    with pytest.raises(InputError, match="decoding stopped"):
+        seen.extend(f.index for f in iter_frames(clip))
+    assert seen == [0, 1, 2] and alive() == 0
