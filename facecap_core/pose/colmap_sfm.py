@@ -12,6 +12,7 @@ import errno
 import os
 import shutil
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -90,12 +91,15 @@ def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tup
     img_dir = work / "images"
     shutil.rmtree(work, ignore_errors=True)
     img_dir.mkdir(parents=True)
-    names = {}
-    for index, img in sorted(images.items()):
-        name = f"frame_{index:06d}.png"
-        if not cv2.imwrite(str(img_dir / name), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
+    names = {f"frame_{index:06d}.png": index for index in sorted(images)}
+
+    def write(name: str) -> None:
+        image = cv2.cvtColor(images[names[name]], cv2.COLOR_RGB2BGR)
+        if not cv2.imwrite(str(img_dir / name), image):
             raise _unwritable(img_dir / name)
-        names[name] = index
+
+    with ThreadPoolExecutor(max(1, extraction_threads)) as pool:  # PNG encoding lets go of the GIL
+        list(pool.map(write, names))
     h, w = next(iter(images.values())).shape[:2]
     db = work / "database.db"
     reader = pycolmap.ImageReaderOptions()
