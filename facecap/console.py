@@ -139,18 +139,25 @@ def _logging(console_level: str) -> None:
 RUN_LOGGERS = ("prefect.flow_runs", "prefect.task_runs")
 """Prefect's loggers of flow and task runs (what the run pages of the UI show)."""
 
+DRAIN_LOGGERS = ("EventsWorker", "APILogWorker")
+"""The loggers of Prefect's background senders of events and logs, named after their class:
+at a command's exit each says "Still processing items: N items remaining..." (a WARNING)
+while it sends what the run left queued, which a slow server leaves behind on any exit."""
+
 
 def console_logging(level: str, runs_on_console: bool = False) -> dict:
     """The command line's logging configuration, applied over Prefect's own (``logging.yml``,
     whose console handler is named ``console``) with :func:`logging.config.dictConfig`: the
     runs' logs go to the API alone unless ``runs_on_console``, and the console shows
-    ``level`` and above of the other loggers."""
+    ``level`` and above of the other loggers (the exit drain's progress not at all)."""
     from prefect.logging.configuration import PROCESS_LOGGING_CONFIG
 
     console = "console" in PROCESS_LOGGING_CONFIG.get("handlers", {})  # a logging.yml of
     handlers = {"console": {"level": level}} if console else {}  # one's own may lack it
-    return {"version": 1, "incremental": True, "handlers": handlers,
-            "loggers": {name: {"propagate": runs_on_console} for name in RUN_LOGGERS}}
+    loggers = {name: {"propagate": runs_on_console} for name in RUN_LOGGERS}
+    if not runs_on_console:  # their failures are ERRORs, and still shown
+        loggers.update({name: {"level": "ERROR"} for name in DRAIN_LOGGERS})
+    return {"version": 1, "incremental": True, "handlers": handlers, "loggers": loggers}
 
 
 def _quiet_console(level: str = "WARNING") -> None:

@@ -524,6 +524,31 @@ def test_flow_runs_on_the_command_s_own_server_send_no_heartbeats(tmp_path, comm
     assert proc.stdout.split()[-1] == ("None" if command == "reconstruct" else "180")
 
 
+DRAIN_SCRIPT = """
+import logging
+from facecap import console
+
+console._quiet_console("WARNING")
+logging.getLogger("EventsWorker").warning("Still processing items: 3 items remaining...")
+logging.getLogger("APILogWorker").warning("Still processing items: 1 items remaining...")
+logging.getLogger("EventsWorker").error("could not send the events")
+logging.getLogger("prefect.server").warning("the server said so")
+"""
+
+
+def test_the_exit_drain_of_events_and_logs_is_not_on_the_console(tmp_path):
+    """A command ends while Prefect's senders still hold events and logs for a slow server;
+    their progress lines are not the user's business (a refused input is one line), their
+    failures and every other warning are."""
+    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "ph")}
+    proc = subprocess.run([sys.executable, "-c", DRAIN_SCRIPT], env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 2, lines
+    assert "could not send the events" in lines[0] and "the server said so" in lines[1]
+
+
 @pytest.mark.slow
 def test_a_server_database_that_cannot_open_is_one_line(tmp_path):
     """A damaged Prefect database (a first start stopped while it set the database up
