@@ -122,9 +122,8 @@ NOT_ON_THIS_CAPTURE = {
     "poses.min_registered_fraction": "refuses a capture of which too few keyframes register; "
                                      "all of this capture's do",
     "poses.threads": "more threads move the cameras only through the order in which COLMAP's "
-                     "threaded mapping and Ceres's sums finish (up to 0.2 % of the focal "
-                     "length on a 720p sweep); this capture's 20 keyframes give the same "
-                     "cameras from 1 and 2",
+                     "threaded matching finishes (up to 0.2 % of the focal length on a 720p "
+                     "sweep); this capture's 20 keyframes give the same cameras from 1 and 2",
 }
 """Fields that act only on a capture unlike this one, and why (run each where it acts)."""
 

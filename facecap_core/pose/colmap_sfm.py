@@ -67,15 +67,12 @@ def _unwritable(path: Path) -> OSError:
 def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tuple[int, int],
             overlap: int = 10, refine_principal_point: bool = False,
             threads: int = 1, seed: int = 0, ordered: bool = True,
-            focal_px: float | None = None, extraction_threads: int = 1,
-            matching_threads: int | None = None) -> Poses:
+            focal_px: float | None = None, extraction_threads: int = 1) -> Poses:
     """SfM over keyframe images ({video frame index: RGB uint8}, all one size).
 
     With one thread and a fixed ``seed`` the result is the same on every run; with more,
-    COLMAP's threaded mapping gives slightly different cameras each time. SIFT extracts
-    each image alone, and matching and verification treat each pair alone (the RANSAC
-    seeded per pair): ``extraction_threads`` and ``matching_threads`` (None: ``threads``)
-    do not change the result.
+    COLMAP's threaded matching gives slightly different cameras each time. SIFT extracts
+    each image alone: ``extraction_threads`` do not change the result.
 
     With the defaults this is what a COLMAP user gets (principal point held at the image
     centre); sequential matching pairs each keyframe with the next ``overlap``. Images not
@@ -122,7 +119,7 @@ def run_sfm(images: dict[int, np.ndarray], work_dir: str | Path, video_size: tup
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = seed
     matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = threads if matching_threads is None else matching_threads
+    matching.num_threads = threads
     if ordered or len(images) > EXHAUSTIVE_MAX_IMAGES:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = overlap

@@ -68,20 +68,16 @@ class PoseConfig(StrictModel):
     """Fewest registered keyframes as a fraction of all: below it the capture is refused, as
     the views that did register are then as likely a lucky subset as the face."""
     threads: int = Field(1, ge=1, le=256)
-    """Threads for SfM's mapping and for the geometric refinement's bundle adjustment. One
-    makes the stage reproducible (a rerun gives the same cameras, so nightly re-evaluations
-    compare like with like); with more, the order in which their threads' sums finish moves
-    the cameras from run to run (by up to 0.2 % of the focal length)."""
+    """Threads for SfM's matching and mapping and for the geometric refinement's bundle
+    adjustment. One makes the stage reproducible (a rerun gives the same cameras, so nightly
+    re-evaluations compare like with like); with more, COLMAP's threaded matching moves the
+    focal length by up to 0.2 % from run to run, and Ceres's threaded Schur complement the
+    cameras in their last digits."""
     extraction_threads: int = Field(2, ge=1, le=256)
     """Threads for SfM's SIFT extraction (one image each): an image's features do not
     depend on them (the same keypoints from 1 and 2 threads), so they cost no
     reproducibility; two halve the extraction, a third of SfM's time at 720p. The row lists it
     as key-neutral: a changed value reuses the stored cameras."""
-    matching_threads: int = Field(2, ge=1, le=256)
-    """Threads for SfM's sequential matching and its geometric verification (one pair each,
-    its RANSAC seeded alone): the same matches, verified geometries and cameras from 1 and 2
-    threads, so no cost in reproducibility; two take about a third off the matching's wall
-    time at 720p. Key-neutral, as ``extraction_threads``."""
 
 
 POINTS = "points.ply"
@@ -231,8 +227,7 @@ def structure_from_motion(images: dict[int, np.ndarray], work: Path, keyframes: 
     def solve(ordered: bool, focal_px: float | None, folder: str) -> Poses:
         poses = run_sfm(images, work / folder, keyframes.video_size,
                         overlap=config.match_overlap, threads=config.threads, ordered=ordered,
-                        focal_px=focal_px, extraction_threads=config.extraction_threads,
-                        matching_threads=config.matching_threads)
+                        focal_px=focal_px, extraction_threads=config.extraction_threads)
         registered_enough(poses, len(keyframes.indices), config)
         return poses
 
@@ -390,6 +385,4 @@ STAGE = Stage("poses", version="8", inputs=("video", "keyframes"),
               optional_outputs=(POINTS,),
               exported=(CAMERAS_JSON, POINTS, *COLMAP_MODEL), figures=figures,
               key_neutral={"extraction_threads": "an image's SIFT features do not depend on "
-                           "the threads that extract them: the same cameras from 1, 2 or 3",
-                           "matching_threads": "each pair is matched and verified alone, its "
-                           "RANSAC seeded alone: the same matches and cameras from 1 and 2"})
+                           "the threads that extract them: the same cameras from 1, 2 or 3"})
