@@ -584,11 +584,7 @@ def test_read_only_output_folder(media, kept, tmp_path):
     without the capability that lets it (CAP_DAC_OVERRIDE)."""
     os.chmod(kept["out"], 0o555)
     try:
-        prefix = []
-        if os.geteuid() == 0:
-            if not shutil.which("setpriv"):
-                pytest.skip("running as root without setpriv to drop CAP_DAC_OVERRIDE")
-            prefix = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"]
+        prefix = bound_by_file_modes()
         before = snapshot(kept["store"], kept["out"])
         proc = subprocess.run(
             [*prefix, sys.executable, "-m", "facecap", "reconstruct", str(media["orbit"]),
@@ -725,16 +721,21 @@ def test_files_that_are_not_evaluations_are_not_a_baseline(tmp_path):
     assert check_history(tmp_path) == scores
 
 
+def bound_by_file_modes() -> list[str]:
+    """The command prefix under which a process obeys file modes: root ignores them unless
+    it drops CAP_DAC_OVERRIDE (util-linux's setpriv); nothing for anyone else."""
+    if os.geteuid() != 0:
+        return []
+    if not shutil.which("setpriv"):
+        pytest.skip("running as root without setpriv to drop CAP_DAC_OVERRIDE")
+    return ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"]
+
+
 def _run_without_dac_override(argv: list[str]) -> subprocess.CompletedProcess:
-    """``facecap ARGV`` in a process that file modes bind (root ignores them unless it
-    drops CAP_DAC_OVERRIDE)."""
-    prefix = []
-    if os.geteuid() == 0:
-        if not shutil.which("setpriv"):
-            pytest.skip("running as root without setpriv to drop CAP_DAC_OVERRIDE")
-        prefix = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"]
-    return subprocess.run([*prefix, sys.executable, "-m", "facecap", *map(str, argv)],
-                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+    """``facecap ARGV`` in a process that file modes bind."""
+    return subprocess.run([*bound_by_file_modes(), sys.executable, "-m", "facecap",
+                           *map(str, argv)], capture_output=True, text=True, cwd=ROOT,
+                          timeout=600)
 
 
 @pytest.mark.slow

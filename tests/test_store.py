@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import os
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -353,23 +355,36 @@ def test_concurrent_puts_of_one_key_commit_exactly_once(tmp_path):
     assert list((tmp_path / "store" / ".tmp").iterdir()) == []
 
 
-def test_read_only_store_raises_store_write_error(tmp_path):
-    root = tmp_path / "store"
+def refuses_a_put_into(root: str) -> None:
+    """A put into the read-only store at ``root`` fails with one line naming it, and the
+    store keeps what it held."""
     store = open_store(root)
-    put_mesh(store, {"mesh.ply": b"kept"})
+    with pytest.raises(StoreWriteError) as caught:
+        put_mesh(store, {"mesh.ply": b"new"}, key=artifact_key("mesh", INPUTS, CONFIG, "2"))
+    assert isinstance(caught.value.__cause__, OSError)
+    assert "\n" not in str(caught.value) and str(root) in str(caught.value)
+    assert store.keys() == [mesh_key()]
+    assert store.read_bytes(mesh_key(), "mesh.ply") == b"kept"
+
+
+def test_read_only_store_raises_store_write_error(tmp_path):
+    from tests.test_bad_inputs import ROOT, bound_by_file_modes
+
+    root = tmp_path / "store"
+    put_mesh(open_store(root), {"mesh.ply": b"kept"})
     folders = [root, *(path for path in root.rglob("*") if path.is_dir())]
     for folder in folders:
         os.chmod(folder, 0o555)
     try:
-        if os.access(root, os.W_OK):
-            pytest.skip("chmod does not stop this user (root) from writing")
-        other_key = artifact_key("mesh", INPUTS, CONFIG, "2")
-        with pytest.raises(StoreWriteError) as caught:
-            put_mesh(store, {"mesh.ply": b"new"}, key=other_key)
-        assert isinstance(caught.value.__cause__, OSError)
-        assert "\n" not in str(caught.value) and str(root) in str(caught.value)
-        assert store.keys() == [mesh_key()]
-        assert store.read_bytes(mesh_key(), "mesh.ply") == b"kept"
+        prefix = bound_by_file_modes()
+        if prefix:  # root: in a process that file modes bind
+            proc = subprocess.run([*prefix, sys.executable, "-c", "import sys; from "
+                                   "tests.test_store import refuses_a_put_into; "
+                                   "refuses_a_put_into(sys.argv[1])", str(root)],
+                                  capture_output=True, text=True, cwd=ROOT, timeout=120)
+            assert proc.returncode == 0, proc.stderr[-3000:]
+        else:
+            refuses_a_put_into(str(root))
     finally:
         for folder in folders:
             os.chmod(folder, 0o755)
