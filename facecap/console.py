@@ -145,19 +145,23 @@ at a command's exit each says "Still processing items: N items remaining..." (a 
 while it sends what the run left queued, which a slow server leaves behind on any exit."""
 
 
+def _not_drain_progress(record: logging.LogRecord) -> bool:
+    """A filter of :data:`DRAIN_LOGGERS`: their exit progress is not the user's business;
+    what they lose (a full queue) or fail to send still shows."""
+    return not str(record.msg).startswith("Still processing items")
+
+
 def console_logging(level: str, runs_on_console: bool = False) -> dict:
     """The command line's logging configuration, applied over Prefect's own (``logging.yml``,
     whose console handler is named ``console``) with :func:`logging.config.dictConfig`: the
     runs' logs go to the API alone unless ``runs_on_console``, and the console shows
-    ``level`` and above of the other loggers (the exit drain's progress not at all)."""
+    ``level`` and above of the other loggers."""
     from prefect.logging.configuration import PROCESS_LOGGING_CONFIG
 
     console = "console" in PROCESS_LOGGING_CONFIG.get("handlers", {})  # a logging.yml of
     handlers = {"console": {"level": level}} if console else {}  # one's own may lack it
-    loggers = {name: {"propagate": runs_on_console} for name in RUN_LOGGERS}
-    if not runs_on_console:  # their failures are ERRORs, and still shown
-        loggers.update({name: {"level": "ERROR"} for name in DRAIN_LOGGERS})
-    return {"version": 1, "incremental": True, "handlers": handlers, "loggers": loggers}
+    return {"version": 1, "incremental": True, "handlers": handlers,
+            "loggers": {name: {"propagate": runs_on_console} for name in RUN_LOGGERS}}
 
 
 def _quiet_console(level: str = "WARNING") -> None:
@@ -171,5 +175,9 @@ def _quiet_console(level: str = "WARNING") -> None:
 
     ensure_logging_setup()
     logging.config.dictConfig(console_logging(level, runs_on_console=VERBOSE))
+    for name in DRAIN_LOGGERS:
+        drain = logging.getLogger(name)
+        if not VERBOSE and _not_drain_progress not in drain.filters:
+            drain.addFilter(_not_drain_progress)
 
 

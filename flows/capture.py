@@ -21,7 +21,6 @@ a worker without a second process or API server), and exports the results to ``o
 from __future__ import annotations
 
 import json
-import logging
 import re
 import shutil
 import tempfile
@@ -40,7 +39,7 @@ from tqdm import tqdm
 
 from facecap.flows.service import guard
 from facecap.flows.ui import mesh_preview, publish_capture
-from facecap.pages.capture import GLB_NAME, build_page, mesh_glb, page_parts
+from facecap.pages.capture import GLB_NAME, build_page, mesh_glb, page_parts, parts_complete
 from facecap.pages.figures import run_summary
 from facecap.pages.stored import keep_parts, store_page, stored_parts
 from facecap.tasks.graph import (
@@ -88,7 +87,6 @@ path of a YAML file of them, or nothing for the defaults."""
 BACKSTOP_S = 60.0
 """Prefect's own limit on a capture run comes this long after FACECAP_CAPTURE_TIMEOUT_S,
 which the stages keep themselves: it stops a run stuck outside any stage."""
-_log = logging.getLogger(__name__)
 
 MAX_WORKERS = 16
 """Threads of a capture run's task runner: the most depth maps ``mvs.workers`` can ask for
@@ -300,13 +298,22 @@ def _page(store: str, keys: dict[str, str], report: dict, results: dict[str, Pat
     if parts is None:
         frames = st.get(keys["frames"]) if "frames" in keys else None
         parts = page_parts(report, results, bool(glb), frames)
-        try:
-            keep_parts(st, report, parts)
-        except Exception as exc:  # noqa: BLE001 - a rerun makes them again; the run is made
-            _log.warning("the page's parts were not kept in the store, so a rerun makes them "
-                         "again: %s", exc)
-            parts_key = None
+        parts_key = _kept_parts(st, report, parts, frames)
     return build_page(report, results, glb, accuracy, parts=parts), parts_key
+
+
+def _kept_parts(st, report: dict, parts: dict, frames: Path | None) -> str | None:
+    """The key under which the store keeps ``parts`` for a rerun of the same artifacts;
+    None where they are incomplete (a rerun makes them again) or could not be kept."""
+    if not parts_complete(report, parts, frames):
+        return None
+    try:
+        return keep_parts(st, report, parts)
+    except Exception as exc:  # noqa: BLE001 - a rerun makes them again; the run is made
+        get_run_logger().warning("the page's parts were not kept in the store, so a rerun "
+                                 "makes them again: %s", str(exc).splitlines()[0] if str(exc)
+                                 else type(exc).__name__)
+        return None
 
 
 def _stage_report(store: str, runs: dict[str, tuple[str, bool]]) -> dict:

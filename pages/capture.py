@@ -218,6 +218,15 @@ def page_parts(report: dict, results: dict[str, Path], has_mesh: bool,
     return parts
 
 
+def parts_complete(report: dict, parts: dict, frames: Path | None) -> bool:
+    """Whether ``parts`` (:func:`page_parts`) hold all that the run's page shows: the scan of
+    a scored run and the image of every keyframe. Only such parts are worth keeping for a
+    rerun: a store that failed for a moment must not leave its holes in every later page."""
+    if parts and "evaluation" in report.get("stages", {}) and "scan" not in parts:
+        return False
+    return frames is None or all(parts.get("cameras", {}).get("images", []))
+
+
 def build_page(report: dict, results: dict[str, Path], glb: bytes | None,
                accuracy_mm: np.ndarray | None = None, frames: Path | None = None,
                scan: tuple[np.ndarray, np.ndarray] | None = None,

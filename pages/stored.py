@@ -7,13 +7,15 @@ the face it shows, as it was made from that face's artifacts.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
+from importlib.metadata import version
 from pathlib import Path
 
 import facecap.pages.capture as capture_page
-from facecap.tasks.runner import lease, network_errors
+from facecap.tasks.runner import key_lock, lease, network_errors
 from facecap.tasks.store import artifact_key
 from facecap.tasks.store.keys import KEY_PATTERN
 from facecap_core.errors import FacecapError
@@ -43,10 +45,27 @@ PARTS_NAME = "parts.json"
 """The page parts artifact's one file (:func:`facecap.pages.capture.page_parts`)."""
 
 
+@functools.cache
 def _parts_config() -> dict:
-    # The code that makes the parts is part of what they are made from: a changed page
-    # module never reads parts an older one kept.
-    return {"parts": hashlib.sha256(Path(capture_page.__file__).read_bytes()).hexdigest()}
+    # What makes the parts is part of what they are made from: parts kept by other code (the
+    # page module and the ones whose functions it calls for the parts) or by other
+    # libraries (the JPEG encoder, the scan's decimation) are never read.
+    from facecap.pages import scan
+    from facecap_core import camera, frames, meshio
+    from facecap_core.evaluation import alignment
+    from facecap_core.evaluation import stage as evaluation
+    from facecap_core.pose import cameras_json
+
+    sources = hashlib.sha256()
+    for module in (capture_page, scan, camera, frames, meshio, alignment, evaluation,
+                   cameras_json):
+        sources.update(Path(module.__file__).read_bytes())
+    return {"parts": sources.hexdigest(),
+            "libraries": {name: version(name) for name in PARTS_LIBRARIES}}
+
+
+PARTS_LIBRARIES = ("numpy", "opencv-python-headless", "open3d")
+"""The distributions whose versions name the page parts (:func:`_parts_config`)."""
 
 
 def _parts_key(inputs: dict[str, str]) -> str:
@@ -61,17 +80,25 @@ def stage_keys(report: dict) -> dict[str, str]:
 def stored_parts(store, report: dict) -> tuple[str, dict | None]:
     """The key of the page parts of the run's stage artifacts, and the parts themselves
     where a run of the same artifacts kept them (None otherwise), held for the run in
-    progress."""
+    progress. Parts that cannot be read are removed, for :func:`keep_parts` to keep anew."""
     key = _parts_key(stage_keys(report))
     lease(store, key)
     if not store.exists(key):
         return key, None
     try:
         return key, json.loads((store.get(key) / PARTS_NAME).read_text())
-    except (OSError, ValueError, FacecapError) as exc:  # made again, as if never kept
-        _log.warning("the page parts %s are made again: %s", key, str(exc).splitlines()[0]
-                     if str(exc) else type(exc).__name__)
-        return key, None
+    except (OSError, ValueError, FacecapError) as exc:
+        _log.warning("the page parts %s are made again: %s", key, _first_line(exc))
+    try:
+        with key_lock(store, key):
+            store.delete(key)
+    except (OSError, FacecapError, *network_errors()) as exc:  # the page is made all the same
+        _log.warning("the damaged page parts %s stay in the store: %s", key, _first_line(exc))
+    return key, None
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
 
 
 def keep_parts(store, report: dict, parts: dict) -> str:
@@ -80,8 +107,9 @@ def keep_parts(store, report: dict, parts: dict) -> str:
     inputs = stage_keys(report)
     key = _parts_key(inputs)
     lease(store, key)
-    store.put(key, {PARTS_NAME: json.dumps(parts).encode()}, stage=PAGE_STAGE, inputs=inputs,
-              config=_parts_config(), version="1")
+    with key_lock(store, key):
+        store.put(key, {PARTS_NAME: json.dumps(parts).encode()}, stage=PAGE_STAGE,
+                  inputs=inputs, config=_parts_config(), version="1")
     return key
 
 
@@ -109,6 +137,5 @@ def stored_link(store, key: str | None, name: str) -> str | None:
     except (OSError, FacecapError, *network_errors()) as exc:
         # The results are made: a link is not worth failing for (a missing or damaged page,
         # an unreadable link secret, a store that cannot be reached).
-        _log.warning("no link to %s of %s: %s", name, key, str(exc).splitlines()[0]
-                     if str(exc) else type(exc).__name__)
+        _log.warning("no link to %s of %s: %s", name, key, _first_line(exc))
         return None

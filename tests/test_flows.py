@@ -239,30 +239,46 @@ def test_a_rerun_s_page_takes_its_parts_from_the_store(first_run, tmp_path, monk
     """The page's slow parts (the keyframes' images, the cloud's sample, the scan) are kept
     in the store under the run's stage keys, made from them: a rerun of the same artifacts
     gives the same page without decoding a keyframe, a run of other artifacts makes its
-    own, and ``forget``'s walk down the inputs finds them."""
+    own, and ``forget``'s walk down the inputs finds them. Parts with a hole (a keyframe
+    image that could not be read) are not kept; damaged ones are made and kept anew."""
     import facecap.pages.capture as capture_page
     from facecap.flows.capture import _export, _page
+    from facecap.pages.stored import PARTS_NAME, stored_parts
     from facecap.tasks.lifecycle import derived
     from facecap.tasks.outputs import ResultWriter
 
     store = open_store(first_run["store"])
     keys, report = first_run["keys"], _capture_report(first_run)
+    key, _ = stored_parts(store, report)
+    if store.exists(key):  # kept by another test's page: made here from the artifacts
+        store.delete(key)
+
+    def no_decoding(*args):
+        raise AssertionError("a keyframe was decoded for parts the store holds")
+
     with ResultWriter(tmp_path / "out") as writer:
         results = _export(first_run["store"], keys, writer, tmp_path)
+        with monkeypatch.context() as patch:  # a keyframe that cannot be read: not kept
+            patch.setattr(capture_page, "_keyframe_image", lambda frames, index: None)
+            _, holed = _page(first_run["store"], keys, report, results)
+        assert holed is None and not store.exists(key)
         page, parts = _page(first_run["store"], keys, report, results)
-
-        def no_decoding(*args):
-            raise AssertionError("a keyframe was decoded for parts the store holds")
-
         with monkeypatch.context() as patch:
             patch.setattr(capture_page, "_keyframe_images", no_decoding)
             again, parts_again = _page(first_run["store"], keys, report, results)
-        assert (again, parts_again) == (page, parts)
+        assert (again, parts_again) == (page, parts) and parts == key
         assert b"data:image/jpeg;base64," in page  # the keyframes' images are in it
+        (store.get(key) / PARTS_NAME).chmod(0o644)
+        (store.get(key, verify=False) / PARTS_NAME).write_text("{")  # damaged: made again
+        assert _page(first_run["store"], keys, report, results) == (page, parts)
+        with monkeypatch.context() as patch:
+            patch.setattr(capture_page, "_keyframe_images", no_decoding)
+            assert _page(first_run["store"], keys, report, results) == (page, parts)
         other = {**report, "stages": {**report["stages"], "fusion": {
             **report["stages"]["fusion"], "key": keys["frames"]}}}
         _, other_parts = _page(first_run["store"], keys, other, results)
     assert parts.startswith("page-") and other_parts not in (None, parts)
+    store.delete(other_parts)  # made from a report no run wrote
     assert store.manifest(parts).inputs == {name: info["key"]
                                             for name, info in report["stages"].items()}
     assert parts in derived(store, {keys["frames"]})

@@ -281,9 +281,10 @@ def test_corrupted_file_is_detected(store, store_url):
 def test_a_file_checked_once_is_read_again_only_once_it_changes(tmp_path, monkeypatch):
     """A local store reads a file it checked already in this process only when its
     identity changed since (forty depth maps read the frames' artifact): a file rewritten
-    with other bytes of the same size is still refused; a file changed within the file
-    system's timestamp granularity of its check is read on every check."""
+    with other bytes of the same size is still refused; a file modified or changed within
+    the file system's timestamp granularity of its check is read on every check."""
     import facecap.tasks.store.base as base
+    import facecap.tasks.store.local as local
 
     store = open_store(str(tmp_path / "store"))
     put_mesh(store, {"mesh.ply": b"good bytes"})
@@ -291,18 +292,24 @@ def test_a_file_checked_once_is_read_again_only_once_it_changes(tmp_path, monkey
     reads = []
     hash_stream = base.hash_stream
     monkeypatch.setattr(base, "hash_stream", lambda f: reads.append(1) or hash_stream(f))
-    store.get(mesh_key())
-    store.get(mesh_key())
-    assert len(reads) == 2  # just written: read each time
     an_hour_ago = time.time() - 3600
-    os.utime(stored, (an_hour_ago, an_hour_ago))
+    os.utime(stored, (an_hour_ago, an_hour_ago))  # modified long ago, changed just now
+    changed = os.stat(stored).st_ctime_ns
+    monkeypatch.setattr(local, "_now_ns", lambda: changed + local.RECENT_NS // 2)
+    store.get(mesh_key())
+    store.get(mesh_key())
+    assert len(reads) == 2  # just changed: read each time
+    monkeypatch.setattr(local, "_now_ns", lambda: changed + 3600 * 10**9)  # an hour later
     store.get(mesh_key())
     store.get(mesh_key())
     assert len(reads) == 3
     stored.write_bytes(b"evil bytes")  # the same size
     with pytest.raises(CorruptArtifactError, match="mesh.ply"):
         store.get(mesh_key())
-    os.utime(stored, (an_hour_ago, an_hour_ago))  # the old times back: the change time is new
+    # The old times back: the change time is new once the clock has moved on by a tick of
+    # the coarsest timestamps (10 ms: a 100 Hz kernel).
+    time.sleep(0.05)
+    os.utime(stored, (an_hour_ago, an_hour_ago))
     with pytest.raises(CorruptArtifactError, match="mesh.ply"):
         store.get(mesh_key())
 

@@ -45,17 +45,28 @@ def find_file(folder: str | Path, suffixes: Sequence[str], what: str) -> Path:
 
 
 def mesh_landmarks(mesh_dir: str | Path, vertices: np.ndarray) -> Path | np.ndarray | None:
-    """The mesh's 68 landmarks for the alignment's start. A mesh in the template's topology
-    (the fitting stage's) takes its own landmark vertices, so that the same mesh.ply scores
-    the same with or without the fitting's landmark file beside it (``evaluate-dataset``
-    ingests mesh.ply alone): that file holds the same points rounded to a micrometre, and
-    the trimmed ICP's fixed point moves with its start by hundredths of a millimetre. Any
-    other mesh takes the landmark file beside it, or None."""
+    """The mesh's 68 landmarks for the alignment's start. A mesh in the default template's
+    topology whose landmark file (the fitting's, beside it) names that template, or that
+    has none, takes its own landmark vertices: the same mesh.ply then scores the same with
+    or without the file (``evaluate-dataset`` ingests mesh.ply alone), which holds the same
+    points rounded to a micrometre, while the trimmed ICP's fixed point moves with its start
+    by hundredths of a millimetre. Any other mesh takes the file, or None without one."""
     template = Template.default()
-    if len(vertices) == len(template.vertices):
-        return np.asarray(vertices, float)[template.landmarks]
     path = Path(mesh_dir) / MESH_LANDMARKS
+    named = _template_named(path) if path.is_file() else template.name
+    if len(vertices) == len(template.vertices) and named == template.name:
+        return np.asarray(vertices, float)[template.landmarks]
     return path if path.is_file() else None
+
+
+def _template_named(landmarks_json: Path) -> str | None:
+    """The template a landmark file says its points are on (None where it says none, or
+    cannot be read: the alignment's reader then says what is wrong with it)."""
+    try:
+        named = json.loads(landmarks_json.read_text()).get("template")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return named if isinstance(named, str) else None
 
 
 def main(mesh_dir: str | Path, scan_dir: str | Path, out_dir: str | Path,

@@ -37,7 +37,12 @@ _CHECKED: dict[tuple[str, str, int], tuple[int, ...]] = {}
 MAX_CHECKED = 200_000
 """The most files :data:`_CHECKED` remembers."""
 RECENT_NS = 2_000_000_000
-"""Files modified less than this long before their check are checked again each time."""
+"""Files modified or changed (their metadata: ``touch``, ``cp -p``) less than this long
+before their check are checked again each time."""
+
+
+def _now_ns() -> int:
+    return time.time_ns()
 
 
 def _file_identity(path: str) -> tuple[int, ...] | None:
@@ -101,9 +106,10 @@ class LocalStore(ArtifactStore):
             problem = self._stored_file_problem(manifest, name, entry)
             if problem:
                 raise self._corrupt(key, name, problem)
-            # A file written within the file system's timestamp granularity of its check
-            # could be written again with the same times: only older files are remembered.
-            if seen is not None and time.time_ns() - seen[3] > RECENT_NS:
+            # A file written within the file system's timestamp granularity (a few ms on
+            # older kernels) of its check could be written again with the same times: only
+            # files whose last modification and last change are both older are remembered.
+            if seen is not None and _now_ns() - max(seen[3], seen[4]) > RECENT_NS:
                 if len(_CHECKED) >= MAX_CHECKED:  # a worker's life long: start again
                     _CHECKED.clear()
                 _CHECKED[(path, entry.sha256, entry.size)] = seen
