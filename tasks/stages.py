@@ -131,7 +131,8 @@ def call_stored_maps(name: str, store: str, inputs: dict[str, str], config: Base
     stored (:func:`all_stored`), from one task run within the stage's limits."""
     now = time.monotonic()
     end = _end(now, deadline)
-    runner = STORED_MAPS_TASKS[name].with_options(timeout_seconds=max(0.0, end - now))
+    runner = _within_limits(STORED_MAPS_TASKS[name], name, label, now, end, deadline)
+    runner = runner.with_options(timeout_seconds=end - now)
     return stage_result(name, lambda: runner(store, inputs, config, indices, label), label,
                         now, deadline)
 
@@ -141,6 +142,20 @@ def call_stored_maps(name: str, store: str, inputs: dict[str, str], config: Base
 def ingest_task(store: str, path: str, name: str, label: str = "") -> str:
     """Copy a raw input (video, photos, scan) into the store; returns its content key."""
     return ingest(store, path, name)
+
+
+def _within_limits(runner, name: str, label: str, now: float, end: float,
+                   deadline: float | None):
+    """``runner`` (a stage's task) retried only while its time lasts; refused with the
+    time limit's line once that has passed (``end``: the stage's or the capture's end,
+    ``time.monotonic()``)."""
+    if end <= now:
+        raise FacecapError(capture_time_limit_message(label or "the capture", name)
+                           if deadline is not None and end == deadline
+                           else stage_time_limit_message(label or "the capture", name))
+    # A retry starts the attempt's time again: none once the limit has passed.
+    return runner.with_options(retry_condition_fn=lambda task, run, state: (
+        time.monotonic() < end and retry_condition(task, run, state)))
 
 
 def call_stage(name: str, store: str, inputs: dict[str, str], config: BaseModel | None,
@@ -154,16 +169,9 @@ def call_stage(name: str, store: str, inputs: dict[str, str], config: BaseModel 
     timeout; one map of a fanned-out stage (``params``; ``started`` the fan-out's start)
     none, the fan-out as a whole keeps the limits by the wait in ``stage_result`` (a timeout
     per map would warn on every map)."""
-    runner = TASKS[name]
     now = time.monotonic()
     end = _end(now if started is None else started, deadline)
-    if end <= now:
-        raise FacecapError(capture_time_limit_message(label or "the capture", name)
-                           if deadline is not None and end == deadline
-                           else stage_time_limit_message(label or "the capture", name))
-    # A retry starts the attempt's time again: none once the limit has passed.
-    runner = runner.with_options(retry_condition_fn=lambda task, run, state: (
-        time.monotonic() < end and retry_condition(task, run, state)))
+    runner = _within_limits(TASKS[name], name, label, now, end, deadline)
     if not submit or params is None:  # a whole stage; a fanned-out map carries none
         runner = runner.with_options(timeout_seconds=end - now)
     if submit:
