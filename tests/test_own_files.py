@@ -132,3 +132,47 @@ def test_a_planted_lock_is_refused_and_what_it_leads_to_kept(name, kind, tmp_pat
     if name == "lock folder" and kind == "link":
         assert not list((tmp_path / "elsewhere").iterdir())  # no lock made behind the link
     assert not open_store(store).exists(key)
+
+
+@pytest.mark.parametrize("kind", ["FIFO", "deep", "link"])
+def test_a_planted_results_record_is_no_record(kind, tmp_path):
+    """A FIFO at ``OUT/.facecap-results.json`` used to hang ``reconstruct`` as it committed
+    its results (the writer reads the record first): it, a JSON bomb or a link there is read
+    as an empty record (nothing of the folder is taken for facecap's) and replaced by the
+    real one, without following the link."""
+    from facecap.tasks.outputs import RECORD_NAME, write_results
+
+    out, secret = tmp_path / "out", tmp_path / "secret.txt"
+    secret.write_text("the user's own file")
+    out.mkdir()
+    (out / "notes.txt").write_text("the user's notes")
+    plant(out / RECORD_NAME, kind, secret)
+    with deadline():
+        write_results(out, {"mesh.ply": b"a mesh"}, ())
+        write_results(out, {"report.json": b"{}"}, ())
+    assert (out / "mesh.ply").read_bytes() == b"a mesh"
+    assert read_json(out / RECORD_NAME).keys() == {"mesh.ply", "report.json"}
+    assert (out / "notes.txt").read_text() == "the user's notes"
+    assert secret.read_text() == "the user's own file"
+
+
+@pytest.mark.parametrize("kind", ["FIFO", "deep"])
+def test_a_planted_evaluation_neither_hangs_nor_crashes_the_dataset_page(kind, tmp_path):
+    """A FIFO under ``OUT/evaluations/`` used to hang ``facecap dataset`` as it wrote its
+    page (and one nested 100,000 deep crashed it): the page passes over it. Before an
+    evaluation, the history check names it in one line."""
+    from facecap.flows.evaluate import check_history
+    from facecap.pages.dataset import rewrite_dataset_page
+
+    out = tmp_path / "out"
+    planted = out / "evaluations" / "20261102T020000000000Z.json"
+    plant(planted, kind, tmp_path)
+    plant(out / "dataset.json", kind, tmp_path)
+    with deadline():
+        rewrite_dataset_page(out)
+        with pytest.raises(InputError) as refused:
+            check_history(out)
+    assert (out / "index.html").is_file()
+    problem = "a FIFO" if kind == "FIFO" else "JSON nested 100000 deep"
+    assert str(refused.value).startswith(f"{planted} is not an evaluation facecap wrote "
+                                         f"({problem}"), str(refused.value)
