@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -29,6 +30,9 @@ from facecap.tasks.store.base import redact
 from facecap.tasks.store.keys import KEY_PATTERN
 from facecap_core.dataset import SUMMARY_NAMES
 from facecap_core.errors import InputError
+
+NAME_MAX = 255
+"""The longest name of a file or folder, in bytes (Linux's and macOS's file systems)."""
 
 
 @dataclass
@@ -340,9 +344,13 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
     the nightly evaluation stored), the subject's results folder and UI pages. Removes
     nothing; refuses what it cannot do safely."""
     if (not subject or subject in (".", "..") or "/" in subject or "\\" in subject
-            or subject.startswith(".")):
+            or subject.startswith(".") or "\x00" in subject):
         raise InputError(f"{subject!r} is not a subject name; give the name of a folder in "
                          "the dataset, such as 'alice'")
+    if len(os.fsencode(subject)) > NAME_MAX:  # no folder has it: the look-up would fail
+        raise InputError(f"the subject name {subject[:24]!r}... is {len(os.fsencode(subject))} "
+                         f"bytes long, longer than a folder name can be ({NAME_MAX}); give the "
+                         "name of a folder in the dataset")
     if subject in SUMMARY_NAMES:
         raise InputError(f"{subject!r} is a summary the dataset and evaluation runs write, not "
                          "a subject; give the name of a subject's folder")

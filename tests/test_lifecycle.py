@@ -513,3 +513,15 @@ def test_a_planted_report_neither_hangs_nor_crashes_a_prune(kind, world, capfd):
                                           "100000 deep", "nothing was removed"])
     assert set(store.keys()) == before
 
+
+def test_forget_refuses_a_name_longer_than_a_folder_name(world, capfd):
+    """A 300-character subject name used to reach the file system, whose ENAMETOOLONG came
+    out as an internal error: one line, exit 2, nothing removed."""
+    from tests.test_bad_inputs import assert_one_line_error, facecap
+
+    before = set(open_store(world["store"]).keys())
+    code, _, err = facecap(capfd, "forget", "a" * 300, "--root", world["root"], "--out",
+                           world["out"], "--store", world["store"])
+    assert_one_line_error(code, err, ["is 300 bytes long, longer than a folder name can be "
+                                      "(255)", "give the name of a folder in the dataset"])
+    assert set(open_store(world["store"]).keys()) == before
