@@ -105,11 +105,10 @@ def _lock_file(store: ArtifactStore, name: str):
     the folder or the file is refused (:func:`facecap.tasks.own_files.open_regular`): a lock
     opened through a link would truncate or make what it leads to."""
     folder = _lock_dir(store)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except FileExistsError:
-        pass  # a file, a FIFO or a link there: open_folder says which
-    folder_fd = open_folder(folder)
+    if folder.exists() and not folder.is_dir():  # mkdir would say EEXIST, which may pass
+        raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
+    folder.mkdir(parents=True, exist_ok=True)
+    folder_fd = open_folder(folder)  # a link to a folder: refused
     try:
         return os.fdopen(open_regular(name, create=True, dir_fd=folder_fd), "r+b")
     except OwnFileError as exc:
