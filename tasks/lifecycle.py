@@ -23,16 +23,13 @@ from facecap.tasks.outputs import (
     check_output_place,
     remove_results,
 )
-from facecap.tasks.own_files import OwnFileError, read_json
+from facecap.tasks.own_files import NAME_MAX, OwnFileError, read_json
 from facecap.tasks.runner import key_lock, unleased
 from facecap.tasks.store import ArtifactStore, CorruptArtifactError, input_key
 from facecap.tasks.store.base import redact
 from facecap.tasks.store.keys import KEY_PATTERN
 from facecap_core.dataset import SUMMARY_NAMES
 from facecap_core.errors import InputError
-
-NAME_MAX = 255
-"""The longest name of a file or folder, in bytes (Linux's and macOS's file systems)."""
 
 
 @dataclass

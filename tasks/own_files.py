@@ -24,6 +24,9 @@ from itertools import accumulate
 
 from facecap_core.errors import InputError
 
+NAME_MAX = 255
+"""The longest name of a file or folder, in bytes (Linux's and macOS's file systems): a
+longer one is refused before the file system is asked (ENAMETOOLONG)."""
 MAX_JSON_BYTES = 16 * 2**20
 """The most a JSON file of facecap's may hold: an evaluation of a dataset of 10,000
 captures is some 4 MB; anything larger is not one of its files."""

@@ -384,6 +384,13 @@ ICT_SUBJECT_FORMS = ["names no subject", "ict:seed with seed a whole number from
 CORPUS = {
     # name: (argv builder (media, tmp, kept) -> facecap arguments, words the message holds)
     "missing video": (lambda m, t, k: ["reconstruct", t / "nope.mp4"], ["capture not found"]),
+    "a video named by 300 characters (ENAMETOOLONG)": (
+        lambda m, t, k: ["reconstruct", t / ("a" * 300 + ".mp4")],
+        ["is 304 bytes long, longer than a file or folder name can be (255)",
+         "give a shorter name"]),
+    "dataset: a folder named by 300 characters": (
+        lambda m, t, k: ["dataset", t / ("d" * 300), "--out", k["out"]],
+        ["is 300 bytes long, longer than a file or folder name can be (255)"]),
     "empty file": (lambda m, t, k: ["reconstruct", m["empty"]],
                    ["not a readable video", "give an mp4"]),
     "truncated MP4, index at the end": (lambda m, t, k: ["reconstruct", m["truncated"]],
