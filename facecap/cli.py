@@ -519,7 +519,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"facecap: error: {store_unreachable(store, exc)}", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 - anything else is a bug: say so, keep the trace
-        full = console.full_disk_error(exc)  # what failed may be the disk, not facecap
+        # What failed may be the disk or the user's names, not facecap.
+        full = console.full_disk_error(exc) or console.name_too_long_error(exc)
         print(f"facecap: error: {full}" if full else _internal_error(exc, argv),
               file=sys.stderr)
         return 2 if full else 1

@@ -3,6 +3,7 @@ scratch folder, quiet consoles (unless ``--verbose``) and its own Prefect server
 
 from __future__ import annotations
 
+import errno
 import logging
 import logging.config
 import os
@@ -10,6 +11,7 @@ import sys
 from pathlib import Path
 
 from facecap.flows.local_server import start_local_server
+from facecap.tasks.own_files import NAME_MAX
 from facecap.tasks.scratch import process_scratch, remove_orphans
 from facecap_core.assets import facecap_home
 from facecap_core.settings import folder_problem
@@ -62,6 +64,21 @@ def full_disk_error(exc: BaseException) -> str | None:
     return (f"no space left on the disk of {full} ({type(exc).__name__}: "
             f"{' '.join(str(exc).split())[:80]}); free space there and run again (what was "
             "computed before is kept)")
+
+
+def name_too_long_error(exc: BaseException) -> str | None:
+    """The error line of ``exc`` when a path is longer than the file system allows
+    (ENAMETOOLONG: a name of the user's over 255 bytes, or the whole path too long), or
+    None: the user's names, not a bug of facecap's."""
+    if not (isinstance(exc, OSError) and exc.errno == errno.ENAMETOOLONG):
+        return None
+    path = os.fsencode(exc.filename or "")
+    longest = max(path.split(b"/"), key=len)
+    if len(longest) > NAME_MAX:
+        return (f"the name {os.fsdecode(longest[:24])!r}... is {len(longest)} bytes long, longer "
+                f"than a file or folder name can be ({NAME_MAX}); give a shorter name")
+    return (f"the path {os.fsdecode(path[:48])!r}... is {len(path)} bytes long, longer than the "
+            "file system allows; give a shorter path")
 
 
 def full_disk() -> str | None:

@@ -22,6 +22,7 @@ from facecap.flows.service import guard
 from facecap.flows.ui import publish_dataset_page
 from facecap.pages.dataset import rewrite_dataset_page
 from facecap.tasks.outputs import check_output_place, write_results
+from facecap.tasks.own_files import OwnFileError, read_json
 from facecap.tasks.runner import run_leases
 from facecap.tasks.stages import call_ingest, call_stage
 from facecap.tasks.store import open_store
@@ -66,15 +67,17 @@ def previous_evaluation(folder: Path, before: str) -> dict:
     if not older:
         return {}
     try:
-        doc = json.loads(older[-1].read_text(encoding="utf-8"))
+        doc = read_json(older[-1])  # never through a link, a FIFO, a JSON bomb
         # A capture without a mesh then keeps its last score, the baseline for its return.
         captures = {**doc.get("carried", {}), **doc["captures"]}
         for record in captures.values():
             for side in ("accuracy", "completion"):
                 float(record[side]["median"])
-    except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
-        raise InputError(f"{older[-1]} is not an evaluation facecap wrote ({type(exc).__name__});"
-                         " move it out of the folder or delete it") from None
+    except (OSError, OwnFileError, TypeError, KeyError, AttributeError, ValueError) as exc:
+        # What the file is (a FIFO, nested too deep) says it best; a record's value, its type.
+        why = exc.problem if isinstance(exc, OwnFileError) else type(exc).__name__
+        raise InputError(f"{older[-1]} is not an evaluation facecap wrote ({why}); move it out "
+                         "of the folder or delete it") from None
     return captures
 
 

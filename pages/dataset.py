@@ -14,7 +14,6 @@ on its heading). Self-contained like the capture pages: it opens from disk. The 
 from __future__ import annotations
 
 import base64
-import json
 from collections.abc import Callable
 from pathlib import Path
 from urllib.parse import quote
@@ -27,6 +26,7 @@ from facecap.pages.render import render
 from facecap.pages.stored import PAGE_NAME, keep_page, stored_link
 from facecap.tasks.lifecycle import report_keys
 from facecap.tasks.outputs import write_results
+from facecap.tasks.own_files import OwnFileError, read_json
 from facecap_core.dataset import SUMMARY_NAMES
 from facecap_core.evaluation import COLORBAR_HEIGHT
 
@@ -63,8 +63,8 @@ def dataset_name(out: Path) -> str:
                                              reverse=True)[:1]]
     for path in records:
         try:
-            name = _mapping(json.loads(path.read_text())).get("dataset")
-        except (OSError, ValueError):
+            name = _mapping(read_json(path)).get("dataset")
+        except (OSError, OwnFileError):
             continue
         if isinstance(name, str) and name.strip():
             return name
@@ -79,8 +79,8 @@ def _history(out: Path) -> tuple[dict[str, list[float]], set[str]]:
     files = sorted((out / "evaluations").glob("*.json"))
     for i, path in enumerate(files):
         try:
-            doc = _mapping(json.loads(path.read_text()))
-        except (OSError, ValueError):
+            doc = _mapping(read_json(path))
+        except (OSError, OwnFileError):
             continue  # check_history refuses a damaged history before a run: not this page's
         for name, score in _mapping(doc.get("captures")).items():
             median = finite_number(_mapping(_mapping(score).get("accuracy")).get("median"))
@@ -167,9 +167,8 @@ def build_dataset_page(out: Path, captures: list[tuple[str, str]],
         inside = not any(p.is_symlink() for p in (out / subject, folder, folder / "report.json",
                                                   folder / "mesh.ply"))
         try:
-            report = (_mapping(json.loads((folder / "report.json").read_text())) if inside
-                      else {})
-        except (OSError, ValueError):
+            report = _mapping(read_json(folder / "report.json")) if inside else {}
+        except (OSError, OwnFileError):  # a FIFO, a JSON bomb: the row shows nothing of it
             report = {}
         fig = _mapping(report.get("figures"))
         if name in failed:
@@ -216,8 +215,8 @@ def _dataset_contents(out: Path) -> tuple[list[tuple[str, str]], dict[str, str]]
                       if _plain_name(capture.name) and not capture.is_symlink()
                       and (capture / "report.json").is_file())
     try:
-        failed = _mapping(_mapping(json.loads((out / "dataset.json").read_text())).get("failed"))
-    except (OSError, ValueError):
+        failed = _mapping(_mapping(read_json(out / "dataset.json")).get("failed"))
+    except (OSError, OwnFileError):
         failed = {}
     # Only names of a capture's folder in OUT, with a reason in words: a name such as
     # '../x' would have the page show what lies outside OUT.

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -22,6 +23,7 @@ from facecap.tasks.outputs import (
     check_output_place,
     remove_results,
 )
+from facecap.tasks.own_files import NAME_MAX, OwnFileError, read_json
 from facecap.tasks.runner import key_lock, unleased
 from facecap.tasks.store import ArtifactStore, CorruptArtifactError, input_key
 from facecap.tasks.store.base import redact
@@ -145,13 +147,13 @@ def _check_reports_readable(folder: Path) -> None:
         if path.is_symlink() or not path.is_file():
             continue
         try:
-            json.loads(path.read_bytes())
+            read_json(path)
         except OSError as exc:
             raise InputError(f"the run report {path} cannot be read ({exc.strerror}); make it "
                              "readable or move it out of the results folder, then prune again "
                              "(nothing was removed)") from None
-        except ValueError as exc:  # not UTF-8, not JSON
-            raise InputError(f"the run report {path} is damaged ({type(exc).__name__}): the "
+        except OwnFileError as exc:  # not UTF-8, not JSON, nested or grown past facecap's
+            raise InputError(f"the run report {path} is damaged ({exc.problem}): the "
                              "artifacts of its run could not be kept; restore it or move it out "
                              "of the results folder, then prune again (nothing was removed)"
                              ) from None
@@ -206,9 +208,9 @@ def _run_reports(folder: Path, paths: Iterable[Path] | None = None) -> Iterator[
         if path.name != "report.json":
             continue
         try:
-            doc = json.loads(path.read_text())
+            doc = read_json(path)  # a FIFO, a link, a JSON bomb: no report of facecap's
             keys = [row["key"] for row in doc["stages"].values()]
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        except (OSError, OwnFileError, KeyError, TypeError, AttributeError):
             continue
         if keys and all(isinstance(key, str) for key in keys):
             yield doc
@@ -279,16 +281,24 @@ def _without(subject: str, doc):
     return doc
 
 
-def _forget_summaries(out: Path, subject: str) -> tuple[dict[str, bytes], int]:
+def _forget_summaries(out: Path, subject: str) -> tuple[dict[str, bytes], int, list[Path]]:
     """The evaluation history and the dataset summaries without the subject's captures
-    (each changed file's name relative to ``out`` and its new content), and how many history
-    entries go."""
-    removed, rewritten = 0, {}
+    (each changed file's name relative to ``out`` and its new content), how many history
+    entries go, and the summaries that cannot be read (kept as they are)."""
+    removed, rewritten, unreadable = 0, {}, []
     history = sorted((out / "evaluations").glob("*.json"))
     for path in [*history, out / "dataset.json", out / "consistency.json"]:
         try:
-            doc = json.loads(path.read_text())
-        except (OSError, ValueError):
+            doc = read_json(path)
+        except FileNotFoundError:
+            continue
+        except (OSError, OwnFileError):
+            # A FIFO, a link, a JSON bomb or a damaged file is no summary facecap can
+            # rewrite: it is kept and listed with what else the user must look at, and the
+            # forget goes on. Refusing would hold every subject's erasure (faces in the
+            # store, results) hostage to one planted file; what it holds, if anything of
+            # the subject, is for the user to judge, as with any file facecap did not write.
+            unreadable.append(path)
             continue
         kept = _without(subject, doc)
         if kept == doc:
@@ -296,7 +306,7 @@ def _forget_summaries(out: Path, subject: str) -> tuple[dict[str, bytes], int]:
         if path in history and isinstance(doc, dict) and isinstance(doc.get("captures"), dict):
             removed += len(doc["captures"]) - len(kept["captures"])
         rewritten[path.relative_to(out).as_posix()] = json.dumps(kept, indent=1).encode()
-    return rewritten, removed
+    return rewritten, removed, unreadable
 
 
 def _check_places(out: Path, root: Path | None, subject: str, store: ArtifactStore) -> None:
@@ -331,9 +341,13 @@ def plan_forget(store: ArtifactStore, subject: str, root: Path | None,
     the nightly evaluation stored), the subject's results folder and UI pages. Removes
     nothing; refuses what it cannot do safely."""
     if (not subject or subject in (".", "..") or "/" in subject or "\\" in subject
-            or subject.startswith(".")):
+            or subject.startswith(".") or "\x00" in subject):
         raise InputError(f"{subject!r} is not a subject name; give the name of a folder in "
                          "the dataset, such as 'alice'")
+    if len(os.fsencode(subject)) > NAME_MAX:  # no folder has it: the look-up would fail
+        raise InputError(f"the subject name {subject[:24]!r}... is {len(os.fsencode(subject))} "
+                         f"bytes long, longer than a folder name can be ({NAME_MAX}); give the "
+                         "name of a folder in the dataset")
     if subject in SUMMARY_NAMES:
         raise InputError(f"{subject!r} is a summary the dataset and evaluation runs write, not "
                          "a subject; give the name of a subject's folder")
@@ -402,9 +416,10 @@ def remove(store: ArtifactStore, removal: Removal, subject: str, out: Path | Non
     Everything that can fail is done before anything is removed: the rewritten files are
     made and staged in ``out`` first (a damaged summary, a folder that cannot be written
     stop the forget there), and put in place once the subject's data is gone."""
-    rewritten, removal.history_entries = (_forget_summaries(Path(out), subject)
-                                          if out is not None else ({}, 0))
+    rewritten, removal.history_entries, unreadable = (_forget_summaries(Path(out), subject)
+                                                      if out is not None else ({}, 0, []))
     if dry_run:
+        removal.kept += unreadable
         return removal
     rewritten.update(results or {})
     with contextlib.ExitStack() as stack:
@@ -421,4 +436,5 @@ def remove(store: ArtifactStore, removal: Removal, subject: str, out: Path | Non
             removal.kept += kept
         if writer is not None:
             writer.commit()
+    removal.kept += unreadable
     return removal

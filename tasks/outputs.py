@@ -33,6 +33,7 @@ import time
 from collections.abc import Iterable
 from pathlib import Path, PurePosixPath
 
+from facecap.tasks.own_files import OwnFileError, open_regular, read_json
 from facecap.tasks.store.remote import cache_root
 from facecap_core.errors import FacecapError, InputError
 from facecap_core.settings import settings
@@ -243,15 +244,11 @@ def _read_record_at(fd: int) -> dict[str, str] | None:
     """The record in the folder open as ``fd``; None where it has none, empty where it
     cannot be read or is not facecap's (nothing it names is then removed)."""
     try:
-        handle = os.open(RECORD_NAME, os.O_RDONLY | os.O_NOFOLLOW, dir_fd=fd)
+        # A link, a FIFO or a JSON bomb planted there is no record: read as empty.
+        record = read_json(RECORD_NAME, MAX_RECORD_BYTES, dir_fd=fd)
     except FileNotFoundError:
         return None
-    except OSError:
-        return {}
-    try:
-        with os.fdopen(handle, "rb") as source:
-            record = json.loads(source.read(MAX_RECORD_BYTES))
-    except (OSError, ValueError):
+    except (OSError, OwnFileError):
         return {}
     if not isinstance(record, dict):
         return {}
@@ -292,7 +289,7 @@ def _ours_at(fd: int, name: PurePosixPath, recorded: dict[PurePosixPath, str | N
             return False
         digest = recorded.get(name)
         return digest is None or _sha256_at(fd, name.name) == digest
-    except OSError:
+    except (OSError, OwnFileError):  # replaced by a link or a FIFO since its stat
         return False
 
 
@@ -347,7 +344,7 @@ def remove_results(folder: str | os.PathLike, dry_run: bool = False
 
 
 def _sha256_at(fd: int, name: str) -> str:
-    handle = os.open(name, os.O_RDONLY | os.O_NOFOLLOW, dir_fd=fd)
+    handle = open_regular(name, dir_fd=fd)
     digest = hashlib.sha256()
     with os.fdopen(handle, "rb") as source:
         for chunk in iter(lambda: source.read(1 << 20), b""):

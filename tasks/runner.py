@@ -30,6 +30,7 @@ from pathlib import Path
 from pydantic import BaseModel
 
 from facecap.tasks.graph import INPUT_VERSION, Stage, config_data, stage_key
+from facecap.tasks.own_files import OwnFileError, open_folder, open_regular
 from facecap.tasks.scratch import process_scratch
 from facecap.tasks.store import (
     ArtifactStore,
@@ -98,16 +99,30 @@ def _lock_dir(store: ArtifactStore) -> Path:
     return facecap_home() / "locks"
 
 
+def _lock_file(store: ArtifactStore, name: str):
+    """The lock or lease file ``name`` of the store's lock folder, open for reading and
+    writing and made if missing, never truncated; a link, a FIFO or a folder planted for
+    the folder or the file is refused (:func:`facecap.tasks.own_files.open_regular`): a lock
+    opened through a link would truncate or make what it leads to."""
+    folder = _lock_dir(store)
+    if folder.exists() and not folder.is_dir():  # mkdir would say EEXIST, which may pass
+        raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
+    folder.mkdir(parents=True, exist_ok=True)
+    folder_fd = open_folder(folder)  # a link to a folder: refused
+    try:
+        return os.fdopen(open_regular(name, create=True, dir_fd=folder_fd), "r+b")
+    except OwnFileError as exc:
+        raise OwnFileError(folder / name, exc.problem) from None
+    finally:
+        os.close(folder_fd)
+
+
 @contextmanager
 def key_lock(store: ArtifactStore, key: str):
     """Exclusive lock on one artifact key: a second run on the same capture waits here, then
     finds the artifact committed and computes nothing."""
-    folder = _lock_dir(store)
     try:
-        if folder.exists() and not folder.is_dir():  # mkdir would say EEXIST, which may pass
-            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
-        folder.mkdir(parents=True, exist_ok=True)
-        handle = open(folder / f"{key}.lock", "w")
+        handle = _lock_file(store, f"{key}.lock")
     except OSError as exc:  # a read-only store: the lasting errno keeps it from retries
         raise StoreWriteError(f"cannot lock artifact {key} in store {store.shown_url} "
                               f"({exc.strerror or type(exc).__name__}); check that the "
@@ -127,9 +142,7 @@ UNLEASABLE = frozenset({errno.EROFS, errno.EACCES, errno.EPERM})
 
 
 def _lease_file(store: ArtifactStore, key: str):
-    folder = _lock_dir(store)
-    folder.mkdir(parents=True, exist_ok=True)
-    return open(folder / f"{key}.lease", "a")  # noqa: SIM115 - held by the caller
+    return _lock_file(store, f"{key}.lease")
 
 
 @contextmanager

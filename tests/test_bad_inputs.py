@@ -141,6 +141,7 @@ def media(tmp_path_factory) -> dict[str, Path]:
     orbit = orbit_frames(40)
     m = {"orbit": write_video(d / "orbit.mp4", orbit)}
     m["static"] = write_video(d / "static.mp4", orbit_frames(20, yaw_deg=(0.0, 0.0)))
+    m["still"] = write_video(d / "still.mp4", orbit[:1] * 40)  # one frame, 40 times
     m["frontal"] = write_video(d / "frontal.mp4", orbit_frames(20, yaw_deg=(-3.0, 3.0)))
     (d / "empty.mp4").write_bytes(b"")
     m["empty"] = d / "empty.mp4"
@@ -383,6 +384,13 @@ ICT_SUBJECT_FORMS = ["names no subject", "ict:seed with seed a whole number from
 CORPUS = {
     # name: (argv builder (media, tmp, kept) -> facecap arguments, words the message holds)
     "missing video": (lambda m, t, k: ["reconstruct", t / "nope.mp4"], ["capture not found"]),
+    "a video named by 300 characters (ENAMETOOLONG)": (
+        lambda m, t, k: ["reconstruct", t / ("a" * 300 + ".mp4")],
+        ["is 304 bytes long, longer than a file or folder name can be (255)",
+         "give a shorter name"]),
+    "dataset: a folder named by 300 characters": (
+        lambda m, t, k: ["dataset", t / ("d" * 300), "--out", k["out"]],
+        ["is 300 bytes long, longer than a file or folder name can be (255)"]),
     "empty file": (lambda m, t, k: ["reconstruct", m["empty"]],
                    ["not a readable video", "give an mp4"]),
     "truncated MP4, index at the end": (lambda m, t, k: ["reconstruct", m["truncated"]],
@@ -654,6 +662,19 @@ def test_a_resolution_change_midway_is_refused_by_the_keyframe_stage(media):
     assert "re-export it at one resolution" in str(refused.value)
 
 
+def test_a_video_of_one_frame_repeated_is_refused_by_the_keyframe_stage(media):
+    """40 identical frames: every tracked point stays where it was, which leaves the
+    essential matrix's five-point solver a degenerate polynomial (an OpenCV ``solvePoly``
+    assertion, an internal error); the keyframe stage says the camera barely moves."""
+    from facecap_core.errors import InputError
+    from facecap_core.keyframes import select_keyframes
+
+    with pytest.raises(InputError) as refused:
+        select_keyframes(media["still"])
+    assert "still.mp4: only 1 keyframe(s) — the camera barely moves" in str(refused.value)
+    assert "sweep the phone around the head" in str(refused.value)
+
+
 def test_the_capture_stream_is_chosen_over_a_preview_stream(media, tmp_path):
     """A file whose first video stream is a one-frame preview: the capture is the stream
     with the frames, in every reader (probe, frame count, decoding)."""
@@ -764,6 +785,8 @@ CHEAP_POSES = "keyframes: {keyframe_angle_deg: 10}\nposes: {method: geometric, u
 IN_A_FLOW = {
     "static camera": (lambda m, t: ["reconstruct", m["static"]],
                       ["static.mp4: only 1 keyframe", "barely moves", "sweep the phone"]),
+    "40 identical frames": (lambda m, t: ["reconstruct", m["still"]],
+                            ["still.mp4: only 1 keyframe", "barely moves", "sweep the phone"]),
     "frontal only (the face never turns)": (lambda m, t: ["reconstruct", m["frontal"]],
                                             ["frontal.mp4: only", "barely moves",
                                              "ear to ear"]),

@@ -450,3 +450,80 @@ def test_forget_refuses_a_results_folder_without_records(world, capfd):
     assert "holds no record of a facecap result" in err[0] and "nothing was removed" in err[0]
     assert (old / "mesh.ply").read_bytes() == b"a mesh from before records"
     assert set(open_store(world["store"]).keys()) == before
+
+
+@pytest.mark.parametrize("kind", ["FIFO", "deep"])
+def test_planted_records_neither_hang_nor_crash_forget(kind, world, capfd):
+    """A FIFO or JSON nested 100,000 deep planted as another subject's run report, as a
+    results record in the subject's folder, as an evaluation and as ``dataset.json``: the
+    forget used to hang (a FIFO opened to read) or end in a RecursionError, and one such
+    file blocked the forget of every subject. Now the subject is forgotten, exit 0; the
+    summaries it cannot read are kept, and named with what else the user must look at."""
+    from facecap.pages.dataset import rewrite_dataset_page
+    from tests.test_own_files import deadline, plant
+
+    out, store = world["out"], world["store"]
+    rewrite_dataset_page(out)  # the page forget rewrites without the subject
+    planted = [out / "bob" / "take1" / "report.json", out / "alice" / "take1" / "x" / RECORD_NAME,
+               out / "evaluations" / "20261102T020000000000Z.json", out / "dataset.json"]
+    for path in planted:
+        path.unlink(missing_ok=True)
+        plant(path, kind, out)
+    with deadline():
+        code, printed, err = _forget(capfd, "alice", "--out", out, "--store", store, "--dry-run")
+        assert code == 0, err
+        code, printed, err = _forget(capfd, "alice", "--out", out, "--store", store)
+    assert code == 0, err
+    assert set(open_store(store).keys()) == set(world["keys"]["bob"].values())
+    assert not (out / "alice" / "take1" / "report.json").exists()
+    kept = printed[printed.index("kept "):]
+    for path in planted[2:]:
+        assert f"  {path}\n" in kept, printed
+    # A regular file of a record's name is facecap's, whatever it holds: it goes; a FIFO stays.
+    assert (f"  {planted[1]}\n" in kept) == (kind == "FIFO"), printed
+    history = json.loads((out / "evaluations" / "20261101T020000000000Z.json").read_text())
+    assert list(history["captures"]) == ["bob/take1"]
+    assert "alice/take1" not in (out / "index.html").read_text()
+
+
+def _forget(capfd, *argv) -> tuple[int, str, str]:
+    code = main(["forget", *map(str, argv)])
+    printed, err = capfd.readouterr()
+    return code, printed, err
+
+
+@pytest.mark.parametrize("kind", ["FIFO", "deep"])
+def test_a_planted_report_neither_hangs_nor_crashes_a_prune(kind, world, capfd):
+    """``store prune --unreferenced`` over a results folder with a FIFO ``report.json`` used
+    to hang: a FIFO is none of facecap's reports and is passed over. A regular one nested
+    100,000 deep used to end in a RecursionError: it is a damaged report, refused in one
+    line before anything is removed."""
+    from tests.test_bad_inputs import assert_one_line_error, facecap
+    from tests.test_own_files import deadline, plant
+
+    store = open_store(world["store"])
+    before = set(store.keys())
+    report = world["out"] / "carol" / "take1" / "report.json"
+    plant(report, kind, world["out"])
+    with deadline():
+        code, _, err = facecap(capfd, "store", "prune", "--unreferenced", "--older-than-days",
+                               "0", "--out", world["out"], "--store", world["store"])
+    if kind == "FIFO":
+        assert code == 0, err
+    else:
+        assert_one_line_error(code, err, [f"the run report {report} is damaged (JSON nested "
+                                          "100000 deep", "nothing was removed"])
+    assert set(store.keys()) == before
+
+
+def test_forget_refuses_a_name_longer_than_a_folder_name(world, capfd):
+    """A 300-character subject name used to reach the file system, whose ENAMETOOLONG came
+    out as an internal error: one line, exit 2, nothing removed."""
+    from tests.test_bad_inputs import assert_one_line_error, facecap
+
+    before = set(open_store(world["store"]).keys())
+    code, _, err = facecap(capfd, "forget", "a" * 300, "--root", world["root"], "--out",
+                           world["out"], "--store", world["store"])
+    assert_one_line_error(code, err, ["is 300 bytes long, longer than a folder name can be "
+                                      "(255)", "give the name of a folder in the dataset"])
+    assert set(open_store(world["store"]).keys()) == before
