@@ -7,7 +7,6 @@ that escapes is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import signal
 import sys
@@ -559,6 +558,8 @@ def _why(failure: BaseException) -> str:
     if isinstance(failure, OSError) and failure.errno:
         text = failure.strerror or os.strerror(failure.errno)
         return f"{text}: {failure.filename}" if failure.filename else text
+    if isinstance(failure, FacecapError):  # a planted link, in its own line's words
+        return str(failure)
     return f"{type(failure).__name__}: {' '.join(str(failure).split())[:120]}"
 
 
@@ -566,7 +567,8 @@ def _write_crash_log(exc: BaseException, argv: list[str] | None) -> Path:
     """The traceback of an unexpected exception, in ``$FACECAP_HOME/logs``; raises what
     kept it from being written (no partial log is left)."""
 
-    # Could be at the top: main has loaded all three before any crash is logged.
+    # Could be at the top: main has loaded all four before any crash is logged.
+    from facecap.tasks.own_files import write_new
     from facecap.tasks.runner import facecap_home
     from facecap_core.errors import FacecapError
     from facecap_core.settings import default_home
@@ -575,17 +577,11 @@ def _write_crash_log(exc: BaseException, argv: list[str] | None) -> Path:
         home = facecap_home()
     except FacecapError:  # a bad FACECAP_* value must not hide the bug being logged
         home = default_home()
-    folder = home / "logs"
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"crash-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.log"
-    try:
-        path.write_text(f"facecap {' '.join(sys.argv[1:] if argv is None else argv)}\n\n"
-                        + "".join(traceback.format_exception(exc)))
-    except BaseException:
-        with contextlib.suppress(OSError):  # an empty or cut log would pass for the trace
-            path.unlink(missing_ok=True)
-        raise
-    return path
+    text = (f"facecap {' '.join(sys.argv[1:] if argv is None else argv)}\n\n"
+            + "".join(traceback.format_exception(exc)))
+    # Never through a link planted as logs; a cut log is removed (it would pass for the trace).
+    return Path(write_new(home / "logs", f"crash-{time.strftime('%Y%m%d-%H%M%S')}-"
+                                         f"{os.getpid()}.log", text.encode()))
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ import sys
 import time
 from pathlib import Path
 
+from facecap.tasks.own_files import OwnFileError, open_log, open_regular
 from facecap.tasks.scratch import process_scratch, start_ticks
 from facecap_core.assets import facecap_home
 from facecap_core.errors import InputError
@@ -73,12 +74,14 @@ _spawned: _Server | None = None
 
 
 def server_log() -> Path:
-    folder = facecap_home() / "logs"
-    folder.mkdir(parents=True, exist_ok=True)
-    log = folder / LOG_NAME
-    if log.is_file() and log.stat().st_size > MAX_LOG_BYTES:
-        log.unlink(missing_ok=True)
-    return log
+    return facecap_home() / "logs" / LOG_NAME
+
+
+def open_server_log() -> int:
+    """The server log, open for appending (:func:`tasks.own_files.open_log`: ``logs`` or
+    ``server.log`` planted as a link or a FIFO is refused in one line, nothing written
+    behind it)."""
+    return open_log(server_log().parent, LOG_NAME, MAX_LOG_BYTES)
 
 
 def _free_port() -> int:
@@ -87,9 +90,10 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
-def _uvicorn(port: int, quiet: bool) -> subprocess.Popen:
+def _uvicorn(port: int, log: int | None) -> subprocess.Popen:
     """Prefect's own ephemeral server (``SubprocessASGIServer``'s command and environment),
-    on ``port``, its temporary files in this command's scratch folder."""
+    on ``port``, its temporary files in this command's scratch folder, its output to the
+    descriptor ``log`` (or this command's console)."""
     prefect_dir = Path(importlib.util.find_spec("prefect").origin).parent  # not imported
     command = [sys.executable, "-m", "uvicorn", "--app-dir", str(prefect_dir.parent),
                "--factory", "prefect.server.api.server:create_app", "--host", "127.0.0.1",
@@ -100,10 +104,7 @@ def _uvicorn(port: int, quiet: bool) -> subprocess.Popen:
         from prefect.settings import get_current_settings
 
         env.update(get_current_settings().to_environment_variables(exclude_unset=True))
-    if not quiet:
-        return subprocess.Popen(command, env=env)
-    with open(server_log(), "ab") as log:
-        return subprocess.Popen(command, env=env, stdout=log, stderr=log)
+    return subprocess.Popen(command, env=env, stdout=log, stderr=log)
 
 
 DATABASE_ERROR = re.compile(r"^sqlalchemy\.exc\.\w+: \((?:\w+\.)*\w+\) (.+)$", re.MULTILINE)
@@ -114,10 +115,10 @@ def database_problem(log: Path, offset: int) -> str | None:
     """The database error a failed start wrote into ``log`` past byte ``offset`` (its
     last), or None."""
     try:
-        with open(log, "rb") as file:
+        with os.fdopen(open_regular(log), "rb") as file:
             file.seek(offset)
             text = file.read(MAX_LOG_BYTES).decode("utf-8", "replace")
-    except OSError:
+    except (OSError, OwnFileError):
         return None
     found = DATABASE_ERROR.findall(text)
     return found[-1].strip() if found else None
@@ -147,9 +148,13 @@ class _Server:
 
     def __init__(self, quiet: bool):
         self.port = _free_port()
-        log = server_log()
-        self.log_offset = (log.stat().st_size if log.is_file() else 0) if quiet else None
-        self.process = _uvicorn(self.port, quiet)
+        log = open_server_log() if quiet else None
+        try:
+            self.log_offset = os.fstat(log).st_size if log is not None else None
+            self.process = _uvicorn(self.port, log)
+        finally:
+            if log is not None:
+                os.close(log)
         reading, self.lifeline = os.pipe()
         pid = self.process.pid
         try:

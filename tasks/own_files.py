@@ -8,12 +8,16 @@ exhaust Python's parser (it recurses once per level). So :func:`open_regular` op
 following a link (``O_NOFOLLOW``) and without waiting on a FIFO (``O_NONBLOCK``, cleared once
 the file is open), and checks with ``fstat`` that it is a regular file before a byte is read
 or written; :func:`read_json` reads such a file as JSON within a size and a nesting-depth
-bound. Each refusal is an :class:`OwnFileError`: one line naming the file, what it is, and
-what to do.
+bound. The folders facecap makes for itself inside a tree that is not its own
+(``FACECAP_HOME/logs``, a store's ``.tmp``) are made and opened by :func:`own_folder`, never
+through a link, and a log in one is opened by :func:`open_log` or written whole by
+:func:`write_new`. Each refusal is an :class:`OwnFileError`: one line naming the file, what
+it is, and what to do.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import json
@@ -62,6 +66,37 @@ def _kind(mode: int) -> str:
     return "not a regular file"
 
 
+def _open_checked(path: str | os.PathLike, flags: int, dir_fd: int | None,
+                  shown: str | os.PathLike | None = None) -> int:
+    """``os.open`` with ``flags`` never through a link nor waiting on a FIFO, kept only
+    where ``fstat`` says it opened a regular file (an :class:`OwnFileError` naming
+    ``shown``, or ``path``, otherwise)."""
+    try:
+        fd = os.open(path, flags | _FLAGS, 0o644, dir_fd=dir_fd)
+    except OSError as exc:
+        # ELOOP: the name is a link (O_NOFOLLOW); EISDIR: a folder opened to write; ENXIO:
+        # a FIFO or a socket no one reads, opened to write; EEXIST: a link, with O_EXCL.
+        if exc.errno not in (errno.ELOOP, errno.EISDIR, errno.ENXIO, errno.EOPNOTSUPP,
+                             errno.EEXIST):
+            raise
+        try:
+            found = os.stat(path, dir_fd=dir_fd, follow_symlinks=False)
+        except FileNotFoundError:
+            raise exc from None
+        if exc.errno == errno.EEXIST and stat.S_ISREG(found.st_mode):
+            raise
+        raise OwnFileError(shown or path, _kind(found.st_mode)) from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise OwnFileError(shown or path, _kind(mode))
+        fcntl.fcntl(fd, fcntl.F_SETFL, fcntl.fcntl(fd, fcntl.F_GETFL) & ~os.O_NONBLOCK)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
 def open_regular(path: str | os.PathLike, create: bool = False, dir_fd: int | None = None
                  ) -> int:
     """A descriptor of the regular file at ``path`` (relative to ``dir_fd`` if given), open
@@ -69,25 +104,7 @@ def open_regular(path: str | os.PathLike, create: bool = False, dir_fd: int | No
     truncated: a lock's or a lease's content is not its point). A link, a FIFO, a folder or
     a device there is an :class:`OwnFileError`; other failures are the ``OSError`` they
     are (a missing file, a read-only folder)."""
-    flags = _FLAGS | (os.O_RDWR | os.O_CREAT if create else os.O_RDONLY)
-    try:
-        fd = os.open(path, flags, 0o644, dir_fd=dir_fd)
-    except OSError as exc:
-        # ELOOP: the name is a link (O_NOFOLLOW); EISDIR: a folder opened to write; ENXIO:
-        # a FIFO or a socket no one reads, opened to write.
-        if exc.errno not in (errno.ELOOP, errno.EISDIR, errno.ENXIO, errno.EOPNOTSUPP):
-            raise
-        found = os.stat(path, dir_fd=dir_fd, follow_symlinks=False)
-        raise OwnFileError(path, _kind(found.st_mode)) from None
-    try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            raise OwnFileError(path, _kind(mode))
-        fcntl.fcntl(fd, fcntl.F_SETFL, fcntl.fcntl(fd, fcntl.F_GETFL) & ~os.O_NONBLOCK)
-    except BaseException:
-        os.close(fd)
-        raise
-    return fd
+    return _open_checked(path, os.O_RDWR | os.O_CREAT if create else os.O_RDONLY, dir_fd)
 
 
 def open_folder(path: str | os.PathLike, dir_fd: int | None = None) -> int:
@@ -101,6 +118,62 @@ def open_folder(path: str | os.PathLike, dir_fd: int | None = None) -> int:
         found = os.stat(path, dir_fd=dir_fd, follow_symlinks=False)
         raise OwnFileError(path, _kind(found.st_mode) if not stat.S_ISREG(found.st_mode)
                            else "a file", what="folder") from None
+
+
+def own_folder(path: str | os.PathLike) -> int:
+    """A descriptor of facecap's own folder at ``path`` (``FACECAP_HOME/logs``, a store's
+    ``.tmp``), made if missing (the folders above it too), never through a link: a link,
+    a file or a FIFO planted under its name is an :class:`OwnFileError`, and nothing is
+    made behind it. The folders above it are the user's to choose, links or not."""
+    path = os.fspath(path)
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    with contextlib.suppress(FileExistsError):  # mkdir never follows a link: EEXIST
+        os.mkdir(path)
+    return open_folder(path)
+
+
+def open_log(folder: str | os.PathLike, name: str, max_bytes: int | None = None) -> int:
+    """A descriptor of the log ``folder/name``, open for appending (made if missing; started
+    again from empty once past ``max_bytes``); ``folder`` is :func:`own_folder`'s. A link
+    or a FIFO under either name is an :class:`OwnFileError`, nothing written behind it."""
+    folder_fd = own_folder(folder)
+    try:
+        if max_bytes is not None:
+            with contextlib.suppress(FileNotFoundError):
+                found = os.stat(name, dir_fd=folder_fd, follow_symlinks=False)
+                if stat.S_ISREG(found.st_mode) and found.st_size > max_bytes:
+                    os.unlink(name, dir_fd=folder_fd)
+        return _open_checked(name, os.O_WRONLY | os.O_APPEND | os.O_CREAT, folder_fd,
+                             shown=os.path.join(folder, name))
+    finally:
+        os.close(folder_fd)
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def write_new(folder: str | os.PathLike, name: str, data: bytes) -> str:
+    """Write ``data`` to the new file ``folder/name`` (``folder`` is :func:`own_folder`'s)
+    and return its path; a file that could not be written whole is removed (a cut one
+    would pass for the whole), and what kept it from being written raised."""
+    folder_fd = own_folder(folder)
+    try:
+        fd = _open_checked(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, folder_fd,
+                           shown=os.path.join(folder, name))
+        try:
+            _write_all(fd, data)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(name, dir_fd=folder_fd)
+            raise
+        finally:
+            os.close(fd)
+    finally:
+        os.close(folder_fd)
+    return os.path.join(folder, name)
 
 
 def nesting_depth(data: bytes) -> int:

@@ -380,12 +380,15 @@ def test_a_bug_on_a_full_disk_is_still_one_line(tmp_path, monkeypatch, capsys):
     def broken(*args, **kwargs):
         raise ZeroDivisionError("float division by zero")
 
-    def full(self, *args, **kwargs):
+    def full(fd, data):
+        os.write(fd, b"the first bytes")
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    from facecap.tasks import own_files
 
     monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
     monkeypatch.setattr(evaluation, "evaluate", broken)
-    monkeypatch.setattr(Path, "write_text", full)
+    monkeypatch.setattr(own_files, "_write_all", full)
     mesh = tmp_path / "m.ply"
     mesh.write_bytes(b"ply")
     code = cli.main(["evaluate", str(mesh), "--scan", str(mesh)])

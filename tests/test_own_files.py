@@ -177,3 +177,83 @@ def test_a_planted_evaluation_neither_hangs_nor_crashes_the_dataset_page(kind, t
     problem = "a FIFO" if kind == "FIFO" else "JSON nested 100000 deep"
     assert str(refused.value).startswith(f"{planted} is not an evaluation facecap wrote "
                                          f"({problem}"), str(refused.value)
+
+
+@pytest.mark.parametrize(("name", "kind"), [
+    ("logs", "link"), ("logs", "FIFO"), ("logs", "file"), ("server.log", "link"),
+    ("server.log", "FIFO")])
+def test_a_planted_logs_folder_or_server_log_is_refused_before_the_server_starts(
+        name, kind, tmp_path, monkeypatch):
+    """``FACECAP_HOME/logs`` planted as a link used to have the local Prefect server write
+    ``server.log`` behind it (a FIFO there, as ``server.log``, hung the command). Now: one
+    line naming it, before a server is started, nothing written behind the link."""
+    from facecap.flows import local_server
+
+    home, elsewhere = tmp_path / "home", tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "server.log").write_text("the user's own file")
+    monkeypatch.setenv("FACECAP_HOME", str(home))
+    planted = home / "logs" if name == "logs" else home / "logs" / "server.log"
+    if kind == "file":
+        home.mkdir()
+        planted.write_text("the user's own file")
+    else:
+        plant(planted, kind, elsewhere if name == "logs" else elsewhere / "server.log")
+
+    def started(*args, **kwargs):
+        raise AssertionError("a server was started")
+
+    monkeypatch.setattr(local_server.subprocess, "Popen", started)
+    with deadline(), pytest.raises(OwnFileError) as refused:
+        local_server._Server(quiet=True)
+    line = str(refused.value)
+    what = "a folder" if name == "logs" else "a file"
+    assert line.startswith(f"{planted} is a {kind}, where facecap keeps {what} of its own"), line
+    assert "\n" not in line and isinstance(refused.value, InputError)  # exit 2, one line
+    assert (elsewhere / "server.log").read_text() == "the user's own file"
+    assert [p.name for p in elsewhere.iterdir()] == ["server.log"]
+
+
+def test_the_server_log_is_appended_to_and_started_again_past_its_bound(tmp_path, monkeypatch):
+    """The log a server writes to is ``FACECAP_HOME/logs/server.log``, appended to; past
+    its bound it starts again from empty."""
+    from facecap.flows import local_server
+
+    monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
+    monkeypatch.setattr(local_server, "MAX_LOG_BYTES", 10)
+    for text in (b"12345", b"678", b"abc"):
+        fd = local_server.open_server_log()
+        os.write(fd, text)
+        os.close(fd)
+    assert local_server.server_log().read_bytes() == b"12345678abc"
+    os.close(local_server.open_server_log())
+    assert local_server.server_log().read_bytes() == b""
+
+
+@pytest.mark.parametrize("kind", ["link", "file"])
+def test_a_crash_log_is_never_written_behind_a_planted_logs_link(kind, tmp_path, monkeypatch,
+                                                                 capsys):
+    """A bug's traceback goes to ``FACECAP_HOME/logs/crash-….log``: with ``logs`` planted as
+    a link it used to be written behind it. Now the bug's one line says why the traceback
+    was not saved, and nothing is written behind the link."""
+    from facecap import cli
+    from facecap_core import evaluation
+
+    def broken(*args, **kwargs):
+        raise ZeroDivisionError("float division by zero")
+
+    home, elsewhere = tmp_path / "home", tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    home.mkdir()
+    plant(home / "logs", "link", elsewhere) if kind == "link" else (home / "logs").write_text("")
+    monkeypatch.setenv("FACECAP_HOME", str(home))
+    monkeypatch.setattr(evaluation, "evaluate", broken)
+    mesh = tmp_path / "m.ply"
+    mesh.write_bytes(b"ply")
+    code = cli.main(["evaluate", str(mesh), "--scan", str(mesh)])
+    err = capsys.readouterr().err
+    assert code == 1 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith("facecap: internal error (a bug in facecap"), err
+    assert (f"the traceback could not be saved ({home / 'logs'} is a {kind}, where facecap "
+            "keeps a folder of its own; move it out of the way or delete it") in err, err
+    assert not list(elsewhere.iterdir())
