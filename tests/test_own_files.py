@@ -257,3 +257,28 @@ def test_a_crash_log_is_never_written_behind_a_planted_logs_link(kind, tmp_path,
     assert (f"the traceback could not be saved ({home / 'logs'} is a {kind}, where facecap "
             "keeps a folder of its own; move it out of the way or delete it") in err, err
     assert not list(elsewhere.iterdir())
+
+
+@pytest.mark.parametrize("kind", ["link", "FIFO", "file"])
+def test_a_planted_store_tmp_is_refused_and_nothing_written_behind_it(kind, tmp_path):
+    """``STORE/.tmp`` (where every artifact is written before its rename into place)
+    planted as a link used to have the ingested video copy and the keyframe tracks written
+    behind it. Now: one line naming it, nothing written behind the link, nothing stored."""
+    video, elsewhere, store = tmp_path / "take.mp4", tmp_path / "elsewhere", tmp_path / "store"
+    video.write_bytes(b"the face of alice")
+    elsewhere.mkdir()
+    key = input_key(video)
+    if kind == "file":
+        store.mkdir()
+        (store / ".tmp").write_text("the user's own file")
+    else:
+        plant(store / ".tmp", kind, elsewhere)
+    with deadline(), pytest.raises(InputError) as refused:
+        with run_leases():
+            ingest(str(store), video, "video.mp4")
+    line = str(refused.value)
+    assert line.startswith(f"{store / '.tmp'} is a {kind}, where facecap keeps a folder of its "
+                           "own; move it out of the way or delete it"), line
+    assert "\n" not in line
+    assert not list(elsewhere.iterdir())
+    assert not open_store(store).exists(key)

@@ -399,13 +399,14 @@ def test_read_only_store_raises_store_write_error(tmp_path):
 
 def test_unwritable_location_raises_store_write_error(tmp_path):
     # A regular file where the store folder should be is refused when the store is opened;
-    # one where its scratch folder should be fails the put, even for root.
+    # one where its artifacts folder should be fails the put, even for root (one where its
+    # .tmp should be is refused as planted: tests/test_own_files.py).
     blocker = tmp_path / "not-a-folder"
     blocker.write_bytes(b"")
     with pytest.raises(InputError, match="is not a folder"):
         open_store(blocker)
     (tmp_path / "store").mkdir()
-    (tmp_path / "store" / ".tmp").write_bytes(b"")
+    (tmp_path / "store" / "artifacts").write_bytes(b"")
     store = open_store(tmp_path / "store")
     with pytest.raises(StoreWriteError) as caught:
         put_mesh(store, {"mesh.ply": b"ply"})
@@ -431,6 +432,24 @@ def test_remote_get_downloads_into_the_cache_once(memory_url, facecap_home):
     assert store.get(mesh_key()) == folder
     assert marker.exists()
     assert [p.name for p in (facecap_home / "store-cache" / ".tmp").iterdir()] == []
+
+
+def test_a_planted_cache_tmp_link_is_refused_and_nothing_downloaded_behind_it(
+        memory_url, facecap_home, tmp_path):
+    """``$FACECAP_HOME/store-cache/.tmp`` planted as a link would have a remote artifact
+    (a face) downloaded behind it: one line naming it, nothing written there."""
+    from facecap.tasks.own_files import OwnFileError
+
+    store = open_store(memory_url)
+    put_mesh(store, {"mesh.ply": b"ply"})
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (facecap_home / "store-cache").mkdir(parents=True)
+    (facecap_home / "store-cache" / ".tmp").symlink_to(elsewhere)
+    with pytest.raises(OwnFileError, match=r"store-cache/\.tmp is a link, where facecap keeps "
+                                           "a folder of its own"):
+        store.get(mesh_key())
+    assert not list(elsewhere.iterdir())
 
 
 def test_damaged_cache_copy_is_downloaded_again(memory_url):

@@ -11,6 +11,7 @@ import uuid
 from collections.abc import Mapping
 from pathlib import Path
 
+from facecap.tasks.own_files import own_folder
 from facecap.tasks.store.base import ArtifactStore, MakeManifest
 from facecap.tasks.store.files import (
     MANIFEST_NAME,
@@ -139,7 +140,9 @@ class LocalStore(ArtifactStore):
         final_folder = Path(self._artifact_path(key))
         try:
             try:
-                temp_folder.mkdir(parents=True)
+                # Never behind a link planted as .tmp: made, or checked, as a folder of its own.
+                os.close(own_folder(temp_folder.parent))
+                temp_folder.mkdir()
                 entries = {
                     name: write_local_file(temp_folder / name, source_chunks(name, source))
                     for name, source in files.items()

@@ -7,6 +7,7 @@ manifest wins. Artifacts are read from a verified local copy in ``$FACECAP_HOME/
 
 from __future__ import annotations
 
+import os
 import shutil
 import uuid
 from collections.abc import Mapping
@@ -14,6 +15,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from facecap.tasks.own_files import own_folder
 from facecap.tasks.store.base import ArtifactStore, MakeManifest, scheme
 from facecap.tasks.store.files import (
     MANIFEST_NAME,
@@ -154,7 +156,8 @@ class RemoteStore(ArtifactStore):
         temp_folder = destination.parent / ".tmp" / uuid.uuid4().hex
         try:
             try:
-                temp_folder.mkdir(parents=True)
+                os.close(own_folder(temp_folder.parent))  # never behind a link planted as .tmp
+                temp_folder.mkdir()
                 for name, entry in manifest.files.items():
                     actual = self._download_file(manifest, name, temp_folder / name)
                     problem = mismatch(actual, entry) if verify else None
