@@ -97,14 +97,15 @@ def _open_checked(path: str | os.PathLike, flags: int, dir_fd: int | None,
     return fd
 
 
-def open_regular(path: str | os.PathLike, create: bool = False, dir_fd: int | None = None
-                 ) -> int:
+def open_regular(path: str | os.PathLike, create: bool = False, dir_fd: int | None = None,
+                 shown: str | os.PathLike | None = None) -> int:
     """A descriptor of the regular file at ``path`` (relative to ``dir_fd`` if given), open
     for reading, or with ``create`` for reading and writing, made if missing (never
     truncated: a lock's or a lease's content is not its point). A link, a FIFO, a folder or
-    a device there is an :class:`OwnFileError`; other failures are the ``OSError`` they
-    are (a missing file, a read-only folder)."""
-    return _open_checked(path, os.O_RDWR | os.O_CREAT if create else os.O_RDONLY, dir_fd)
+    a device there is an :class:`OwnFileError` (naming ``shown``, or ``path``); other
+    failures are the ``OSError`` they are (a missing file, a read-only folder)."""
+    return _open_checked(path, os.O_RDWR | os.O_CREAT if create else os.O_RDONLY, dir_fd,
+                         shown)
 
 
 def open_folder(path: str | os.PathLike, dir_fd: int | None = None) -> int:

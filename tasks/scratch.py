@@ -22,6 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from facecap.tasks.own_files import OwnFileError, open_regular, own_folder
 from facecap_core.assets import facecap_home
 
 SCRATCH = "scratch"
@@ -57,9 +58,14 @@ def process_scratch() -> Path:
         return _folder
     pid = os.getpid()
     folder = facecap_home() / SCRATCH / f"{_host()}-{pid}-{start_ticks(pid)}"
-    folder.mkdir(parents=True, exist_ok=True)
-    _alive_lock = open(folder / ALIVE, "a")  # noqa: SIM115 - held until the process ends
-    fcntl.flock(_alive_lock, fcntl.LOCK_EX)
+    # Never through a link planted under its name or as its .alive, never waiting on a FIFO.
+    folder_fd = own_folder(folder)
+    try:
+        alive = open_regular(ALIVE, create=True, dir_fd=folder_fd, shown=folder / ALIVE)
+    finally:
+        os.close(folder_fd)
+    fcntl.flock(alive, fcntl.LOCK_EX)  # held until the process ends
+    _alive_lock = alive
     os.environ["TMPDIR"] = str(folder)  # child processes, and libraries that read it
     os.environ.setdefault("GLOG_log_dir", str(folder))  # read when glog first loads
     tempfile.tempdir = str(folder)
@@ -77,15 +83,17 @@ def _abandoned(folder: Path) -> bool:
     try:
         if time.time() - folder.stat().st_mtime < GRACE_S:
             return False
-        handle = open(folder / ALIVE, "a")  # noqa: SIM115 - closed below
+        # A link, a FIFO or a folder planted as .alive: not a folder of facecap's, kept.
+        alive = open_regular(folder / ALIVE, create=True)
+    except (OSError, OwnFileError):
+        return False
+    try:
+        fcntl.flock(alive, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
         return False
-    with handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            return False
-        return True
+    finally:
+        os.close(alive)
+    return True
 
 
 def remove_orphans(home: Path | None = None) -> list[Path]:

@@ -282,3 +282,57 @@ def test_a_planted_store_tmp_is_refused_and_nothing_written_behind_it(kind, tmp_
     assert "\n" not in line
     assert not list(elsewhere.iterdir())
     assert not open_store(store).exists(key)
+
+
+@pytest.mark.parametrize(("name", "kind"), [
+    (".alive", "link"), (".alive", "FIFO"), (".alive", "folder"), ("folder", "link")])
+def test_a_planted_scratch_alive_file_is_refused(name, kind, tmp_path, monkeypatch):
+    """This process's scratch folder ``FACECAP_HOME/scratch/<host>-<pid>-<start>`` holds an
+    ``.alive`` file it locks for its life: planted as a link it was opened (made, if the link
+    led nowhere) behind it, as a FIFO it hung the command. Now: one line naming it, nothing
+    made behind the link, no temp folder set there."""
+    import tempfile
+
+    from facecap.tasks import scratch
+
+    home, elsewhere = tmp_path / "home", tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.setenv("FACECAP_HOME", str(home))
+    monkeypatch.setattr(scratch, "_folder", None)
+    monkeypatch.setattr(scratch, "_alive_lock", None)
+    pid = os.getpid()
+    folder = home / scratch.SCRATCH / f"{scratch._host()}-{pid}-{scratch.start_ticks(pid)}"
+    planted = folder if name == "folder" else folder / scratch.ALIVE
+    plant(planted, kind, elsewhere if name == "folder" else elsewhere / "made")
+    with deadline(), pytest.raises(OwnFileError) as refused:
+        scratch.process_scratch()
+    what = "a folder" if name == "folder" else "a file"
+    line = str(refused.value)
+    assert line.startswith(f"{planted} is a {kind}, where facecap keeps {what} of its own"), line
+    assert "\n" not in line and isinstance(refused.value, InputError)  # exit 2, one line
+    assert not list(elsewhere.iterdir())
+    assert tempfile.gettempdir() != str(folder)
+
+
+@pytest.mark.parametrize("kind", ["link", "FIFO"])
+def test_a_planted_alive_file_is_no_orphan_to_remove(kind, tmp_path):
+    """A killed command's scratch folder is removed once no process holds its ``.alive``
+    lock; one whose ``.alive`` is a FIFO used to hang every later command that runs flows
+    (opened to append, it waits for a reader), and one whose ``.alive`` is a link led
+    nowhere had the file made behind it. Now such a folder is no facecap orphan: kept, at
+    once, nothing made behind the link; a real orphan beside it is still removed."""
+    from facecap.tasks import scratch
+
+    home, elsewhere = tmp_path / "home", tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    planted, orphan = home / "scratch" / "host-1-1", home / "scratch" / "host-2-2"
+    plant(planted / scratch.ALIVE, kind, elsewhere / "made")
+    orphan.mkdir()
+    (orphan / scratch.ALIVE).touch()
+    old = 10 * scratch.GRACE_S
+    for folder in (planted, orphan):
+        os.utime(folder, (os.path.getmtime(folder) - old,) * 2)
+    with deadline():
+        removed = scratch.remove_orphans(home)
+    assert removed == [orphan] and not orphan.exists()
+    assert planted.is_dir() and not list(elsewhere.iterdir())
