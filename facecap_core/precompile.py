@@ -76,6 +76,11 @@ def _sweep_signature() -> tuple:
     return (F64_2, F64_2, F64_1, BOOL_1, I64)
 
 
+def _patch_points_signature() -> tuple:
+    """facecap_core.nonrigid.photometric._measure's call of ``_patch_points``."""
+    return (F64_2, F64_2, F64_2, F64_2, F64_2, F64_1, F64_1, F64_1)
+
+
 def kernels() -> list[tuple[str, object, tuple]]:
     """(name, dispatcher, signature) of every kernel the pipeline calls from Python."""
     # Imported when asked for: each stage module loads numba and compiles nothing until
@@ -93,6 +98,8 @@ def kernels() -> list[tuple[str, object, tuple]]:
          _normal_ray_signature()),
         ("nonrigid.photometric._patch_scores", photometric._patch_scores,
          _patch_scores_signature()),
+        ("nonrigid.photometric._patch_points", photometric._patch_points,
+         _patch_points_signature()),
         ("pose.pba.kernels.accumulate", pba_kernels.accumulate, _accumulate_signature()),
         ("pose.pba.normal.accumulate_tracks", normal.accumulate_tracks,
          _accumulate_tracks_signature()),
