@@ -23,7 +23,6 @@ push-pull, so mip-maps and bilinear sampling show no seams.
 from __future__ import annotations
 
 import hashlib
-import io
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -420,13 +419,15 @@ def obj_text(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | None
     if colours is not None:
         v = np.c_[v, np.asarray(colours, float)[:, :3] / 255.0]
     corners = np.stack([np.asarray(faces, np.int64), layout.faces], 2).reshape(-1, 6) + 1
-    out = io.StringIO()
-    out.write(f"# facecap fitted mesh (mm), template topology\nmtllib {mtl_name}\n")
-    np.savetxt(out, v, fmt="v" + " %.8f" * v.shape[1])
-    np.savetxt(out, layout.uv, fmt="vt %.7f %.7f")
-    out.write(f"usemtl {MATERIAL}\n")
-    np.savetxt(out, corners, fmt="f %d/%d %d/%d %d/%d")
-    return out.getvalue()
+    return "".join([f"# facecap fitted mesh (mm), template topology\nmtllib {mtl_name}\n",
+                    _lines("v" + " %.8f" * v.shape[1], v), _lines("vt %.7f %.7f", layout.uv),
+                    f"usemtl {MATERIAL}\n", _lines("f %d/%d %d/%d %d/%d", corners)])
+
+
+def _lines(fmt: str, rows: np.ndarray) -> str:
+    """``fmt % row`` and a newline for each row, as np.savetxt writes them: one format of
+    all rows at once instead of one per row (several times faster, the same text)."""
+    return ((fmt + "\n") * len(rows)) % tuple(rows.ravel().tolist())
 
 
 def mtl_text(texture_name: str = TEXTURE_PNG) -> str:
