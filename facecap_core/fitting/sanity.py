@@ -13,7 +13,7 @@ its own template counterpart once the template is moved onto the fit by a simila
 
 from __future__ import annotations
 
-import functools
+import threading
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -67,23 +67,35 @@ def self_intersecting_pairs(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     The last meshes' answers are kept: the fit's check after the relaxation asks again
     about the mesh the relaxation's last check found sound.
     """
-    v = np.ascontiguousarray(vertices, float)
-    f = np.ascontiguousarray(faces, np.int64)
-    return _self_intersecting_pairs(v.tobytes(), f.tobytes(), len(v), len(f))
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces, np.int64)
+    # The layout is part of the key: the centroid's sum runs in memory order.
+    key = (v.shape, v.strides, v.tobytes(order="A"), f.shape, f.tobytes())
+    with _PAIRS_LOCK:
+        found = _PAIRS.get(key)
+    if found is None:
+        found = _self_intersecting_pairs(v, f)
+        with _PAIRS_LOCK:  # fits in threads of one process share the answers
+            _PAIRS[key] = found
+            while len(_PAIRS) > PAIRS_KEPT:
+                del _PAIRS[next(iter(_PAIRS))]
+    return found
 
 
-@functools.lru_cache(maxsize=2)
-def _self_intersecting_pairs(vertices_bytes: bytes, faces_bytes: bytes, n_vertices: int,
-                             n_faces: int) -> np.ndarray:
-    """:func:`self_intersecting_pairs` of the mesh whose arrays' bytes these are.
+PAIRS_KEPT = 2
+"""Meshes whose self-intersecting pairs :func:`self_intersecting_pairs` keeps."""
+_PAIRS: dict[tuple, np.ndarray] = {}
+_PAIRS_LOCK = threading.Lock()
+
+
+def _self_intersecting_pairs(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """:func:`self_intersecting_pairs`, worked out.
 
     Two triangles in general position intersect when an edge of one crosses the other: every
     edge is cast as a segment through a bounding-volume hierarchy of the triangles (open3d's
     ray casting, float32 about the centroid: 1e-5 mm on a head), and each crossing pairs the
     crossed triangle with the triangles that hold the edge. Coplanar overlaps are not seen.
     """
-    v = np.frombuffer(vertices_bytes, float).reshape(n_vertices, 3)
-    f = np.frombuffer(faces_bytes, np.int64).reshape(n_faces, 3)
     centre = v.mean(0)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor((v - centre).astype(np.float32)),
