@@ -81,11 +81,16 @@ def _patch_points_signature() -> tuple:
     return (F64_2, F64_2, F64_2, F64_2, F64_2, F64_1, F64_1, F64_1)
 
 
+def _blend_view_signature() -> tuple:
+    """facecap_core.texture.bake_texture's call of ``_blend_view``."""
+    return (I64_1, F64_1, F64_1, F32_2, F64_1, F64_2, F64_1)
+
+
 def kernels() -> list[tuple[str, object, tuple]]:
     """(name, dispatcher, signature) of every kernel the pipeline calls from Python."""
     # Imported when asked for: each stage module loads numba and compiles nothing until
     # called, but the command line's --help must not load the stages.
-    from facecap_core import measure
+    from facecap_core import measure, texture
     from facecap_core.mvs import patchmatch
     from facecap_core.nonrigid import constraints, photometric
     from facecap_core.pose.pba import kernels as pba_kernels
@@ -94,6 +99,7 @@ def kernels() -> list[tuple[str, object, tuple]]:
     return [
         ("measure._sweep", measure._sweep, _sweep_signature()),
         ("mvs.patchmatch._patchmatch", patchmatch._patchmatch, _patchmatch_signature()),
+        ("texture._blend_view", texture._blend_view, _blend_view_signature()),
         ("nonrigid.constraints._normal_ray_kernel", constraints._normal_ray_kernel,
          _normal_ray_signature()),
         ("nonrigid.photometric._patch_scores", photometric._patch_scores,

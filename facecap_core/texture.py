@@ -28,6 +28,7 @@ from functools import lru_cache
 from pathlib import Path
 
 import cv2
+import numba
 import numpy as np
 
 from facecap_core.camera import Intrinsics, camera_center, distort, pixel_rays
@@ -337,6 +338,19 @@ def push_pull(image: np.ndarray, known: np.ndarray) -> np.ndarray:
     return out
 
 
+@numba.njit(nogil=True, cache=True)
+def _blend_view(ids, rescale, weight, colour, gain, acc, total):
+    """One view's samples into the soft maximum's sums, in place: texel ``ids[j]``'s sums
+    rescaled by ``rescale[j]``, then its colour times the view's ``gain`` added with
+    ``weight[j]``. The ids are unique within a view; no fastmath: the float operations of
+    the numpy expressions it replaces, in their order, without their gathered copies."""
+    for j in range(len(ids)):
+        i = ids[j]
+        for c in range(3):
+            acc[i, c] = acc[i, c] * rescale[j] + weight[j] * np.float64(colour[j, c]) * gain[c]
+        total[i] = total[i] * rescale[j] + weight[j]
+
+
 def bake_texture(vertices: np.ndarray, faces: np.ndarray, keyframes, layout: UVLayout,
                  size: int = ATLAS_SIZE, min_cos: float = 0.25, depth_tol_mm: float = 1.0,
                  fill_colours: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
@@ -377,11 +391,8 @@ def bake_texture(vertices: np.ndarray, faces: np.ndarray, keyframes, layout: UVL
         new_best = np.maximum(best[ids], s)
         rescale = np.exp(np.where(np.isfinite(best[ids]), (best[ids] - new_best), 0.0)
                          / BLEND_SOFTNESS)
-        acc[ids] *= rescale[:, None]
-        total[ids] *= rescale
         w = np.exp((s - new_best) / BLEND_SOFTNESS)
-        acc[ids] += w[:, None] * colour * gains[k]
-        total[ids] += w
+        _blend_view(ids, rescale, w, colour, np.ascontiguousarray(gains[k]), acc, total)
         best[ids] = new_best
     seen = total > 0
     colours = np.zeros((T, 3))
