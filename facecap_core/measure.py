@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
@@ -61,8 +62,11 @@ def _edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     (F, 3: the edges opposite nothing; edge k of a face joins its vertices k and k+1)."""
     pairs = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
     pairs = np.sort(pairs, axis=1)
-    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
-    return edges, inverse.reshape(-1, 3)
+    # One integer key per edge, in the rows' lexicographic order: np.unique over rows is
+    # several times slower.
+    n = int(pairs.max()) + 1 if len(pairs) else 1
+    keys, inverse = np.unique(pairs[:, 0] * n + pairs[:, 1], return_inverse=True)
+    return np.column_stack([keys // n, keys % n]), inverse.reshape(-1, 3)
 
 
 class SurfacePaths:
@@ -119,17 +123,17 @@ class SurfacePaths:
         k = nodes_of.shape[1]
         i, j = np.triu_indices(k, 1)
         rows, cols = local[:, i].ravel(), local[:, j].ravel()
-        weights = np.linalg.norm(points[rows] - points[cols], axis=1)
         # The path passes no vertex but its ends: every point inside it lies on an edge,
         # where the straightening can slide it (to the edge's end, if that is shortest).
         ends = np.isin(ids, (a, b)) | (ids >= len(self.vertices))
         keep = ends[rows] & ends[cols]
-        rows, cols, weights = rows[keep], cols[keep], weights[keep]
-        graph = sp.coo_matrix((np.r_[weights, weights], (np.r_[rows, cols], np.r_[cols, rows])),
+        rows, cols = rows[keep], cols[keep]
+        # The pattern first (an edge two faces share appears twice), then each edge's length.
+        graph = sp.coo_matrix((np.ones(2 * len(rows)), (np.r_[rows, cols], np.r_[cols, rows])),
                               shape=(len(ids), len(ids))).tocsr()
         graph.data[:] = np.linalg.norm(points[np.repeat(np.arange(len(ids)),
                                                          np.diff(graph.indptr))]
-                                       - points[graph.indices], axis=1)  # duplicates summed
+                                       - points[graph.indices], axis=1)
         start, end = int(np.searchsorted(ids, a)), int(np.searchsorted(ids, b))
         _, before = dijkstra(graph, indices=start, return_predecessors=True)
         chain = [end]
@@ -152,36 +156,59 @@ def straighten(vertices: np.ndarray, edges: np.ndarray, nodes: np.ndarray, n: in
     u = np.where(inner, edges[e, 0], nodes)
     v = np.where(inner, edges[e, 1], nodes)
     start, step = vertices[u], vertices[v] - vertices[u]
-    ratio = (math.sqrt(5) - 1) / 2
+    start, step = np.ascontiguousarray(start, float), np.ascontiguousarray(step, float)
+    inner = np.ascontiguousarray(inner)
     length = math.inf
     for _ in range(sweeps):
-        for parity in (1, 0):
-            idx = np.arange(parity if parity else 2, len(nodes) - 1, 2)
-            idx = idx[inner[idx]]
-            if not len(idx):
-                continue
-            p = start + t[:, None] * step
-            prev, nxt = p[idx - 1], p[idx + 1]
-            s0, s1 = start[idx], step[idx]
-
-            def cost(x, s0=s0, s1=s1, prev=prev, nxt=nxt):
-                q = s0 + x[:, None] * s1
-                return np.linalg.norm(q - prev, axis=1) + np.linalg.norm(q - nxt, axis=1)
-
-            lo, hi = np.zeros(len(idx)), np.ones(len(idx))
-            for _ in range(GOLDEN_STEPS):
-                d = ratio * (hi - lo)
-                x1, x2 = hi - d, lo + d
-                left = cost(x1) < cost(x2)
-                hi = np.where(left, x2, hi)
-                lo = np.where(left, lo, x1)
-            t[idx] = (lo + hi) / 2
+        _sweep(start, step, t, inner, GOLDEN_STEPS)
         p = start + t[:, None] * step
         shorter = float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
         if shorter > length * (1 - 1e-7):
             break
         length = shorter
     return start + t[:, None] * step
+
+
+@numba.njit(nogil=True, cache=True)
+def _sweep(start, step, t, inner, golden_steps):
+    """One sweep of :func:`straighten`, in place on ``t``: every inner point of odd index,
+    then of even index, slid by golden section along its edge (``start + t step``) to where
+    the sum of its distances to its two neighbours is least. Points of one parity do not
+    neighbour each other, so each one's neighbours are those of the sweep's start or of the
+    parity before. No fastmath: the figures are the float operations numpy makes, in
+    numpy's order (a norm's squares summed left to right)."""
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
+    for first in (1, 2):
+        for i in range(first, len(t) - 1, 2):
+            if not inner[i]:
+                continue
+            prev = np.empty(3)
+            nxt = np.empty(3)
+            for c in range(3):
+                prev[c] = start[i - 1, c] + t[i - 1] * step[i - 1, c]
+                nxt[c] = start[i + 1, c] + t[i + 1] * step[i + 1, c]
+            lo, hi = 0.0, 1.0
+            for _ in range(golden_steps):
+                d = ratio * (hi - lo)
+                x1, x2 = hi - d, lo + d
+                if _detour(start[i], step[i], x1, prev, nxt) < \
+                        _detour(start[i], step[i], x2, prev, nxt):
+                    hi = x2
+                else:
+                    lo = x1
+            t[i] = (lo + hi) / 2
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _detour(s0, s1, x, prev, nxt):
+    """|q - prev| + |q - nxt| for the point q = s0 + x s1."""
+    a2 = 0.0
+    b2 = 0.0
+    for c in range(3):
+        q = s0[c] + x * s1[c]
+        a2 += (q - prev[c]) * (q - prev[c])
+        b2 += (q - nxt[c]) * (q - nxt[c])
+    return math.sqrt(a2) + math.sqrt(b2)
 
 
 def with_sigma(mm: float, sigma_pct: float | None) -> dict:

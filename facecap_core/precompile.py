@@ -71,21 +71,41 @@ def _patch_scores_signature() -> tuple:
     return (F64_3, F64_2, I64_2, F64_1, F32_3, F64_3, F64_2, F64_2, I64_1, F64_2)
 
 
+def _sweep_signature() -> tuple:
+    """facecap_core.measure.straighten's call of ``_sweep``."""
+    return (F64_2, F64_2, F64_1, BOOL_1, I64)
+
+
+def _patch_points_signature() -> tuple:
+    """facecap_core.nonrigid.photometric._measure's call of ``_patch_points``."""
+    return (F64_2, F64_2, F64_2, F64_2, F64_2, F64_1, F64_1, F64_1)
+
+
+def _blend_view_signature() -> tuple:
+    """facecap_core.texture.bake_texture's call of ``_blend_view``."""
+    return (I64_1, F64_1, F64_1, F32_2, F64_1, F64_2, F64_1)
+
+
 def kernels() -> list[tuple[str, object, tuple]]:
     """(name, dispatcher, signature) of every kernel the pipeline calls from Python."""
     # Imported when asked for: each stage module loads numba and compiles nothing until
     # called, but the command line's --help must not load the stages.
+    from facecap_core import measure, texture
     from facecap_core.mvs import patchmatch
     from facecap_core.nonrigid import constraints, photometric
     from facecap_core.pose.pba import kernels as pba_kernels
     from facecap_core.pose.pba import normal, problem
 
     return [
+        ("measure._sweep", measure._sweep, _sweep_signature()),
         ("mvs.patchmatch._patchmatch", patchmatch._patchmatch, _patchmatch_signature()),
+        ("texture._blend_view", texture._blend_view, _blend_view_signature()),
         ("nonrigid.constraints._normal_ray_kernel", constraints._normal_ray_kernel,
          _normal_ray_signature()),
         ("nonrigid.photometric._patch_scores", photometric._patch_scores,
          _patch_scores_signature()),
+        ("nonrigid.photometric._patch_points", photometric._patch_points,
+         _patch_points_signature()),
         ("pose.pba.kernels.accumulate", pba_kernels.accumulate, _accumulate_signature()),
         ("pose.pba.normal.accumulate_tracks", normal.accumulate_tracks,
          _accumulate_tracks_signature()),

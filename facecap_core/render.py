@@ -155,9 +155,14 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals."""
     fn = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
                   vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    # Each vertex's faces summed by one bincount over the corners (all first corners, then
+    # all second, then all third): the order of the three np.add.at calls it replaces. The
+    # normals keep the vertices' memory layout (a fit's are column-major), as the callers'
+    # sums over them have.
+    corners = np.asarray(faces).T.ravel()
     vn = np.zeros_like(vertices, dtype=float)
     for c in range(3):
-        np.add.at(vn, faces[:, c], fn)
+        vn[:, c] = np.bincount(corners, np.tile(fn[:, c], 3), len(vertices))
     return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
 
 

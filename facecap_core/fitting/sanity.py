@@ -13,6 +13,7 @@ its own template counterpart once the template is moved onto the fit by a simila
 
 from __future__ import annotations
 
+import threading
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -61,15 +62,40 @@ def _normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nd
 
 def self_intersecting_pairs(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(P, 2) indices (sorted, unique) of the triangle pairs that cut through each other
-    (sharing a vertex or an edge is not an intersection).
+    (sharing a vertex or an edge is not an intersection); read-only.
+
+    The last meshes' answers are kept: the fit's check after the relaxation asks again
+    about the mesh the relaxation's last check found sound.
+    """
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces, np.int64)
+    # The layout is part of the key: the centroid's sum runs in memory order.
+    key = (v.shape, v.strides, v.tobytes(order="A"), f.shape, f.tobytes())
+    with _PAIRS_LOCK:
+        found = _PAIRS.get(key)
+    if found is None:
+        found = _self_intersecting_pairs(v, f)
+        with _PAIRS_LOCK:  # fits in threads of one process share the answers
+            _PAIRS[key] = found
+            while len(_PAIRS) > PAIRS_KEPT:
+                del _PAIRS[next(iter(_PAIRS))]
+    return found
+
+
+PAIRS_KEPT = 2
+"""Meshes whose self-intersecting pairs :func:`self_intersecting_pairs` keeps."""
+_PAIRS: dict[tuple, np.ndarray] = {}
+_PAIRS_LOCK = threading.Lock()
+
+
+def _self_intersecting_pairs(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """:func:`self_intersecting_pairs`, worked out.
 
     Two triangles in general position intersect when an edge of one crosses the other: every
     edge is cast as a segment through a bounding-volume hierarchy of the triangles (open3d's
     ray casting, float32 about the centroid: 1e-5 mm on a head), and each crossing pairs the
     crossed triangle with the triangles that hold the edge. Coplanar overlaps are not seen.
     """
-    v = np.asarray(vertices, float)
-    f = np.asarray(faces, np.int64)
     centre = v.mean(0)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor((v - centre).astype(np.float32)),
@@ -89,12 +115,15 @@ def self_intersecting_pairs(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     keys, holder = keys[order], np.repeat(np.arange(len(f)), 3)[order]
     query = edge[:, 0] * len(v) + edge[:, 1]
     lo, hi = np.searchsorted(keys, query, "left"), np.searchsorted(keys, query, "right")
-    rows = np.repeat(np.arange(len(edge)), hi - lo)
-    held = holder[np.concatenate([np.arange(a, b) for a, b in zip(lo, hi)] or [[]]).astype(
-        np.int64)]
+    count = hi - lo
+    rows = np.repeat(np.arange(len(edge)), count)
+    # lo[r], lo[r] + 1, ..., hi[r] - 1 for each crossing r in turn.
+    held = holder[np.arange(len(rows)) - np.repeat(np.cumsum(count) - count - lo, count)]
     pairs = np.sort(np.column_stack([held, crossed[rows]]), axis=1)
     shared = (f[pairs[:, 0]][:, :, None] == f[pairs[:, 1]][:, None, :]).any(axis=(1, 2))
-    return np.unique(pairs[~shared], axis=0).reshape(-1, 2)
+    found = np.unique(pairs[~shared], axis=0).reshape(-1, 2)
+    found.flags.writeable = False  # shared by every caller
+    return found
 
 
 def new_intersecting_pairs(vertices: np.ndarray, faces: np.ndarray,

@@ -128,10 +128,12 @@ def _quadrics(v: np.ndarray, normals: np.ndarray, t1: np.ndarray, t2: np.ndarray
     h = np.einsum("ij,ij->i", d, normals[i])
     phi = np.stack([u * u, u * w, w * w], axis=1)
     n = len(v)
-    m = np.zeros((n, 3, 3))
-    r = np.zeros((n, 3))
-    np.add.at(m, i, phi[:, :, None] * phi[:, None, :])
-    np.add.at(r, i, phi * h[:, None])
+    # Sums per vertex by bincount, which adds in the pairs' order as np.add.at did, at a
+    # fraction of its time; m is symmetric, so each of its upper entries is summed once.
+    m = np.empty((n, 3, 3))
+    for a, b in zip(*np.triu_indices(3)):
+        m[:, a, b] = m[:, b, a] = np.bincount(i, phi[:, a] * phi[:, b], n)
+    r = np.column_stack([np.bincount(i, phi[:, a] * h, n) for a in range(3)])
     scale = np.trace(m, axis1=1, axis2=2)[:, None, None]
     m += np.eye(3) * (1e-3 * scale + 1e-9)
     return np.linalg.solve(m, r[..., None])[..., 0]
@@ -233,6 +235,23 @@ def _patch_scores(base, normals, views, offsets, images, rotations, translations
             score[i, d] = (sq - count) / (count * (count - 1))
 
 
+@numba.njit(nogil=True, cache=True)
+def _patch_points(v, t1, t2, normals, quad, step, gu, gv):
+    """(m, G, 3): vertex i's patch, the grid ``(gu, gv) step[i]`` in its tangent plane
+    (``t1``, ``t2``) lifted by its quadric ``quad[i]`` along its normal. No fastmath: each
+    point is the float operations, in their order, of the numpy expression it replaces,
+    without the temporary arrays of the patches' size."""
+    base = np.empty((len(v), len(gu), 3))
+    for i in range(len(v)):
+        a, b, c = quad[i, 0], quad[i, 1], quad[i, 2]
+        for g in range(len(gu)):
+            u, w = gu[g] * step[i], gv[g] * step[i]
+            h = a * u * u + b * u * w + c * w * w
+            for k in range(3):
+                base[i, g, k] = v[i, k] + u * t1[i, k] + w * t2[i, k] + h * normals[i, k]
+    return base
+
+
 def _measure(v, normals, keyframes, images, views, footprint, quad, t1, t2,
              offsets: np.ndarray, s: PhotometricConfig):
     """Per vertex the best offset along the normal and its confidence (0: not measured)."""
@@ -242,12 +261,10 @@ def _measure(v, normals, keyframes, images, views, footprint, quad, t1, t2,
     gu, gv = np.meshgrid(g, g, indexing="ij")
     gu, gv = gu.ravel(), gv.ravel()  # (G,)
     todo = np.flatnonzero(views[:, 1] >= 0)
-    step = (s.patch_step_px * footprint[todo])[:, None]  # mm
-    u, w = gu[None] * step, gv[None] * step  # (m, G)
-    a, b, c = quad[todo, 0:1], quad[todo, 1:2], quad[todo, 2:3]
-    h = a * u * u + b * u * w + c * w * w
-    base = np.ascontiguousarray(v[todo, None] + u[..., None] * t1[todo, None]
-                                + w[..., None] * t2[todo, None] + h[..., None] * normals[todo, None])
+    step = s.patch_step_px * footprint[todo]  # mm
+    base = _patch_points(*(np.ascontiguousarray(x[todo], float) for x in (v, t1, t2, normals,
+                                                                           quad)),
+                         step, gu, gv)
     rotations = np.ascontiguousarray([kf.R for kf in keyframes], float)
     translations = np.ascontiguousarray([kf.t for kf in keyframes], float)
     cameras = np.ascontiguousarray([[kf.intrinsics.fx, kf.intrinsics.fy, kf.intrinsics.cx,
