@@ -19,6 +19,7 @@ import shutil
 import socket
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -32,6 +33,7 @@ GRACE_S = 60.0
 
 _folder: Path | None = None
 _alive_lock = None
+_making = threading.Lock()  # the tasks' threads may ask for the folder first at once
 
 
 def start_ticks(pid: int) -> str:
@@ -53,9 +55,15 @@ def process_scratch() -> Path:
     COLMAP's glog) on first use, removed at exit. The process holds an exclusive lock on
     its ``.alive`` file for as long as it lives: that lock, not the folder's name, tells a
     live process's folder from a killed one's."""
-    global _folder, _alive_lock
     if _folder is not None and _folder.is_dir():
         return _folder
+    with _making:
+        # A second thread's lock on the same .alive would wait for the first's for ever.
+        return _folder if _folder is not None and _folder.is_dir() else _make_scratch()
+
+
+def _make_scratch() -> Path:
+    global _folder, _alive_lock
     pid = os.getpid()
     folder = facecap_home() / SCRATCH / f"{_host()}-{pid}-{start_ticks(pid)}"
     # Never through a link planted under its name or as its .alive, never waiting on a FIFO.
@@ -65,6 +73,8 @@ def process_scratch() -> Path:
     finally:
         os.close(folder_fd)
     fcntl.flock(alive, fcntl.LOCK_EX)  # held until the process ends
+    if _alive_lock is not None:  # the folder was removed under the process: its old lock
+        os.close(_alive_lock)
     _alive_lock = alive
     os.environ["TMPDIR"] = str(folder)  # child processes, and libraries that read it
     os.environ.setdefault("GLOG_log_dir", str(folder))  # read when glog first loads
