@@ -368,13 +368,22 @@ def test_a_store_in_memory_is_refused_by_every_command(orbit, tmp_path, monkeypa
 # --------------------------------------------------------------------------- bugs
 
 
+def evaluate_a_mesh(tmp_path: Path) -> int:
+    """``facecap evaluate`` of a mesh file in ``tmp_path`` against itself, in this process
+    (the tests make its evaluation fail as they need); returns the exit code."""
+    from facecap import cli
+
+    mesh = tmp_path / "m.ply"
+    mesh.write_bytes(b"ply")
+    return cli.main(["evaluate", str(mesh), "--scan", str(mesh)])
+
+
 def test_a_bug_on_a_full_disk_is_still_one_line(tmp_path, monkeypatch, capsys):
     """The crash log cannot be written (no space left): the line still says it is a bug,
     what was raised, and that the traceback could not be saved, and why."""
     import errno
     import os
 
-    from facecap import cli
     from facecap_core import evaluation
 
     def broken(*args, **kwargs):
@@ -389,9 +398,7 @@ def test_a_bug_on_a_full_disk_is_still_one_line(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
     monkeypatch.setattr(evaluation, "evaluate", broken)
     monkeypatch.setattr(own_files, "_write_all", full)
-    mesh = tmp_path / "m.ply"
-    mesh.write_bytes(b"ply")
-    code = cli.main(["evaluate", str(mesh), "--scan", str(mesh)])
+    code = evaluate_a_mesh(tmp_path)
     err = capsys.readouterr().err
     assert code == 1 and len(err.strip().splitlines()) == 1, err
     assert err.startswith("facecap: internal error (a bug in facecap, not a problem with your "
@@ -406,7 +413,6 @@ def test_an_error_on_a_full_prefect_disk_is_the_disk(tmp_path, monkeypatch, caps
     to do, exit 2; the same error with space left stays a bug (exit 1)."""
     import os
 
-    from facecap import cli
     from facecap_core import evaluation
 
     def server_error(*args, **kwargs):
@@ -426,12 +432,10 @@ def test_an_error_on_a_full_prefect_disk_is_the_disk(tmp_path, monkeypatch, caps
     monkeypatch.setenv("FACECAP_HOME", str(tmp_path / "home"))
     monkeypatch.setenv("PREFECT_HOME", str(prefect_home))
     monkeypatch.setattr(evaluation, "evaluate", server_error)
-    mesh = tmp_path / "m.ply"
-    mesh.write_bytes(b"ply")
-    code = cli.main(["evaluate", str(mesh), "--scan", str(mesh)])
+    code = evaluate_a_mesh(tmp_path)
     assert code == 1 and "internal error" in capsys.readouterr().err  # space left: a bug
     monkeypatch.setattr(os, "statvfs", full_prefect_disk)
-    code = cli.main(["evaluate", str(mesh), "--scan", str(mesh)])
+    code = evaluate_a_mesh(tmp_path)
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert err.startswith(f"facecap: error: no space left on the disk of PREFECT_HOME "

@@ -236,8 +236,8 @@ def test_a_crash_log_is_never_written_behind_a_planted_logs_link(kind, tmp_path,
     """A bug's traceback goes to ``FACECAP_HOME/logs/crash-….log``: with ``logs`` planted as
     a link it used to be written behind it. Now the bug's one line says why the traceback
     was not saved, and nothing is written behind the link."""
-    from facecap import cli
     from facecap_core import evaluation
+    from tests.test_cli import evaluate_a_mesh
 
     def broken(*args, **kwargs):
         raise ZeroDivisionError("float division by zero")
@@ -248,9 +248,7 @@ def test_a_crash_log_is_never_written_behind_a_planted_logs_link(kind, tmp_path,
     plant(home / "logs", "link", elsewhere) if kind == "link" else (home / "logs").write_text("")
     monkeypatch.setenv("FACECAP_HOME", str(home))
     monkeypatch.setattr(evaluation, "evaluate", broken)
-    mesh = tmp_path / "m.ply"
-    mesh.write_bytes(b"ply")
-    code = cli.main(["evaluate", str(mesh), "--scan", str(mesh)])
+    code = evaluate_a_mesh(tmp_path)
     err = capsys.readouterr().err
     assert code == 1 and len(err.strip().splitlines()) == 1, err
     assert err.startswith("facecap: internal error (a bug in facecap"), err
